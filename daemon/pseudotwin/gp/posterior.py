@@ -1,0 +1,135 @@
+"""Live conditioning: today's GP posterior, grown by one Cholesky row per reading.
+
+The kernel matrix of today's observations is kept two-sided scaled, S = D⁻¹ K D⁻¹, as its
+Cholesky factor L. A new reading appends one row to L (a triangular solve, O(n²)) instead of
+re-factorizing (O(n³)) or rebuilding a GPy model. Observation order does not matter to a GP
+posterior, so out-of-order readings are simply appended.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg import solve_triangular
+
+from ..errors import NumericalError
+from .kernels import LcmParams
+from .stable import JITTER_START, ScaledCholesky, scaled_cholesky
+
+# Below this, the new pivot of the *unit-diagonal* scaled matrix has lost all digits to
+# cancellation: the extension is treated as a loss of positive definiteness.
+PIVOT_MIN = 1e-10
+
+
+class IncrementalPosterior:
+    """Posterior of a multi-output GP given point observations of some outputs.
+
+    Observations: times t [h], output indices o, residuals r (observation minus prior mean,
+    normalized units). State: t, o, r, d: [n]; L: [n, n] lower; a = L⁻¹ D⁻¹ r: [n].
+    """
+
+    def __init__(self, params: LcmParams, capacity: int = 256) -> None:
+        self.params = params
+        self.n = 0
+        self.jitter = 0.0
+        self.refactorizations = 0
+        self._alloc(max(8, capacity))
+
+    def _alloc(self, cap: int) -> None:
+        n = self.n
+        old = getattr(self, "_L", None)
+        L = np.zeros((cap, cap))
+        vecs = {}
+        fields = (("_t", float), ("_o", int), ("_r", float), ("_d", float), ("_a", float))
+        for name, dtype in fields:
+            arr = np.zeros(cap, dtype=dtype)
+            if old is not None:
+                arr[:n] = getattr(self, name)[:n]
+            vecs[name] = arr
+        if old is not None:
+            L[:n, :n] = old[:n, :n]
+        self._L = L
+        for name, arr in vecs.items():
+            setattr(self, name, arr)
+
+    # -- views ------------------------------------------------------------------------
+    @property
+    def t(self) -> np.ndarray:
+        return self._t[: self.n]
+
+    @property
+    def o(self) -> np.ndarray:
+        return self._o[: self.n]
+
+    @property
+    def r(self) -> np.ndarray:
+        return self._r[: self.n]
+
+    def _obs_var(self, o: int) -> float:
+        return self.params.prior_var(o) + float(self.params.noise[o])
+
+    # -- updates ----------------------------------------------------------------------
+    def add(self, t: float, o: int, r: float) -> None:
+        """Condition on one more observation (t [h], output o, residual r)."""
+        if not np.isfinite(r) or not np.isfinite(t):
+            raise NumericalError(f"non-finite observation t={t} r={r}")
+        n = self.n
+        if n == len(self._t):
+            self._alloc(2 * n)
+        d_new = np.sqrt(self._obs_var(o))
+        self._t[n], self._o[n], self._r[n], self._d[n] = t, o, r, d_new
+        if n == 0:
+            pivot2 = 1.0 + self.jitter
+            row = np.zeros(0)
+        else:
+            k = self.params.k_vec(t, o, self._t[:n], self._o[:n])
+            s = k / (self._d[:n] * d_new)
+            row = solve_triangular(self._L[:n, :n], s, lower=True, check_finite=False)
+            pivot2 = 1.0 + self.jitter - float(row @ row)
+        self.n = n + 1
+        if not (pivot2 > PIVOT_MIN) or not np.all(np.isfinite(row)):
+            self._refactorize()
+            return
+        piv = np.sqrt(pivot2)
+        self._L[n, :n] = row
+        self._L[n, n] = piv
+        self._a[n] = (r / d_new - float(row @ self._a[:n])) / piv
+
+    def _refactorize(self) -> None:
+        """Full, regularized refactorization (the fallback of a failed extension)."""
+        n = self.n
+        K = self.params.K(self.t, self.o, self.t, self.o)
+        K[np.diag_indices(n)] += self.params.noise[self.o]
+        # Regularized from the start: the extension failed because the matrix is (nearly)
+        # singular, so an unjittered factor would only succeed by rounding luck.
+        f: ScaledCholesky = scaled_cholesky(K, min_jitter=max(self.jitter, JITTER_START))
+        self.refactorizations += 1
+        self.jitter = f.jitter
+        self._L[:n, :n] = f.L
+        self._d[:n] = f.d
+        self._a[:n] = solve_triangular(f.L, self.r / f.d, lower=True, check_finite=False)
+
+    def set_residuals(self, r: np.ndarray) -> None:
+        """Replace all residuals (prior mean moved); one triangular solve, L unchanged."""
+        r = np.asarray(r, float)
+        if r.shape != (self.n,):
+            raise ValueError("one residual per observation expected")
+        self._r[: self.n] = r
+        if self.n:
+            self._a[: self.n] = solve_triangular(
+                self._L[: self.n, : self.n], r / self._d[: self.n], lower=True, check_finite=False
+            )
+
+    # -- prediction -------------------------------------------------------------------
+    def predict(self, t: float, o: int, include_noise: bool = True) -> tuple[float, float]:
+        """Posterior mean residual and variance of output o at time t [h]."""
+        var0 = self.params.prior_var(o) + (float(self.params.noise[o]) if include_noise else 0.0)
+        if self.n == 0:
+            return 0.0, var0
+        n = self.n
+        k = self.params.k_vec(t, o, self._t[:n], self._o[:n])
+        v = solve_triangular(self._L[:n, :n], k / self._d[:n], lower=True, check_finite=False)
+        mean = float(v @ self._a[:n])
+        var = var0 - float(v @ v)
+        if not (np.isfinite(mean) and np.isfinite(var)):
+            raise NumericalError("posterior is not finite")
+        return mean, max(var, 0.0)

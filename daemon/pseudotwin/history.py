@@ -1,0 +1,165 @@
+"""Canonical history: long rows ``sensor, ts, value`` (ts timezone-aware).
+
+Readers return a DataFrame with columns ``sensor`` (str), ``ts`` (datetime64, UTC) and
+``value`` (float), sorted by ``ts``; every malformed input raises :class:`DataError` with a
+message that names the file and what is wrong.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .errors import DataError
+from .horizon import OperatingHours
+
+COLUMNS = ("sensor", "ts", "value")
+
+
+def parse_timestamps(raw: pd.Series, where: str) -> pd.Series:
+    """ISO 8601 with offset, or epoch seconds / milliseconds → UTC timestamps."""
+    if pd.api.types.is_numeric_dtype(raw):
+        num = raw.astype(float)
+        unit = "ms" if np.nanmedian(np.abs(num)) > 1e11 else "s"
+        return pd.to_datetime(num, unit=unit, utc=True)
+    text = raw.astype(str)
+    if text.str.fullmatch(r"-?\d+(\.\d+)?").all():
+        return parse_timestamps(text.astype(float), where)
+    aware = text.str.contains(r"(?:Z|[+-]\d\d:?\d\d)$", regex=True)
+    if not aware.all():
+        bad = text[~aware].iloc[0]
+        raise DataError(f"{where}: timestamp {bad!r} has no UTC offset (use ISO 8601 with offset)")
+    try:
+        return pd.to_datetime(text, utc=True, format="ISO8601")
+    except (ValueError, TypeError) as exc:
+        raise DataError(f"{where}: unreadable timestamp ({exc})") from None
+
+
+def normalize(df: pd.DataFrame, where: str = "history") -> pd.DataFrame:
+    """Validate and normalize a long frame; drops non-finite values and exact duplicates."""
+    missing = [c for c in COLUMNS if c not in df.columns]
+    if missing:
+        raise DataError(
+            f"{where}: missing column(s) {', '.join(missing)}; expected header sensor,ts,value"
+        )
+    if df.empty:
+        raise DataError(f"{where}: no rows")
+    out = pd.DataFrame(
+        {"sensor": df["sensor"].astype(str).str.strip(), "ts": parse_timestamps(df["ts"], where)}
+    )
+    value = pd.to_numeric(df["value"], errors="coerce")
+    bad = value.isna() & df["value"].notna() & (df["value"].astype(str).str.strip() != "")
+    if bad.any():
+        row = int(np.flatnonzero(bad.values)[0])
+        raise DataError(
+            f"{where}: value {df['value'].iloc[row]!r} in data row {row + 1} is not a number"
+        )
+    out["ts"] = pd.DatetimeIndex(out["ts"]).as_unit("ns")  # one unit everywhere (pandas 3: us)
+    out["value"] = value.astype(float)
+    out = out[np.isfinite(out["value"].values)]
+    out = out.drop_duplicates().sort_values(["ts", "sensor"], kind="stable").reset_index(drop=True)
+    return out
+
+
+def read_history(path: str | Path) -> pd.DataFrame:
+    """Read a canonical CSV (or Parquet) history file."""
+    p = Path(path)
+    if not p.exists():
+        raise DataError(f"{p}: no such file")
+    try:
+        if p.suffix.lower() in (".parquet", ".pq"):
+            df = pd.read_parquet(p)
+        else:
+            df = pd.read_csv(p, dtype={"sensor": str, "ts": str}, comment="#")
+    except (ValueError, pd.errors.ParserError, UnicodeDecodeError, ImportError) as exc:
+        raise DataError(f"{p}: not a readable canonical history file ({exc})") from None
+    return normalize(df, str(p))
+
+
+def write_history(df: pd.DataFrame, path: str | Path) -> None:
+    """Write a long frame as canonical CSV (ISO 8601 UTC timestamps)."""
+    out = df.loc[:, list(COLUMNS)].copy()
+    out["ts"] = pd.DatetimeIndex(out["ts"]).tz_convert("UTC").strftime("%Y-%m-%dT%H:%M:%S.%f")
+    out["ts"] = out["ts"].str.replace(r"\.?0+$", "", regex=True).str.rstrip(".") + "+00:00"
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    out.to_csv(path, index=False, float_format="%.6g")
+
+
+def require_sensors(df: pd.DataFrame, sensors: list[str], where: str = "history") -> None:
+    have = set(df["sensor"].unique())
+    missing = [s for s in sensors if s not in have]
+    if missing:
+        known = ", ".join(sorted(have)[:20])
+        raise DataError(f"{where}: sensor(s) {', '.join(missing)} not found; file has: {known}")
+
+
+@dataclass(frozen=True)
+class DayReadings:
+    """One local day's window of readings, per sensor, in time order.
+
+    series: sensor → (hours [n] wall clock, values [n]); the first point of a sensor may be
+    the value carried over from before the init phase, placed at ``hours.init_start``.
+    """
+
+    day: dt.date
+    series: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+
+    def has(self, sensor: str) -> bool:
+        return sensor in self.series and len(self.series[sensor][0]) > 0
+
+    def slot_values(self, sensor: str, hours: OperatingHours) -> np.ndarray:
+        """Sample-and-hold values at the start of every window slot: [S] (NaN before any)."""
+        slots = hours.window_slots()
+        starts = slots * hours.slot_hours
+        if not self.has(sensor):
+            return np.full(len(slots), np.nan)
+        h, v = self.series[sensor]
+        idx = np.searchsorted(h, starts + 1e-9, side="right") - 1
+        out = np.where(idx >= 0, v[np.clip(idx, 0, None)], np.nan)
+        return out
+
+
+def split_days(
+    df: pd.DataFrame,
+    sensors: list[str],
+    hours: OperatingHours,
+    days: list[dt.date] | None = None,
+    max_carry_hours: float = 24.0,
+) -> list[DayReadings]:
+    """Cut a long frame into per-day windows (init start … day end), with carry-over.
+
+    The last reading of each sensor before the init phase (at most ``max_carry_hours`` old) is
+    carried into the window as one point at the init start, as the daemon does.
+    """
+    sub = df[df["sensor"].isin(sensors)]
+    if sub.empty:
+        return []
+    dayv, hrs = hours.day_and_hours(sub["ts"])
+    ts_ns = pd.DatetimeIndex(sub["ts"]).as_unit("ns").asi8
+    sens = sub["sensor"].values
+    vals = sub["value"].values.astype(float)
+    all_days = sorted({d.astype(object) for d in np.unique(dayv)})
+    wanted = all_days if days is None else list(days)
+    out: list[DayReadings] = []
+    for day in wanted:
+        init_ts = pd.Timestamp(hours.at(day, hours.init_start)).value
+        carry_from = init_ts - int(max_carry_hours * 3.6e12)
+        in_day = dayv == np.datetime64(day)
+        series: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        for s in sensors:
+            ms = sens == s
+            w = ms & in_day & hours.in_window(hrs)
+            h, v = hrs[w], vals[w]
+            before = np.flatnonzero(ms & (ts_ns < init_ts) & (ts_ns >= carry_from))
+            if len(before):
+                h = np.concatenate([[hours.init_start], h])
+                v = np.concatenate([[vals[before[-1]]], v])
+            if len(h):
+                order = np.argsort(h, kind="stable")
+                series[s] = (h[order], v[order])
+        out.append(DayReadings(day, series))
+    return out

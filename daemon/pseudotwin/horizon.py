@@ -1,0 +1,174 @@
+"""Operating hours, wall-clock time of day, the slot grid and the rolling-horizon day.
+
+Time inputs of every model are *wall-clock* hours of the local day (``08:30`` → 8.5), so a
+DST change (which happens at night) never shifts the operating hours. Days are local
+calendar days.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from dataclasses import dataclass
+from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
+
+import numpy as np
+import pandas as pd
+
+from .errors import ConfigError
+
+
+def _parse_hhmm(text: str, what: str) -> float:
+    try:
+        hh, mm = text.split(":")
+        h, m = int(hh), int(mm)
+    except ValueError:
+        raise ConfigError(f"{what}: expected HH:MM, got {text!r}") from None
+    if not (0 <= h <= 24 and 0 <= m < 60) or (h == 24 and m):
+        raise ConfigError(f"{what}: {text!r} is not a time of day")
+    return h + m / 60.0
+
+
+@dataclass(frozen=True)
+class OperatingHours:
+    """When a twin works each day.
+
+    day_start, day_end: wall-clock hours [h] of the published window (default 08:00–19:00).
+    init_minutes: collection phase before ``day_start`` [min]; nothing is published in it.
+    slot_minutes: width of the time-of-day grid used by TRIV and VARMA [min].
+    timezone: IANA zone name of the building.
+    """
+
+    day_start: float = 8.0
+    day_end: float = 19.0
+    init_minutes: float = 30.0
+    slot_minutes: float = 15.0
+    timezone: str = "UTC"
+
+    def __post_init__(self) -> None:
+        if not (0.0 <= self.day_start < self.day_end <= 24.0):
+            raise ConfigError(
+                f"operating hours: day_start {self.day_start} must be before day_end {self.day_end}"
+            )
+        if not (0.0 <= self.init_minutes <= 60.0 * self.day_start):
+            raise ConfigError(
+                f"operating hours: init phase of {self.init_minutes} min does not fit before "
+                "day_start on the same day"
+            )
+        if not (1.0 <= self.slot_minutes <= 120.0) or (24 * 60) % self.slot_minutes:
+            raise ConfigError(
+                f"slot_minutes {self.slot_minutes}: must divide a day and lie in 1..120"
+            )
+        try:
+            ZoneInfo(self.timezone)
+        except (ZoneInfoNotFoundError, ValueError):
+            raise ConfigError(f"unknown time zone {self.timezone!r}") from None
+
+    @classmethod
+    def from_strings(
+        cls,
+        day_start: str = "08:00",
+        day_end: str = "19:00",
+        init_minutes: float = 30.0,
+        slot_minutes: float = 15.0,
+        timezone: str = "UTC",
+    ) -> OperatingHours:
+        return cls(
+            _parse_hhmm(day_start, "day_start"),
+            _parse_hhmm(day_end, "day_end"),
+            float(init_minutes),
+            float(slot_minutes),
+            timezone,
+        )
+
+    @property
+    def tz(self) -> ZoneInfo:
+        return ZoneInfo(self.timezone)
+
+    @property
+    def init_start(self) -> float:
+        """Start of the init phase [h, wall clock]."""
+        return self.day_start - self.init_minutes / 60.0
+
+    @property
+    def slot_hours(self) -> float:
+        return self.slot_minutes / 60.0
+
+    @property
+    def n_slots(self) -> int:
+        """Number of slots in a whole day."""
+        return int(round(24.0 / self.slot_hours))
+
+    def window_slots(self) -> np.ndarray:
+        """Indices of the slots from init start to day end: [S]."""
+        first = int(np.floor(self.init_start / self.slot_hours + 1e-9))
+        last = int(np.ceil(self.day_end / self.slot_hours - 1e-9))
+        return np.arange(first, last)
+
+    def slot_of(self, hours: np.ndarray | float) -> np.ndarray:
+        """Slot index of wall-clock hours [h]."""
+        idx = np.floor(np.asarray(hours, dtype=float) / self.slot_hours + 1e-9).astype(int)
+        return np.clip(idx, 0, self.n_slots - 1)
+
+    # -- timestamps -------------------------------------------------------------------
+    def local(self, ts: pd.Series | pd.DatetimeIndex) -> pd.DatetimeIndex:
+        idx = pd.DatetimeIndex(ts)
+        if idx.tz is None:
+            raise ConfigError("timestamps must be timezone-aware")
+        return idx.tz_convert(self.timezone)
+
+    def day_and_hours(self, ts: pd.Series | pd.DatetimeIndex) -> tuple[np.ndarray, np.ndarray]:
+        """Local calendar day (datetime64[D]) and wall-clock hours [h] of each timestamp."""
+        loc = self.local(ts)
+        days = loc.tz_localize(None).normalize().values.astype("datetime64[D]")
+        hours = (
+            loc.hour.values + loc.minute.values / 60.0 + loc.second.values / 3600.0
+            + loc.microsecond.values / 3.6e9
+        )
+        return days, np.asarray(hours, dtype=float)
+
+    def day_of(self, ts: dt.datetime) -> dt.date:
+        return ts.astimezone(self.tz).date()
+
+    def hours_of(self, ts: dt.datetime) -> float:
+        loc = ts.astimezone(self.tz)
+        return loc.hour + loc.minute / 60.0 + loc.second / 3600.0 + loc.microsecond / 3.6e9
+
+    def at(self, day: dt.date, hours: float) -> dt.datetime:
+        """The aware instant of wall-clock ``hours`` on local ``day``.
+
+        Wall-clock times inside a DST gap are shifted forward (they do not exist); in a fold
+        the first occurrence is taken.
+        """
+        base = dt.datetime.combine(day, dt.time(0), tzinfo=self.tz)
+        secs = round(hours * 3600.0, 6)
+        naive = dt.datetime.combine(day, dt.time(0)) + dt.timedelta(seconds=secs)
+        aware = naive.replace(tzinfo=self.tz, fold=0)
+        # A non-existent wall time round-trips to a different wall time: step over the gap.
+        back = aware.astimezone(dt.UTC).astimezone(self.tz)
+        if back.replace(tzinfo=None) != naive:
+            aware = back
+        return aware if aware >= base else base
+
+    def in_operating_hours(self, hours: np.ndarray | float) -> np.ndarray:
+        h = np.asarray(hours, dtype=float)
+        return (h >= self.day_start) & (h <= self.day_end)
+
+    def in_window(self, hours: np.ndarray | float) -> np.ndarray:
+        h = np.asarray(hours, dtype=float)
+        return (h >= self.init_start) & (h <= self.day_end)
+
+    def to_dict(self) -> dict:
+        return {
+            "day_start": self.day_start,
+            "day_end": self.day_end,
+            "init_minutes": self.init_minutes,
+            "slot_minutes": self.slot_minutes,
+            "timezone": self.timezone,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> OperatingHours:
+        return cls(
+            float(d["day_start"]), float(d["day_end"]), float(d["init_minutes"]),
+            float(d["slot_minutes"]), str(d["timezone"]),
+        )

@@ -1,0 +1,304 @@
+"""Corr-GP twins: a multi-output GP over time of day whose outputs are the references and the
+target (DESIGN.md §3).
+
+- :class:`CorrGpLcm` (thesis 6.11/6.16): zero mean, all references, K = Σ_k B_k ⊗ k_k.
+  All outputs share one affine normalization (y − c)/s so their level differences survive.
+- :class:`CorrGpTriv` (thesis 6.15/6.17/6.18): one reference, ICM, prior means from TRIV.
+  The target's prior mean is TRIV: O(τ) + ref(t). The reference's prior mean is its own
+  average training-day profile P_ref(τ), shifted to today's level by the mean deviation of the
+  reference from P_ref during the init phase (``ref_mean="shifted"``; ``"profile"`` keeps the
+  unshifted P_ref). The GP therefore only sees deviations from the typical daily shape and
+  never the season's level. (Thesis eq. 6.4 prints ½(offset + ref), which is not a sensible
+  temperature level; this reading matches its text: "TRIV included as prior mean", "trained
+  on deviations". The choice lives here, in :meth:`CorrGpTriv._ref_mean`, and nowhere else.)
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Any
+
+import numpy as np
+
+from ..errors import DataError
+from ..gp.kernels import DEFAULT_KERNEL, KERNELS, LcmParams
+from ..gp.posterior import IncrementalPosterior
+from ..gp.train import FitData, FitReport, fit_lcm
+from ..horizon import OperatingHours
+from .base import Estimate, TrainingSet
+from .triv import HeldValues, TrivModel, slot_matrix
+
+MIN_POINTS_PER_OUTPUT = 8
+
+
+def _kernel_for(kernel: str | None, quantity: str) -> str:
+    k = kernel or DEFAULT_KERNEL.get(quantity, "rq")
+    if k not in KERNELS:
+        raise DataError(f"unknown kernel {k!r}; choose one of {', '.join(KERNELS)}")
+    return k
+
+
+def _fit_data(per_output: list[np.ndarray], hours: OperatingHours) -> FitData:
+    """Grid values per output [days, S] → day-blocked training points (NaNs dropped)."""
+    slot_h = hours.window_slots() * hours.slot_hours
+    ts, os_, ys, blocks = [], [], [], []
+    start = 0
+    n_days = per_output[0].shape[0]
+    for d in range(n_days):
+        n0 = start
+        for p, grid in enumerate(per_output):
+            ok = np.isfinite(grid[d])
+            ts.append(slot_h[ok])
+            os_.append(np.full(ok.sum(), p))
+            ys.append(grid[d][ok])
+            start += int(ok.sum())
+        if start > n0:
+            blocks.append(slice(n0, start))
+    o = np.concatenate(os_).astype(int)
+    for p in range(len(per_output)):
+        if (o == p).sum() < MIN_POINTS_PER_OUTPUT:
+            raise DataError(
+                f"too little training data: output {p} has {(o == p).sum()} grid points "
+                f"(at least {MIN_POINTS_PER_OUTPUT} needed)"
+            )
+    return FitData(np.concatenate(ts), o, np.concatenate(ys), tuple(blocks), len(per_output))
+
+
+class _GpModel:
+    """Shared settings and serialization of both Corr-GP models."""
+
+    kind = ""
+
+    def __init__(
+        self,
+        kernel: str | None = None,
+        restarts: int = 3,
+        artificial_noise: float = 0.0,
+        max_iter: int = 400,
+        seed: int = 0,
+    ) -> None:
+        self.kernel = kernel
+        self.restarts = restarts
+        self.artificial_noise = artificial_noise
+        self.max_iter = max_iter
+        self.seed = seed
+
+    def _train(self, fd: FitData, kernel: str, n_terms: int) -> None:
+        ys = fd.y
+        self.c_ = float(np.mean(ys))
+        self.s_ = float(np.std(ys)) or 1.0
+        norm = FitData(fd.t, fd.o, (ys - self.c_) / self.s_, fd.blocks, fd.n_outputs)
+        self.params_, self.report_, _ = fit_lcm(
+            norm, kernel, n_terms=n_terms, restarts=self.restarts,
+            artificial_noise=self.artificial_noise, max_iter=self.max_iter, seed=self.seed,
+        )
+        self.fit_data_ = norm
+
+    def _common_dict(self) -> dict[str, Any]:
+        return {
+            "kernel": self.params_.kernel,
+            "scaling": {"offset": self.c_, "scale": self.s_},
+            "hyperparameters": self.params_.to_dict(),
+            "diagnostics": self.report_.to_dict(),
+            "settings": {
+                "restarts": self.restarts, "artificial_noise": self.artificial_noise,
+                "max_iter": self.max_iter, "seed": self.seed,
+            },
+        }
+
+    def _load_common(self, d: dict[str, Any], hours: OperatingHours) -> None:
+        self.hours_ = hours
+        self.c_ = float(d["scaling"]["offset"])
+        self.s_ = float(d["scaling"]["scale"])
+        self.params_ = LcmParams.from_dict(d["hyperparameters"])
+        rep = FitReport()
+        for k, v in d.get("diagnostics", {}).items():
+            if hasattr(rep, k):
+                setattr(rep, k, v)
+        self.report_ = rep
+
+
+class CorrGpLcm(_GpModel):
+    """Zero-mean multi-input LCM. Outputs: references 0..q−1, target q.
+
+    n_terms: LCM terms (default: one per reference).
+    """
+
+    kind = "corrgp-lcm"
+
+    def __init__(self, kernel: str | None = None, n_terms: int | None = None, **kw: Any) -> None:
+        super().__init__(kernel, **kw)
+        self.n_terms = n_terms
+
+    def fit(self, training: TrainingSet) -> CorrGpLcm:
+        self.hours_ = training.hours
+        self.references_ = tuple(training.references)
+        self.target_ = training.target
+        grids = [slot_matrix(training, s) for s in training.sensors]
+        fd = _fit_data(grids, training.hours)
+        n_terms = self.n_terms or len(self.references_)
+        self._train(fd, _kernel_for(self.kernel, training.quantity), n_terms)
+        return self
+
+    def start_day(self, day: dt.date) -> LcmDay:
+        return LcmDay(self)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"references": list(self.references_), **self._common_dict()}
+
+    @classmethod
+    def from_dict(
+        cls, d: dict[str, Any], hours: OperatingHours, references: tuple[str, ...], target: str
+    ) -> CorrGpLcm:
+        m = cls(kernel=d["kernel"])
+        m._load_common(d, hours)
+        m.references_ = tuple(d["references"])
+        m.target_ = target
+        if m.params_.n_outputs != len(m.references_) + 1:
+            raise ValueError("LCM outputs do not match its references")
+        return m
+
+
+class LcmDay:
+    def __init__(self, model: CorrGpLcm) -> None:
+        self.model = model
+        self.index = {r: i for i, r in enumerate(model.references_)}
+        self.post = IncrementalPosterior(model.params_, capacity=512)
+
+    def observe(self, sensor: str, hours: float, value: float) -> None:
+        o = self.index.get(sensor)
+        if o is not None:
+            self.post.add(hours, o, (value - self.model.c_) / self.model.s_)
+
+    def predict(self, hours: float) -> Estimate:
+        m = self.model
+        if self.post.n == 0:
+            return Estimate(float("nan"), float("nan"))
+        mu, var = self.post.predict(hours, len(m.references_))
+        return Estimate(m.c_ + m.s_ * mu, m.s_ * float(np.sqrt(var)))
+
+
+class CorrGpTriv(_GpModel):
+    """Single-input ICM with TRIV as the target's prior mean. Outputs: reference 0, target 1.
+
+    reference: which of the twin's references to use (default: the first).
+    ref_mean: "shifted" (P_ref moved to today's level in the init phase) or "profile".
+    """
+
+    kind = "corrgp-triv"
+
+    def __init__(
+        self, kernel: str | None = None, reference: str | None = None,
+        ref_mean: str = "shifted", **kw: Any,
+    ) -> None:
+        super().__init__(kernel, **kw)
+        self.reference = reference
+        self.ref_mean = ref_mean
+
+    def fit(self, training: TrainingSet) -> CorrGpTriv:
+        if self.ref_mean not in ("shifted", "profile"):
+            raise DataError(f"ref_mean must be 'shifted' or 'profile', not {self.ref_mean!r}")
+        ref = self.reference or training.references[0]
+        if ref not in training.references:
+            raise DataError(f"corrgp-triv reference {ref!r} is not one of the twin's references")
+        self.hours_ = training.hours
+        self.references_ = (ref,)
+        self.target_ = training.target
+        self.triv_ = TrivModel((ref,)).fit(training)
+        refg = slot_matrix(training, ref)
+        tgtg = slot_matrix(training, training.target)
+        slot_h = training.hours.window_slots() * training.hours.slot_hours
+        prof = self.triv_.profiles_[ref]
+        init = slot_h < training.hours.day_start
+        ref_res = np.full_like(refg, np.nan)
+        for d in range(refg.shape[0]):
+            dev = refg[d] - prof
+            init_dev = dev[init & np.isfinite(dev)]
+            if not len(init_dev):
+                first = dev[np.isfinite(dev)]
+                init_dev = first[:1]
+            delta = self._shift(init_dev)
+            ref_res[d] = dev - delta
+        tgt_res = tgtg - (self.triv_.offsets_[0][None, :] + refg)
+        fd = _fit_data([ref_res, tgt_res], training.hours)
+        self._train(fd, _kernel_for(self.kernel, training.quantity), 1)
+        return self
+
+    def _shift(self, init_deviations: np.ndarray) -> float:
+        """Today's level shift of the reference's prior mean (the one place of the choice)."""
+        if self.ref_mean == "profile" or not len(init_deviations):
+            return 0.0
+        return float(np.mean(init_deviations))
+
+    def _ref_mean(self, hours: float, shift: float) -> float:
+        return self.triv_.profile(self.references_[0], hours) + shift
+
+    def start_day(self, day: dt.date) -> TrivGpDay:
+        return TrivGpDay(self)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "reference": self.references_[0],
+            "ref_mean": self.ref_mean,
+            "triv": self.triv_.to_dict(),
+            **self._common_dict(),
+        }
+
+    @classmethod
+    def from_dict(
+        cls, d: dict[str, Any], hours: OperatingHours, references: tuple[str, ...], target: str
+    ) -> CorrGpTriv:
+        m = cls(kernel=d["kernel"], reference=d["reference"], ref_mean=d["ref_mean"])
+        m._load_common(d, hours)
+        m.references_ = (d["reference"],)
+        m.target_ = target
+        m.triv_ = TrivModel.from_dict(d["triv"], hours, (d["reference"],), target)
+        if m.params_.n_outputs != 2:
+            raise ValueError("corrgp-triv must have exactly two outputs")
+        return m
+
+
+class TrivGpDay:
+    """Live state: ICM posterior on the reference's deviations from its prior mean."""
+
+    def __init__(self, model: CorrGpTriv) -> None:
+        self.model = model
+        self.ref = model.references_[0]
+        self.post = IncrementalPosterior(model.params_, capacity=512)
+        self.held = HeldValues()
+        self.values: list[float] = []  # raw reference values, in the posterior's order
+        self.init_dev: list[float] = []
+        self.shift = 0.0
+        self.frozen = False
+
+    def _residual(self, hours: float, value: float) -> float:
+        m = self.model
+        return (value - m._ref_mean(hours, self.shift) - m.c_) / m.s_
+
+    def observe(self, sensor: str, hours: float, value: float) -> None:
+        if sensor != self.ref:
+            return
+        m = self.model
+        self.held.update(sensor, hours, value)
+        in_init = hours < m.hours_.day_start
+        if not self.frozen and (in_init or not self.init_dev):
+            # The shift is learnt in the init phase; with no init reading at all, the first
+            # reading of the day sets it once.
+            self.init_dev.append(value - m.triv_.profile(self.ref, hours))
+            self.frozen = not in_init
+            new_shift = m._shift(np.array(self.init_dev))
+            if new_shift != self.shift:
+                self.shift = new_shift
+                pairs = zip(self.post.t, self.values, strict=True)
+                self.post.set_residuals(np.array([self._residual(t, v) for t, v in pairs]))
+        self.values.append(value)
+        self.post.add(hours, 0, self._residual(hours, value))
+
+    def predict(self, hours: float) -> Estimate:
+        m = self.model
+        ref = self.held.get(self.ref)
+        if ref is None:
+            return Estimate(float("nan"), float("nan"))
+        mu, var = self.post.predict(hours, 1)
+        value = m.triv_.offset(0, hours) + ref + m.c_ + m.s_ * mu
+        return Estimate(float(value), m.s_ * float(np.sqrt(var)))

@@ -1,0 +1,157 @@
+"""TRIV (thesis 6.7/6.8): the target is a reference plus its typical offset at this time of day.
+
+On the slot grid (COV values sample-and-hold), O_m(τ) = mean over training days of
+(target − ref_m) at slot τ, and TRIV(t) = mean over m of (O_m(τ(t)) + ref_m(t)).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Any
+
+import numpy as np
+
+from ..errors import DataError
+from ..horizon import OperatingHours
+from .base import Estimate, TrainingSet
+
+
+def _fill(profile: np.ndarray) -> np.ndarray:
+    """Fill slots no training day covered by linear interpolation over the covered ones."""
+    ok = np.isfinite(profile)
+    if not ok.any():
+        raise DataError("no training day covers any slot of the operating hours")
+    x = np.arange(len(profile))
+    return np.interp(x, x[ok], profile[ok])
+
+
+def slot_matrix(training: TrainingSet, sensor: str) -> np.ndarray:
+    """Sample-and-hold values of one sensor: [days, S] over the window slots."""
+    return np.array([d.slot_values(sensor, training.hours) for d in training.days])
+
+
+class TrivModel:
+    """TRIV with any number of references.
+
+    Fitted: offsets_ [M, S] target − ref_m per window slot; std_ [S] spread of the TRIV error
+    on the training days; profiles_ sensor → [S] average daily profile (used as prior means).
+    """
+
+    kind = "triv"
+
+    def __init__(self, references: tuple[str, ...] | None = None) -> None:
+        self.references = references
+
+    def fit(self, training: TrainingSet) -> TrivModel:
+        refs = tuple(self.references or training.references)
+        self.hours_ = training.hours
+        self.references_ = refs
+        self.target_ = training.target
+        tgt = slot_matrix(training, training.target)
+        offsets, estimates = [], []
+        self.profiles_: dict[str, np.ndarray] = {}
+        with np.errstate(invalid="ignore"), _quiet():
+            for r in refs:
+                ref = slot_matrix(training, r)
+                offsets.append(_fill(np.nanmean(tgt - ref, axis=0)))
+                self.profiles_[r] = _fill(np.nanmean(ref, axis=0))
+            self.profiles_[training.target] = _fill(np.nanmean(tgt, axis=0))
+            self.offsets_ = np.array(offsets)
+            for m, r in enumerate(refs):
+                estimates.append(self.offsets_[m][None, :] + slot_matrix(training, r))
+            err = tgt - np.nanmean(np.array(estimates), axis=0)
+            spread = np.sqrt(np.nanmean(err**2, axis=0))
+            overall = float(np.sqrt(np.nanmean(err**2))) if np.isfinite(err).any() else 0.0
+        self.std_ = np.where(np.isfinite(spread), spread, overall)
+        self.std_ = np.maximum(self.std_, 1e-6)
+        return self
+
+    def slot_index(self, hours: float) -> int:
+        """Index into the window slots [S] of wall-clock hours (clamped to the window)."""
+        slots = self.hours_.window_slots()
+        i = int(self.hours_.slot_of(hours)) - int(slots[0])
+        return min(max(i, 0), len(slots) - 1)
+
+    def offset(self, m: int, hours: float) -> float:
+        return float(self.offsets_[m, self.slot_index(hours)])
+
+    def profile(self, sensor: str, hours: float) -> float:
+        return float(self.profiles_[sensor][self.slot_index(hours)])
+
+    def start_day(self, day: dt.date) -> TrivDay:
+        return TrivDay(self)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "references": list(self.references_),
+            "offsets": self.offsets_.tolist(),
+            "std": self.std_.tolist(),
+            "profiles": {k: v.tolist() for k, v in self.profiles_.items()},
+        }
+
+    @classmethod
+    def from_dict(
+        cls, d: dict[str, Any], hours: OperatingHours, references: tuple[str, ...], target: str
+    ) -> TrivModel:
+        m = cls(tuple(d["references"]))
+        m.hours_ = hours
+        m.references_ = tuple(d["references"])
+        m.target_ = target
+        m.offsets_ = np.asarray(d["offsets"], float)
+        m.std_ = np.asarray(d["std"], float)
+        m.profiles_ = {k: np.asarray(v, float) for k, v in d["profiles"].items()}
+        S = len(hours.window_slots())
+        if m.offsets_.shape != (len(m.references_), S):
+            raise ValueError("TRIV offsets do not match the references and the slot grid")
+        return m
+
+
+class HeldValues:
+    """Latest value of each sensor by reading time (sample-and-hold; late readings of an
+    earlier time never overwrite a newer value)."""
+
+    def __init__(self) -> None:
+        self.values: dict[str, tuple[float, float]] = {}
+
+    def update(self, sensor: str, hours: float, value: float) -> None:
+        old = self.values.get(sensor)
+        if old is None or hours >= old[0]:
+            self.values[sensor] = (hours, value)
+
+    def get(self, sensor: str) -> float | None:
+        v = self.values.get(sensor)
+        return None if v is None else v[1]
+
+
+class TrivDay:
+    def __init__(self, model: TrivModel) -> None:
+        self.model = model
+        self.held = HeldValues()
+
+    def observe(self, sensor: str, hours: float, value: float) -> None:
+        self.held.update(sensor, hours, value)
+
+    def predict(self, hours: float) -> Estimate:
+        m = self.model
+        vals = [
+            m.offset(i, hours) + v
+            for i, r in enumerate(m.references_)
+            if (v := self.held.get(r)) is not None
+        ]
+        if not vals:
+            return Estimate(float("nan"), float("nan"))
+        return Estimate(float(np.mean(vals)), float(m.std_[m.slot_index(hours)]))
+
+
+class _quiet:
+    """Silence numpy's 'mean of empty slice' for slots no day covers (handled by _fill)."""
+
+    def __enter__(self) -> None:
+        import warnings
+
+        self._cm = warnings.catch_warnings()
+        self._cm.__enter__()
+        warnings.simplefilter("ignore", RuntimeWarning)
+
+    def __exit__(self, *exc: object) -> None:
+        self._cm.__exit__(*exc)
