@@ -20,23 +20,35 @@ from .horizon import OperatingHours
 COLUMNS = ("sensor", "ts", "value")
 
 
+def _epoch(num: pd.Series) -> pd.Series:
+    # Epoch milliseconds are > 1e11 for any date after 1973; seconds stay below until 5138.
+    ms = num.abs() > 1e11
+    out = pd.to_datetime(num.where(~ms) * 1e9, unit="ns", utc=True)
+    return out.where(~ms, pd.to_datetime(num.where(ms) * 1e6, unit="ns", utc=True))
+
+
 def parse_timestamps(raw: pd.Series, where: str) -> pd.Series:
-    """ISO 8601 with offset, or epoch seconds / milliseconds → UTC timestamps."""
+    """ISO 8601 with offset, or epoch seconds / milliseconds (row by row) → UTC timestamps."""
     if pd.api.types.is_numeric_dtype(raw):
-        num = raw.astype(float)
-        unit = "ms" if np.nanmedian(np.abs(num)) > 1e11 else "s"
-        return pd.to_datetime(num, unit=unit, utc=True)
-    text = raw.astype(str)
-    if text.str.fullmatch(r"-?\d+(\.\d+)?").all():
-        return parse_timestamps(text.astype(float), where)
-    aware = text.str.contains(r"(?:Z|[+-]\d\d:?\d\d)$", regex=True)
-    if not aware.all():
-        bad = text[~aware].iloc[0]
-        raise DataError(f"{where}: timestamp {bad!r} has no UTC offset (use ISO 8601 with offset)")
-    try:
-        return pd.to_datetime(text, utc=True, format="ISO8601")
-    except (ValueError, TypeError) as exc:
-        raise DataError(f"{where}: unreadable timestamp ({exc})") from None
+        return _epoch(raw.astype(float))
+    text = raw.astype(str).str.strip()
+    numeric = text.str.fullmatch(r"-?\d+(\.\d+)?")
+    out = pd.Series(pd.NaT, index=raw.index, dtype="datetime64[ns, UTC]")
+    if numeric.any():
+        out[numeric] = _epoch(text[numeric].astype(float))
+    iso = text[~numeric]
+    if len(iso):
+        aware = iso.str.contains(r"(?:Z|[+-]\d\d:?\d\d)$", regex=True)
+        if not aware.all():
+            bad = iso[~aware].iloc[0]
+            raise DataError(
+                f"{where}: timestamp {bad!r} has no UTC offset (use ISO 8601 with offset)"
+            )
+        try:
+            out[~numeric] = pd.to_datetime(iso, utc=True, format="ISO8601").dt.as_unit("ns")
+        except (ValueError, TypeError) as exc:
+            raise DataError(f"{where}: unreadable timestamp ({exc})") from None
+    return out
 
 
 def normalize(df: pd.DataFrame, where: str = "history") -> pd.DataFrame:
