@@ -74,7 +74,7 @@ class _GpModel:
         kernel: str | None = None,
         restarts: int = 3,
         artificial_noise: float = 0.0,
-        max_iter: int = 400,
+        max_iter: int = 1000,
         seed: int = 0,
     ) -> None:
         self.kernel = kernel

@@ -1,0 +1,216 @@
+"""Turning one MQTT payload into one validated reading.
+
+A bad payload is never fatal: :func:`parse_payload` raises :class:`Rejected` with a short,
+stable reason code (for counters and the monitor topic) and a human message (for the log).
+
+Payload formats (per sensor, see :class:`~pseudotwin.config.SensorConfig`):
+
+* ``"number"``: the UTF-8 text of one decimal number (``21.5``, ``-3``, ``4.2e2``, blanks
+  around it allowed). Its timestamp is the arrival time.
+* ``"json"``: an object with the value under ``value_key`` and the timestamp under
+  ``ts_key`` (arrival time if ``ts_key`` is empty). The value must be a JSON *number*:
+  strings such as ``"21.5"``, booleans and null are rejected as ``not-a-number``. Accepting
+  quoted numbers would also have to decide about ``"21,5"``, ``" nan "`` and units in the
+  string; a producer sending strings is misconfigured and should be told, not guessed at.
+  The timestamp is an ISO 8601 string *with* a UTC offset (``Z`` allowed) or epoch
+  seconds, or epoch milliseconds when its magnitude exceeds 1e11 (1e11 s is the year 5138,
+  1e11 ms is March 1973, so the two cannot be confused for real data).
+
+Checks run in this order and the first failure is reported: size, syntax, value, timestamp,
+valid range, future (more than ``max_skew`` after arrival), too old (before ``not_before``,
+the start of the current window). Duplicates and out-of-order readings are the window's
+business, not this module's.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from dataclasses import dataclass
+from datetime import UTC, datetime, timedelta
+from enum import StrEnum
+from typing import Any
+
+from .config import SensorConfig
+
+__all__ = ["MAX_PAYLOAD_BYTES", "Reading", "Reason", "Rejected", "parse_payload"]
+
+#: Larger payloads are rejected before decoding: a reading is a few dozen bytes, and the
+#: limit bounds the work a misbehaving publisher can cause.
+MAX_PAYLOAD_BYTES = 64 * 1024
+
+#: Epoch values above this magnitude are milliseconds.
+EPOCH_MS_THRESHOLD = 1e11
+
+_EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
+# Plain decimal numbers only: float() would also accept "1_000", "infinity" and friends.
+_DECIMAL = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?")
+_NON_FINITE = re.compile(r"[+-]?(?:nan|inf|infinity)", re.IGNORECASE)
+
+
+class Reason(StrEnum):
+    """Why a payload was rejected. The values are stable: counters and dashboards use them."""
+
+    TOO_LARGE = "too-large"
+    NOT_JSON = "not-json"
+    MISSING_KEY = "missing-key"
+    NOT_A_NUMBER = "not-a-number"
+    NON_FINITE = "non-finite"
+    BAD_TIMESTAMP = "bad-timestamp"
+    OUT_OF_RANGE = "out-of-range"
+    FUTURE = "future"
+    TOO_OLD = "too-old"
+
+
+class Rejected(Exception):
+    """A payload that does not yield a valid reading.
+
+    reason: stable code (a :class:`Reason`, equal to its string value, e.g. ``"future"``).
+    message: what was wrong, for the log; never contains more than a short excerpt of the
+        payload.
+    """
+
+    def __init__(self, reason: Reason, message: str) -> None:
+        super().__init__(f"{reason}: {message}")
+        self.reason = reason
+        self.message = message
+
+
+@dataclass(frozen=True)
+class Reading:
+    """One (sensor, ts, value): ts is timezone-aware UTC, value in the sensor's unit."""
+
+    sensor: str
+    ts: datetime
+    value: float
+
+    def __post_init__(self) -> None:
+        if self.ts.tzinfo is None or self.ts.utcoffset() is None:
+            raise ValueError("Reading.ts must be timezone-aware")
+
+
+def _excerpt(value: Any, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _require_aware(name: str, value: datetime | None) -> None:
+    if value is not None and (value.tzinfo is None or value.utcoffset() is None):
+        raise ValueError(f"{name} must be timezone-aware")
+
+
+def _number_text(text: str) -> float:
+    stripped = text.strip()
+    if _NON_FINITE.fullmatch(stripped):
+        raise Rejected(Reason.NON_FINITE, f"value {_excerpt(stripped)} is not finite")
+    if not _DECIMAL.fullmatch(stripped):
+        raise Rejected(Reason.NOT_A_NUMBER, f"payload {_excerpt(stripped)} is not a number")
+    value = float(stripped)
+    if not math.isfinite(value):  # e.g. 1e999
+        raise Rejected(Reason.NON_FINITE, f"value {_excerpt(stripped)} is not finite")
+    return value
+
+
+def _json_number(raw: Any, key: str) -> float:
+    if isinstance(raw, bool) or not isinstance(raw, int | float):
+        kind = "null" if raw is None else type(raw).__name__
+        raise Rejected(Reason.NOT_A_NUMBER,
+                       f"{key!r} is {kind} {_excerpt(raw)}, expected a JSON number")
+    try:
+        value = float(raw)
+    except OverflowError:  # an integer beyond float range
+        raise Rejected(Reason.NON_FINITE, f"{key!r} does not fit a float") from None
+    if not math.isfinite(value):
+        raise Rejected(Reason.NON_FINITE, f"{key!r} is {value}, not a finite number")
+    return value
+
+
+def _timestamp(raw: Any, key: str) -> datetime:
+    if isinstance(raw, str):
+        try:
+            ts = datetime.fromisoformat(raw)
+        except ValueError:
+            raise Rejected(Reason.BAD_TIMESTAMP,
+                           f"{key!r} {_excerpt(raw)} is not an ISO 8601 time") from None
+        if ts.tzinfo is None or ts.utcoffset() is None:
+            # Guessing a zone would shift readings by hours around DST; refuse instead.
+            raise Rejected(Reason.BAD_TIMESTAMP,
+                           f"{key!r} {_excerpt(raw)} has no UTC offset")
+        return ts.astimezone(UTC)
+    if isinstance(raw, bool) or not isinstance(raw, int | float):
+        kind = "null" if raw is None else type(raw).__name__
+        raise Rejected(Reason.BAD_TIMESTAMP,
+                       f"{key!r} is {kind}, expected ISO 8601 text or epoch seconds/ms")
+    try:
+        seconds = float(raw)
+        if not math.isfinite(seconds):
+            raise OverflowError
+        if abs(seconds) > EPOCH_MS_THRESHOLD:
+            seconds /= 1000.0
+        return _EPOCH + timedelta(seconds=seconds)
+    except OverflowError:
+        raise Rejected(Reason.BAD_TIMESTAMP,
+                       f"{key!r} {_excerpt(raw)} is not a representable time") from None
+
+
+def parse_payload(
+    sensor: SensorConfig,
+    payload: bytes,
+    arrival: datetime,
+    *,
+    max_skew: timedelta,
+    not_before: datetime | None,
+) -> Reading:
+    """The reading in ``payload`` for ``sensor``, or :class:`Rejected`.
+
+    arrival: when the message arrived (aware); the timestamp of payloads without one.
+    max_skew: how far the timestamp may lie after ``arrival``.
+    not_before: the start of the current window (aware); older readings are rejected.
+        None accepts any age.
+    """
+    _require_aware("arrival", arrival)
+    _require_aware("not_before", not_before)
+    if len(payload) > MAX_PAYLOAD_BYTES:
+        raise Rejected(Reason.TOO_LARGE,
+                       f"payload of {len(payload)} bytes exceeds {MAX_PAYLOAD_BYTES}")
+
+    ts: datetime | None = None
+    if sensor.format == "number":
+        try:
+            text = payload.decode("utf-8")
+        except UnicodeDecodeError:
+            raise Rejected(Reason.NOT_A_NUMBER, "payload is not UTF-8 text") from None
+        value = _number_text(text)
+    else:
+        try:
+            doc = json.loads(payload.decode("utf-8"))
+        except UnicodeDecodeError:
+            raise Rejected(Reason.NOT_JSON, "payload is not UTF-8 text") from None
+        except (ValueError, RecursionError) as exc:
+            raise Rejected(Reason.NOT_JSON, f"payload is not JSON ({_excerpt(str(exc))})") \
+                from None
+        if not isinstance(doc, dict):
+            raise Rejected(Reason.NOT_JSON,
+                           f"expected a JSON object, got {type(doc).__name__} {_excerpt(doc)}")
+        if sensor.value_key not in doc:
+            raise Rejected(Reason.MISSING_KEY, f"no {sensor.value_key!r} in the payload")
+        if sensor.ts_key and sensor.ts_key not in doc:
+            raise Rejected(Reason.MISSING_KEY, f"no {sensor.ts_key!r} in the payload")
+        value = _json_number(doc[sensor.value_key], sensor.value_key)
+        if sensor.ts_key:
+            ts = _timestamp(doc[sensor.ts_key], sensor.ts_key)
+    if ts is None:
+        ts = arrival.astimezone(UTC)
+
+    if not sensor.accepts(value):
+        raise Rejected(Reason.OUT_OF_RANGE,
+                       f"{value:g} {sensor.unit} outside {sensor.min:g}..{sensor.max:g}")
+    if ts > arrival + max_skew:
+        raise Rejected(Reason.FUTURE, f"timestamp {ts.isoformat()} is "
+                                      f"{(ts - arrival).total_seconds():.0f} s after arrival "
+                                      f"(max skew {max_skew.total_seconds():g} s)")
+    if not_before is not None and ts < not_before:
+        raise Rejected(Reason.TOO_OLD, f"timestamp {ts.isoformat()} is before the current "
+                                       f"window start {not_before.astimezone(UTC).isoformat()}")
+    return Reading(sensor.id, ts, value)

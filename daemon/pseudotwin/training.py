@@ -1,0 +1,104 @@
+"""Choosing training days and training every model of a twin into one artifact."""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from .artifact import MODEL_CLASSES, Artifact
+from .errors import DataError
+from .history import DayReadings, require_sensors, split_days
+from .horizon import OperatingHours
+from .models.base import TrainingSet
+
+log = logging.getLogger(__name__)
+
+ALL_MODELS = ("corrgp-triv", "corrgp-lcm", "triv", "varma")
+MIN_READINGS_PER_DAY = 4
+
+
+def day_is_usable(day: DayReadings, sensors: Sequence[str], hours: OperatingHours) -> bool:
+    """All sensors report (at least a few readings) within the operating hours."""
+    for s in sensors:
+        if not day.has(s):
+            return False
+        h = day.series[s][0]
+        if int(np.sum(hours.in_operating_hours(h))) < MIN_READINGS_PER_DAY:
+            return False
+    return True
+
+
+def pick_training_days(
+    df: pd.DataFrame,
+    sensors: Sequence[str],
+    hours: OperatingHours,
+    start: dt.date,
+    n_days: int = 5,
+) -> list[DayReadings]:
+    """The first ``n_days`` days on or after ``start`` on which every sensor reports."""
+    if n_days < 1:
+        raise DataError("--train-days must be at least 1")
+    days = [d for d in split_days(df, list(sensors), hours) if d.day >= start]
+    usable = [d for d in days if day_is_usable(d, sensors, hours)]
+    if len(usable) < n_days:
+        raise DataError(
+            f"too little training data: {len(usable)} day(s) from {start} on have readings of "
+            f"all of {', '.join(sensors)} in operating hours, {n_days} needed"
+        )
+    chosen = usable[:n_days]
+    skipped = [d.day for d in days if d.day <= chosen[-1].day and d not in chosen]
+    if skipped:
+        log.warning("training skips days without data of every sensor: %s",
+                    ", ".join(map(str, skipped)))
+    return chosen
+
+
+def train_twin(
+    df: pd.DataFrame,
+    references: Sequence[str],
+    target: str,
+    quantity: str,
+    hours: OperatingHours,
+    train_start: dt.date,
+    train_days: int = 5,
+    models: Sequence[str] = ALL_MODELS,
+    options: dict[str, dict[str, Any]] | None = None,
+    primary: str | None = None,
+) -> Artifact:
+    """Train the requested models of one twin on the chosen days; returns the artifact."""
+    refs = tuple(references)
+    if not refs:
+        raise DataError("at least one reference sensor is needed")
+    if target in refs:
+        raise DataError(f"target {target!r} is also listed as a reference")
+    unknown = [m for m in models if m not in MODEL_CLASSES]
+    if unknown:
+        raise DataError(
+            f"unknown model(s) {', '.join(unknown)}; choose from {', '.join(ALL_MODELS)}"
+        )
+    require_sensors(df, [*refs, target])
+    days = pick_training_days(df, [*refs, target], hours, train_start, train_days)
+    ts = TrainingSet(refs, target, hours, tuple(days), quantity)
+    fitted: dict[str, Any] = {}
+    opts = options or {}
+    for kind in models:
+        t0 = time.perf_counter()
+        fitted[kind] = MODEL_CLASSES[kind](**opts.get(kind, {})).fit(ts)
+        log.info("trained %s in %.1f s", kind, time.perf_counter() - t0)
+    if primary is None:
+        primary = next(m for m in ("corrgp-triv", "corrgp-lcm", "triv", "varma") if m in fitted)
+    return Artifact(
+        refs, target, quantity, hours, fitted, primary,
+        training={
+            "start": str(days[0].day),
+            "end": str(days[-1].day),
+            "days": [str(d.day) for d in days],
+            "sensors": [*refs, target],
+        },
+    )

@@ -1,0 +1,231 @@
+"""The twin: one pseudo-measurement stream, driven reading by reading.
+
+Everything that produces estimates — the daemon, ``evaluate`` and ``backfill`` — feeds a
+:class:`Twin` the same way (``observe`` readings in arrival order, ``estimate`` at an instant),
+so a live estimate and an offline one for the same readings are identical.
+
+The twin owns the rolling horizon (DESIGN.md §2): a day's window opens at the init start with
+the last known value of each reference carried in, it closes at day end, and the next day
+starts from scratch. Model state is only ever built from the window's readings, which is
+also what a checkpoint stores.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+from .artifact import Artifact
+from .errors import NumericalError
+from .models.base import DayEstimator
+
+log = logging.getLogger(__name__)
+
+QUALITIES = ("ok", "stale", "fallback", "init")
+
+
+@dataclass(frozen=True)
+class TwinEstimate:
+    """One model's estimate of the target at ``ts``.
+
+    value, std: [°C] or [ppm]; model: what produced the value (``triv`` on fallback,
+    ``var-fallback`` when VARMAX did not converge); refs: sensor → time of its last reading.
+    """
+
+    ts: dt.datetime
+    value: float
+    std: float
+    model: str
+    quality: str
+    refs: dict[str, dt.datetime | None] = field(default_factory=dict)
+
+    @property
+    def finite(self) -> bool:
+        return math.isfinite(self.value)
+
+
+@dataclass(frozen=True)
+class WindowReading:
+    """An accepted reading of today's window: wall-clock hours [h]."""
+
+    sensor: str
+    ts: dt.datetime
+    hours: float
+    value: float
+
+
+class Twin:
+    """Runs every model of an artifact over the live window.
+
+    models: the kinds to run (default: all in the artifact); the artifact's primary model is
+    reported under ``"estimate"`` by the service, the others as baselines.
+    stale_after: a reference silent for longer makes its estimates ``stale`` (None: never).
+    max_carry: how old the carried-over value from before the init phase may be.
+    """
+
+    def __init__(
+        self,
+        artifact: Artifact,
+        models: Sequence[str] | None = None,
+        stale_after: dt.timedelta | None = None,
+        max_carry: dt.timedelta = dt.timedelta(hours=24),
+    ) -> None:
+        self.artifact = artifact
+        self.hours = artifact.hours
+        kinds = list(models) if models is not None else list(artifact.models)
+        missing = [k for k in kinds if k not in artifact.models]
+        if missing:
+            raise ValueError(f"artifact has no model(s) {', '.join(missing)}")
+        self.kinds = kinds
+        self.stale_after = stale_after
+        self.max_carry = max_carry
+        self.references = artifact.references
+        self.day: dt.date | None = None
+        self.window: list[WindowReading] = []
+        self.last: dict[str, tuple[dt.datetime, float]] = {}
+        self._seen: set[tuple[str, dt.datetime]] = set()
+        self._est: dict[str, DayEstimator] = {}
+        self._broken: set[str] = set()
+        self.fallbacks = 0
+
+    # -- the window -------------------------------------------------------------------
+    def _needs(self, kind: str) -> tuple[str, ...]:
+        return tuple(getattr(self.artifact.models[kind], "references_", self.references))
+
+    def _open(self, day: dt.date) -> None:
+        """Start ``day``'s window: fresh model state, carried-over reference values."""
+        self.day = day
+        self.window = []
+        self._seen = set()
+        self._broken = set()
+        self._est = {k: self.artifact.models[k].start_day(day) for k in self.kinds}
+        init_ts = self.hours.at(day, self.hours.init_start)
+        for s in self.references:
+            last = self.last.get(s)
+            if last and last[0] < init_ts and init_ts - last[0] <= self.max_carry:
+                self._feed(WindowReading(s, last[0], self.hours.init_start, last[1]))
+
+    def _feed(self, r: WindowReading) -> None:
+        self.window.append(r)
+        for kind, est in self._est.items():
+            if kind in self._broken:
+                continue
+            try:
+                est.observe(r.sensor, r.hours, r.value)
+            except NumericalError as exc:
+                self._break(kind, exc)
+
+    def _break(self, kind: str, exc: Exception) -> None:
+        log.warning("%s: numerical failure (%s); publishing TRIV with quality fallback", kind, exc)
+        self._broken.add(kind)
+        self.fallbacks += 1
+
+    def _repair(self) -> None:
+        """Rebuild broken models from the window (the recovery at the next reading)."""
+        for kind in list(self._broken):
+            est = self.artifact.models[kind].start_day(self.day)
+            try:
+                for r in self.window:
+                    est.observe(r.sensor, r.hours, r.value)
+            except NumericalError:
+                continue
+            self._est[kind] = est
+            self._broken.discard(kind)
+            log.info("%s: recovered after a numerical failure", kind)
+
+    def _window_for(self, ts: dt.datetime) -> bool:
+        """Make the window of ``ts``'s day current if ``ts`` lies in it; False otherwise."""
+        day = self.hours.day_of(ts)
+        h = self.hours.hours_of(ts)
+        if not self.hours.in_window(h):
+            return False
+        if day != self.day:
+            if self.day is not None and day < self.day:
+                return False
+            self._open(day)
+        return True
+
+    def observe(self, sensor: str, ts: dt.datetime, value: float) -> bool:
+        """Take one reading (already validated). False when it does not enter the window:
+        not a reference, a duplicate, outside the operating window, or from a past day."""
+        if sensor not in self.references or not math.isfinite(value):
+            return False
+        last = self.last.get(sensor)
+        if last is None or ts > last[0]:
+            self.last[sensor] = (ts, value)
+        if not self._window_for(ts):
+            return False
+        if (sensor, ts) in self._seen:
+            return False
+        self._seen.add((sensor, ts))
+        if self._broken:
+            self._repair()
+        self._feed(WindowReading(sensor, ts, self.hours.hours_of(ts), value))
+        return True
+
+    def replay(self, readings: Iterable[tuple[str, dt.datetime, float]]) -> None:
+        for sensor, ts, value in readings:
+            self.observe(sensor, ts, value)
+
+    # -- estimates --------------------------------------------------------------------
+    def _stale(self, kind: str, ts: dt.datetime) -> bool:
+        for s in self._needs(kind):
+            last = self.last.get(s)
+            if last is None:
+                return True
+            if self.stale_after is not None and ts - last[0] > self.stale_after:
+                return True
+        return False
+
+    def estimate(self, ts: dt.datetime) -> dict[str, TwinEstimate]:
+        """Every model's estimate at ``ts`` from the window's readings up to now.
+
+        Empty outside the operating window (before init start, after day end).
+        """
+        if not self._window_for(ts):
+            return {}
+        h = self.hours.hours_of(ts)
+        out: dict[str, TwinEstimate] = {}
+        triv = None
+        for kind in self.kinds:
+            refs = {s: (self.last[s][0] if s in self.last else None) for s in self._needs(kind)}
+            name = getattr(self.artifact.models[kind], "model_name_", kind)
+            quality = "ok"
+            try:
+                if kind in self._broken:
+                    raise NumericalError("model state lost")
+                e = self._est[kind].predict(h)
+                value, std = e.value, e.std
+            except NumericalError as exc:
+                if kind not in self._broken:
+                    self._break(kind, exc)
+                triv = triv or self._triv_fallback(h)
+                value, std, name, quality = triv[0], triv[1], "triv", "fallback"
+            if quality == "ok":
+                if h < self.hours.day_start:
+                    quality = "init"
+                elif self._stale(kind, ts):
+                    quality = "stale"
+            out[kind] = TwinEstimate(ts, float(value), float(std), name, quality, refs)
+        return out
+
+    def _triv_fallback(self, h: float) -> tuple[float, float]:
+        est = self._est.get("triv")
+        if est is None:
+            # The twin was not asked to run TRIV: a private one keeps the fallback available.
+            from .models.corrgp import CorrGpTriv
+
+            gp = next(
+                (m for m in self.artifact.models.values() if isinstance(m, CorrGpTriv)), None
+            )
+            model = self.artifact.models.get("triv") or (gp.triv_ if gp else None)
+            if model is None:
+                return float("nan"), float("nan")
+            est = model.start_day(self.day)
+            for r in self.window:
+                est.observe(r.sensor, r.hours, r.value)
+        e = est.predict(h)
+        return e.value, e.std

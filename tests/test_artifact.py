@@ -1,0 +1,79 @@
+"""Artifact round trip, versioning and corrupt files."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+from pathlib import Path
+
+import pytest
+
+from pseudotwin.artifact import VERSION, Artifact
+from pseudotwin.convert import load
+from pseudotwin.errors import ArtifactError
+from pseudotwin.horizon import OperatingHours
+from pseudotwin.training import train_twin
+from pseudotwin.twin import Twin
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> tuple[Artifact, Path]:
+    df = load("sml2010")
+    df = df[df["ts"] < "2012-03-22T00:00Z"]
+    hours = OperatingHours(timezone="Europe/Madrid")
+    art = train_twin(df, ["dining/co2"], "room/co2", "co2", hours, dt.date(2012, 3, 14), 5)
+    path = art.save(tmp_path_factory.mktemp("art") / "co2.json")
+    return art, path
+
+
+def test_artifact_holds_everything_and_round_trips(trained, tmp_path: Path) -> None:
+    art, path = trained
+    d = json.loads(path.read_text(encoding="utf-8"))
+    assert d["version"] == VERSION and d["twin"]["unit"] == "ppm"
+    assert set(d["models"]) == {"corrgp-triv", "corrgp-lcm", "triv", "varma"}
+    gp = d["models"]["corrgp-triv"]
+    assert gp["kernel"] == "matern52"  # the CO2 default
+    assert {"offset", "scale"} <= set(gp["scaling"])
+    assert "B" in gp["hyperparameters"]["terms"][0]
+    assert {"jitter_max", "condition_max", "nlml"} <= set(gp["diagnostics"])
+    assert len(d["training"]["days"]) == 5
+    loaded = Artifact.load(path)
+    # the same readings through a twin of each give bit-identical estimates
+    df = load("sml2010")
+    day = df[(df["ts"] >= "2012-03-20T06:00Z") & (df["ts"] < "2012-03-20T18:00Z")]
+    day = day[day["sensor"] == "dining/co2"]
+    a, b = Twin(art), Twin(loaded)
+    for _, r in day.iterrows():
+        t = r["ts"].to_pydatetime()
+        a.observe(r["sensor"], t, r["value"])
+        b.observe(r["sensor"], t, r["value"])
+        ea, eb = a.estimate(t), b.estimate(t)
+        assert ea == eb
+    assert set(ea) == {"corrgp-triv", "corrgp-lcm", "triv", "varma"}
+
+
+def test_newer_format_is_refused_clearly(trained, tmp_path: Path) -> None:
+    _, path = trained
+    d = json.loads(path.read_text(encoding="utf-8"))
+    d["version"] = VERSION + 1
+    p = tmp_path / "new.json"
+    p.write_text(json.dumps(d))
+    with pytest.raises(ArtifactError, match=r"newer than this pseudotwin"):
+        Artifact.load(p)
+
+
+@pytest.mark.parametrize(
+    "content,message",
+    [
+        ("{not json", "cannot read artifact"),
+        ('{"format": "something-else"}', "not a pseudotwin model artifact"),
+        ('{"format": "pseudotwin-artifact", "version": 1}', "incomplete or corrupt"),
+    ],
+)
+def test_corrupt_artifacts(tmp_path: Path, content: str, message: str) -> None:
+    p = tmp_path / "a.json"
+    p.write_text(content)
+    with pytest.raises(ArtifactError, match=message):
+        Artifact.load(p)
+    with pytest.raises(ArtifactError, match="no such artifact"):
+        Artifact.load(tmp_path / "missing.json")

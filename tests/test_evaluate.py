@@ -1,0 +1,140 @@
+"""End-to-end ``pseudotwin evaluate`` on small real slices, causality, and bad input."""
+
+from __future__ import annotations
+
+import datetime as dt
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pseudotwin.cli import main
+from pseudotwin.convert import load
+from pseudotwin.evaluate import replay_estimates
+from pseudotwin.history import write_history
+from pseudotwin.horizon import OperatingHours
+from pseudotwin.training import train_twin
+
+
+@pytest.fixture(scope="module")
+def sml(tmp_path_factory) -> Path:
+    """SML2010, 2012-03-14 … 2012-03-21 (five training days and three test days)."""
+    df = load("sml2010")
+    df = df[(df["ts"] >= "2012-03-13T23:00Z") & (df["ts"] < "2012-03-22T23:00Z")]
+    p = tmp_path_factory.mktemp("sml") / "sml.csv"
+    write_history(df, p)
+    return p
+
+
+@pytest.fixture(scope="module")
+def room_a(tmp_path_factory) -> Path:
+    df = load("room-climate-a")
+    df = df[df["ts"] < "2016-03-25T00:00Z"]
+    p = tmp_path_factory.mktemp("rca") / "a.csv"
+    write_history(df, p)
+    return p
+
+
+def run(*args: str) -> int:
+    return main(["--log-level", "WARNING", *args])
+
+
+def test_evaluate_sml2010_writes_tables_and_plots(sml: Path, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "ev"
+    rc = run("evaluate", "--history", str(sml), "--references", "dining/temp",
+             "--target", "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
+             "--timezone", "Europe/Madrid", "--models", "corrgp-triv,corrgp-lcm,triv,varma",
+             "--out", str(out))
+    assert rc == 0
+    printed = capsys.readouterr().out
+    assert "| corrgp-triv |" in printed and "| varma |" in printed
+    daily = pd.read_csv(out / "daily.csv")
+    assert list(daily.columns) == ["day", "model", "nrmse_pct", "dmax_pct", "pearson_r", "n"]
+    assert set(daily["day"]) == {"2012-03-19", "2012-03-20", "2012-03-21", "2012-03-22"}
+    assert {"corrgp-triv", "corrgp-lcm", "triv", "varma", "ref:dining/temp"} <= set(daily["model"])
+    assert (daily["nrmse_pct"] > 0).all()
+    gp_and_triv = daily[daily["model"].isin(["corrgp-triv", "corrgp-lcm", "triv"])]
+    assert (gp_and_triv["nrmse_pct"] < 10).all()  # temperatures within a few tenths of °C
+    assert (daily["dmax_pct"] >= daily["nrmse_pct"]).all()
+    monthly = pd.read_csv(out / "monthly.csv")
+    assert list(monthly.columns) == ["month", "model", "nrmse_pct"]
+    assert set(monthly["month"]) == {"2012-03"}
+    est = pd.read_csv(out / "estimates.csv")
+    assert list(est.columns)[:5] == ["ts", "model", "value", "std", "truth"]
+    gp = est[est["model"] == "corrgp-triv"]
+    assert np.isfinite(gp["value"]).all() and (gp["std"] > 0).all()
+    # a true reading every 15 min from 08:00 to 19:00 local on each test day
+    assert len(gp) == 4 * 45
+    assert (out / "daily_nrmse.png").stat().st_size > 10_000
+    assert list(out.glob("day_*.png"))
+    assert (out / "artifact.json").exists()
+
+
+def test_estimates_are_causal(room_a: Path) -> None:
+    """Cutting the history at t changes no estimate made before t."""
+    df = pd.read_csv(room_a)
+    from pseudotwin.history import normalize
+
+    df = normalize(df)
+    hours = OperatingHours(timezone="Europe/Berlin")
+    art = train_twin(df, ["A1/temp", "A3/temp"], "A4/temp", "temperature", hours,
+                     dt.date(2016, 3, 15), 3, ["corrgp-triv", "corrgp-lcm", "triv"])
+    start = dt.date.fromisoformat(art.training["end"]) + dt.timedelta(days=1)
+    full = replay_estimates(art, df, start)
+    cut = full["ts"].iloc[len(full) // 2]
+    part = replay_estimates(art, df[df["ts"] <= cut], start)
+    before = full[full["ts"] <= cut].reset_index(drop=True)
+    assert len(before) == len(part) > 100
+    pd.testing.assert_frame_equal(before, part.reset_index(drop=True), check_exact=True)
+
+
+def test_evaluate_room_climate_with_two_references(room_a: Path, tmp_path: Path) -> None:
+    rc = run("evaluate", "--history", str(room_a), "--references", "A1/temp,A3/temp",
+             "--target", "A4/temp", "--quantity", "temperature", "--train-start", "2016-03-15",
+             "--train-days", "3", "--timezone", "Europe/Berlin",
+             "--models", "corrgp-triv,corrgp-lcm,triv", "--out", str(tmp_path / "a"))
+    assert rc == 0
+    daily = pd.read_csv(tmp_path / "a" / "daily.csv")
+    assert {"ref:A1/temp", "ref:A3/temp", "corrgp-lcm"} <= set(daily["model"])
+    assert daily["day"].nunique() >= 3
+
+
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["--references", "nope/temp"], "sensor(s) nope/temp not found"),
+        (["--train-start", "2012-03-21"], "too little training data"),
+        (["--references", "room/temp"], "also listed as a reference"),
+    ],
+)
+def test_bad_requests_fail_with_a_clear_message(
+    sml: Path, tmp_path: Path, capsys, args: list[str], message: str
+) -> None:
+    base = {"--references": "dining/temp", "--train-start": "2012-03-14"}
+    for k, v in zip(args[::2], args[1::2], strict=True):
+        base[k] = v
+    rc = run("evaluate", "--history", str(sml), "--target", "room/temp",
+             "--quantity", "temperature", "--models", "triv", "--out", str(tmp_path / "o"),
+             *[x for kv in base.items() for x in kv])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert message in err
+    assert "Traceback" not in err
+
+
+def test_malformed_file_fails_cleanly(tmp_path: Path, capsys) -> None:
+    bad = tmp_path / "bad.csv"
+    bad.write_bytes(b"\x00\xff garbage\n1,2\n")
+    rc = run("evaluate", "--history", str(bad), "--references", "a", "--target", "b",
+             "--quantity", "co2", "--train-start", "2020-01-01", "--out", str(tmp_path / "o"))
+    err = capsys.readouterr().err
+    assert rc == 2 and "error" in err and "Traceback" not in err
+
+
+def test_bad_arguments_are_usage_errors(capsys) -> None:
+    with pytest.raises(SystemExit) as exc:
+        run("evaluate", "--history", "x.csv", "--references", "a", "--target", "b",
+            "--quantity", "humidity", "--train-start", "2020-01-01", "--out", "o")
+    assert exc.value.code == 2
+    assert "invalid choice" in capsys.readouterr().err
