@@ -3,8 +3,9 @@
 training time of corrgp-triv / corrgp-lcm on five days.
 
 Data: Room Climate location A (real, converted to 1-min means; default 15-min training grid):
-references A1 (ceiling) and A3 (wall), target A4 (desk). Training: the first five days from 2016-03-15; the live day is
-2016-04-01 (138 readings per reference between 08:00 and 19:00 Europe/Berlin).
+references A1 (ceiling) and A3 (wall), target A4 (desk). Training: the first five days from
+2016-03-15; the live day is 2016-04-01 (138 readings per reference between 08:00 and 19:00
+Europe/Berlin).
 
 Prints a table, and as its last line one JSON object with the figures.
 Usage: .venv/bin/python scripts/bench_update.py [--day 2016-04-01] [--repeat 3]

@@ -14,7 +14,6 @@ from pseudotwin.gp.posterior import IncrementalPosterior
 from pseudotwin.gp.stable import scaled_cholesky
 from pseudotwin.gp.train import FitData, fit_lcm, gpy_model, gpy_stationary
 
-
 GPY_DIAG_JITTER = 1e-8
 
 

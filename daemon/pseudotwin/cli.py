@@ -119,6 +119,89 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     return 0
 
 
+EX_CONFIG = 78  # sysexits: systemd's RestartPreventExitStatus keys on it
+
+
+def _aware(text: str) -> dt.datetime:
+    try:
+        t = dt.datetime.fromisoformat(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an ISO 8601 instant") from None
+    if t.tzinfo is None:
+        raise argparse.ArgumentTypeError(f"{text!r} needs a UTC offset, e.g. +01:00 or Z")
+    return t
+
+
+def _artifact_check(twin) -> list[str]:
+    from .service import check_artifact
+
+    return check_artifact(twin)
+
+
+def _load_service_config(path: Path):
+    from .config import check_config
+    from .service import check_artifact
+
+    cfg = check_config(path, artifact_check=_artifact_check)
+    problems = []
+    for tid, tc in cfg.twins.items():
+        from .artifact import Artifact
+
+        problems += [f"twins.{tid}.artifact: {p}"
+                     for p in check_artifact(tc, Artifact.load(tc.artifact), cfg.hours)]
+    if problems:
+        from .config import ConfigProblems
+
+        raise ConfigProblems(problems)
+    return cfg
+
+
+def cmd_run(a: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    from .clock import ReplayClock, SystemClock
+    from .errors import ConfigError
+    from .service import Service
+
+    try:
+        cfg = _load_service_config(a.config)
+    except ConfigError as exc:
+        print(f"pseudotwin run: configuration error in {a.config}:\n{exc}", file=sys.stderr)
+        return EX_CONFIG
+    logging.getLogger().setLevel(a.log_level or cfg.log_level)
+    clock = ReplayClock(a.replay_from, a.speed) if a.replay_from else SystemClock()
+    if a.replay_from:
+        log.info("replay mode: clock starts at %s and runs at %g× real time",
+                 a.replay_from.isoformat(), a.speed)
+    service = Service(cfg, clock)
+    done = threading.Event()
+
+    def on_signal(signum: int, frame: object) -> None:
+        log.info("received %s; stopping", signal.Signals(signum).name)
+        done.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    service.start()
+    while not done.wait(1.0):
+        pass
+    service.stop()
+    return 0
+
+
+def cmd_replay(a: argparse.Namespace) -> int:
+    from .config import load_config
+    from .history import read_history
+    from .replay import replay
+
+    cfg = load_config(a.config)
+    df = read_history(a.history)
+    n = replay(cfg, df, a.start, a.end, a.speed)
+    print(f"published {n} readings")
+    return 0
+
+
 def cmd_convert(argv: list[str]) -> int:
     from .convert import main as convert_main
 
@@ -128,7 +211,7 @@ def cmd_convert(argv: list[str]) -> int:
 def cmd_check_config(argv: list[str]) -> int:
     from .config import check_config_main
 
-    return check_config_main(argv)
+    return check_config_main(argv, artifact_check=_artifact_check)
 
 
 DELEGATED: dict[str, Callable[[list[str]], int]] = {
@@ -142,11 +225,12 @@ def build_parser() -> argparse.ArgumentParser:
         prog="pseudotwin",
         description="Pseudo-measurements of desk temperature and CO2 from room reference "
                     "sensors with a correlated Gaussian process (Corr-GP) digital twin.",
-        epilog="Subcommands: train, evaluate, convert, check-config. "
+        epilog="Subcommands: train, evaluate, run, replay, convert, check-config. "
                "'pseudotwin SUBCOMMAND --help' explains each.",
     )
     p.add_argument("--version", action="version", version=f"pseudotwin {__version__}")
-    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    p.add_argument("--log-level", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+                   help="default INFO (for run: the configuration's log_level)")
     sub = p.add_subparsers(dest="command", metavar="SUBCOMMAND")
 
     t = sub.add_parser("train", help="train a twin's models and write the model artifact",
@@ -166,6 +250,29 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--plot-day", type=_date, help="day to plot in detail (default: median day)")
     e.set_defaults(func=cmd_evaluate)
 
+    r = sub.add_parser("run", help="run the live daemon (MQTT in, pseudo-measurements out)",
+                       description="Run the twins of a configuration against the MQTT broker "
+                                   "until SIGTERM/SIGINT. Exit status 78 on a configuration "
+                                   "error (systemd does not restart it then).")
+    r.add_argument("--config", required=True, type=Path, help="TOML configuration file")
+    r.add_argument("--replay-from", type=_aware, metavar="INSTANT",
+                   help="replay mode: the daemon's clock starts at this instant "
+                        "(ISO 8601 with offset) instead of now")
+    r.add_argument("--speed", type=float, default=1.0,
+                   help="replay mode: clock speed-up factor (default 1)")
+    r.set_defaults(func=cmd_run)
+
+    rp = sub.add_parser("replay", help="publish stored readings through the broker",
+                        description="Publish a canonical history's readings of the configured "
+                                    "sensors to their topics on an accelerated clock.")
+    rp.add_argument("--config", required=True, type=Path,
+                    help="the daemon's configuration (broker, sensors and their topics)")
+    rp.add_argument("--history", required=True, type=Path, help="canonical history file")
+    rp.add_argument("--start", required=True, type=_aware, help="first instant to replay")
+    rp.add_argument("--end", required=True, type=_aware, help="instant to stop before")
+    rp.add_argument("--speed", type=float, default=60.0, help="speed-up factor (default 60)")
+    rp.set_defaults(func=cmd_replay)
+
     sub.add_parser("convert", help="convert a shared dataset into canonical CSV", add_help=False)
     sub.add_parser("check-config", help="validate a daemon configuration file", add_help=False)
     return p
@@ -183,7 +290,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(a, "func", None):
         parser.print_help()
         return 2
-    setup_logging(a.log_level)
+    setup_logging(a.log_level or "INFO")
     try:
         return int(a.func(a))
     except PseudotwinError as exc:

@@ -18,8 +18,11 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from .artifact import Artifact
 from .errors import NumericalError
+from .history import DayReadings
 from .models.base import DayEstimator
 
 log = logging.getLogger(__name__)
@@ -169,6 +172,26 @@ class Twin:
     def replay(self, readings: Iterable[tuple[str, dt.datetime, float]]) -> None:
         for sensor, ts, value in readings:
             self.observe(sensor, ts, value)
+
+    # -- monitoring -------------------------------------------------------------------
+    def slot_values(self) -> dict[str, np.ndarray]:
+        """Today's window per reference on the slot grid (sample-and-hold): sensor → [S]."""
+        series = {}
+        for s in self.references:
+            pts = sorted((r.hours, r.value) for r in self.window if r.sensor == s)
+            if pts:
+                series[s] = (np.array([p[0] for p in pts]), np.array([p[1] for p in pts]))
+        day = DayReadings(self.day or dt.date.min, series)
+        return {s: day.slot_values(s, self.hours) for s in self.references}
+
+    def numerics(self) -> dict[str, float | int]:
+        """Live numerical health of the GP posteriors: jitter used, refactorizations."""
+        posts = [e.post for e in self._est.values() if hasattr(e, "post")]
+        return {
+            "jitter": max((p.jitter for p in posts), default=0.0),
+            "refactorizations": sum(p.refactorizations for p in posts),
+            "gp_points": max((p.n for p in posts), default=0),
+        }
 
     # -- estimates --------------------------------------------------------------------
     def _stale(self, kind: str, ts: dt.datetime) -> bool:

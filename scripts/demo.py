@@ -1,0 +1,242 @@
+#!/usr/bin/env python3
+"""The end-to-end demo: the daemon on a real day of SML2010, through a real MQTT broker.
+
+1. converts SML2010 and trains two twins on 2012-03-14…18 (dining room → bedroom, temperature
+   and CO2), writing their artifacts;
+2. starts a Mosquitto broker on a free port and the daemon (``pseudotwin run``) in replay
+   mode, its clock at 2012-03-20 07:00 Europe/Madrid running at --speed × real time;
+3. replays that day's readings through the broker (``pseudotwin.replay``), as a PLC bridge
+   would publish them, including the temporary desk sensor as a live target;
+4. prints each pseudo-measurement as it arrives next to the truth, then stops the daemon
+   with SIGTERM and prints the day's scores.
+
+Usage: .venv/bin/python scripts/demo.py [--speed 900] [--day 2012-03-20] [--out out/demo]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import queue
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from zoneinfo import ZoneInfo
+
+import numpy as np
+import paho.mqtt.client as mqtt
+import pandas as pd
+from paho.mqtt.enums import CallbackAPIVersion
+
+import pseudotwin  # noqa: F401
+from pseudotwin.config import load_config
+from pseudotwin.convert import load
+from pseudotwin.horizon import OperatingHours
+from pseudotwin.replay import replay
+from pseudotwin.training import train_twin
+
+ROOT = Path(__file__).resolve().parent.parent
+TZ = "Europe/Madrid"
+TWINS = {
+    "bedroom-temp": ("dining/temp", "room/temp", "temperature", "°C"),
+    "bedroom-co2": ("dining/co2", "room/co2", "co2", "ppm"),
+}
+
+CONFIG = """\
+# written by scripts/demo.py
+[broker]
+host = "127.0.0.1"
+port = {port}
+client_id = "pseudotwin-demo"
+
+[service]
+base_topic = "demo"
+timezone = "{tz}"
+state_dir = "state"
+publish_every_minutes = 60
+stale_after_minutes = 45
+{sensors}{twins}"""
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def mosquitto_bin() -> str:
+    exe = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+    if not Path(exe).exists():
+        sys.exit("demo: Mosquitto is not installed; run scripts/bootstrap.sh first")
+    return exe
+
+
+def start_broker(folder: Path, port: int) -> subprocess.Popen:
+    conf = folder / "mosquitto.conf"
+    user = f"user {os.environ.get('USER', 'root')}\n" if os.geteuid() == 0 else ""
+    conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\n{user}")
+    proc = subprocess.Popen([mosquitto_bin(), "-c", str(conf)], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
+            return proc
+        except OSError:
+            time.sleep(0.05)
+    proc.kill()
+    sys.exit("demo: the broker did not start")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--speed", type=float, default=900.0, help="replay speed (default 900×)")
+    ap.add_argument("--day", type=dt.date.fromisoformat, default=dt.date(2012, 3, 20))
+    ap.add_argument("--out", type=Path, default=ROOT / "out" / "demo")
+    a = ap.parse_args()
+    out = a.out
+    if out.exists():
+        shutil.rmtree(out)
+    (out / "artifacts").mkdir(parents=True)
+    hours = OperatingHours(timezone=TZ)
+
+    print("1/4 training two twins on SML2010, 2012-03-14 … 2012-03-18", flush=True)
+    df = load("sml2010")
+    for tid, (ref, tgt, quantity, _) in TWINS.items():
+        t0 = time.perf_counter()
+        art = train_twin(df, [ref], tgt, quantity, hours, dt.date(2012, 3, 14), 5)
+        art.save(out / "artifacts" / f"{tid}.json")
+        print(f"    {tid}: {', '.join(art.models)} in {time.perf_counter() - t0:.0f} s")
+
+    port = free_port()
+    sensors = "".join(
+        f'\n[[sensors]]\nid = "{s}"\ntopic = "house/{s}"\nunit = "{unit}"\n'
+        f"min = {lo}\nmax = {hi}\n"
+        for tid, (ref, tgt, q, unit) in TWINS.items()
+        for s, (lo, hi) in ((ref, (-10, 50) if q == "temperature" else (0, 5000)),
+                            (tgt, (-10, 50) if q == "temperature" else (0, 5000)))
+    )
+    twins = "".join(
+        f'\n[[twins]]\nid = "{tid}"\nreferences = ["{ref}"]\ntarget = "{tgt}"\n'
+        f'quantity = "{q}"\nartifact = "artifacts/{tid}.json"\n'
+        for tid, (ref, tgt, q, _) in TWINS.items()
+    )
+    cfg_path = out / "config.toml"
+    cfg_path.write_text(CONFIG.format(port=port, tz=TZ, sensors=sensors, twins=twins))
+    cfg = load_config(cfg_path)
+
+    tmp = Path(tempfile.mkdtemp(prefix="pseudotwin-demo-"))
+    broker = start_broker(tmp, port)
+    start = hours.at(a.day, hours.init_start) - dt.timedelta(minutes=30)
+    end = hours.at(a.day, hours.day_end) + dt.timedelta(minutes=1)
+    print(f"2/4 broker on 127.0.0.1:{port}; daemon in replay mode from {start.isoformat()} "
+          f"at {a.speed:g}×", flush=True)
+    daemon = subprocess.Popen(
+        [str(ROOT / ".venv" / "bin" / "pseudotwin"), "run", "--config", str(cfg_path),
+         "--replay-from", start.isoformat(), "--speed", str(a.speed)],
+        stdout=open(out / "daemon.log", "w"), stderr=subprocess.STDOUT,  # noqa: SIM115
+    )
+    msgs: queue.Queue[tuple[str, dict | str]] = queue.Queue()
+    sub = mqtt.Client(CallbackAPIVersion.VERSION2, client_id="demo-viewer")
+    sub.on_connect = lambda c, *_: c.subscribe([("demo/#", 1)])
+    sub.on_message = lambda c, u, m: msgs.put(
+        (m.topic, json.loads(m.payload) if m.payload.startswith(b"{") else m.payload.decode()))
+    sub.connect("127.0.0.1", port)
+    sub.loop_start()
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            try:
+                topic, body = msgs.get(timeout=1)
+                if topic == "demo/status" and body == "online":
+                    break
+            except queue.Empty:
+                if daemon.poll() is not None:
+                    print((out / "daemon.log").read_text())
+                    return 1
+        print("3/4 daemon online; replaying the day's readings through the broker\n",
+              flush=True)
+        truth = {(s, t): v for s, t, v in zip(df["sensor"], df["ts"], df["value"], strict=True)}
+        stop = threading.Event()
+        th = threading.Thread(target=replay, args=(cfg, df, start, end, a.speed, stop))
+        th.start()
+        tz = ZoneInfo(TZ)
+        print(f"{'local time':>10}  {'twin':13} {'reference':>10} {'estimate ± 2σ':>20} "
+              f"{'truth':>8}  quality")
+        # keyed by instant: a grid estimate and a reading's estimate may share one
+        rows: dict[str, dict[dt.datetime, tuple[float, float]]] = {t: {} for t in TWINS}
+        monitors: dict[str, dict] = {}
+        last_print: dict[str, dt.datetime] = {}
+        while th.is_alive() or not msgs.empty():
+            try:
+                topic, body = msgs.get(timeout=0.5)
+            except queue.Empty:
+                continue
+            parts = topic.split("/")
+            if len(parts) == 3 and parts[2] == "monitor":
+                monitors[parts[1]] = body
+            if len(parts) != 3 or parts[2] != "estimate" or not isinstance(body, dict):
+                continue
+            tid = parts[1]
+            ref, tgt, _, unit = TWINS[tid]
+            ts = dt.datetime.fromisoformat(body["ts"].replace("Z", "+00:00"))
+            key = pd.Timestamp(ts)
+            tv = truth.get((tgt, key))
+            rv = truth.get((ref, key))
+            if tv is not None:
+                rows[tid][ts] = (tv, body["value"])
+            # a row every hour per twin keeps the screen readable at 900×
+            if tid in last_print and ts - last_print[tid] < dt.timedelta(minutes=59):
+                continue
+            last_print[tid] = ts
+            fmt = ".2f" if unit == "°C" else ".1f"
+            est = f"{body['value']:{fmt}} ± {2 * body['std']:{fmt}} {unit}"
+            print(f"{ts.astimezone(tz):%H:%M:%S}  {tid:13} "
+                  f"{(format(rv, fmt) if rv is not None else '-'):>10} {est:>20} "
+                  f"{(format(tv, fmt) if tv is not None else '-'):>8}  {body['quality']}",
+                  flush=True)
+        th.join()
+        time.sleep(2.0 / max(1.0, a.speed / 60))  # let the last estimates arrive
+        print("\n4/4 stopping the daemon (SIGTERM)", flush=True)
+        daemon.send_signal(signal.SIGTERM)
+        daemon.wait(timeout=60)
+        deadline = time.monotonic() + 5
+        status = None
+        while time.monotonic() < deadline:
+            try:
+                topic, body = msgs.get(timeout=0.5)
+                if topic == "demo/status":
+                    status = body
+                    break
+            except queue.Empty:
+                pass
+        print(f"daemon exit status {daemon.returncode}; demo/status = {status!r}")
+        print(f"\nthe day's pseudo-measurements vs the temporary desk sensor ({a.day}):")
+        for tid, pairs in rows.items():
+            if not pairs:
+                continue
+            t, e = np.array(list(pairs.values())).T
+            nrmse = 100 * np.sqrt(np.mean((e - t) ** 2)) / np.mean(t)
+            print(f"  {tid}: {len(pairs)} estimates at true readings, NRMSE {nrmse:.2f} %, "
+                  f"max |error| {np.max(np.abs(e - t)):.2f} {TWINS[tid][3]}")
+        print(f"\nconfig, artifacts, daemon log and state: {out}")
+        return 0 if daemon.returncode == 0 else 1
+    finally:
+        sub.loop_stop()
+        if daemon.poll() is None:
+            daemon.kill()
+        broker.terminate()
+        broker.wait(timeout=10)
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
