@@ -97,6 +97,10 @@ class MosquittoBroker:
             f"listener {self.port} {self.host}\n"
             "allow_anonymous true\n"
             "persistence true\n"
+            # Save after every change, so a SIGKILLed broker keeps the daemon's persistent
+            # session and queued messages (as deploy/mosquitto.conf recommends).
+            "autosave_on_changes true\n"
+            "autosave_interval 1\n"
             f"persistence_location {self.workdir / 'data'}/\n"
             f"user {user}\n"
             "log_dest stderr\n"
@@ -299,3 +303,15 @@ def mqtt_client(mosquitto: MosquittoBroker) -> Iterator[MqttClientFactory]:
             tc.disconnect()
         except Exception:  # noqa: BLE001 - teardown must reach every client
             pass
+
+
+@pytest.fixture(scope="session")
+def desk_artifact(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A twin trained on SML2010 (dining → bedroom temperature), all four models."""
+    import datetime as dt
+
+    from daemon_support import HOURS, REF, TARGET, sml
+    from pseudotwin.training import train_twin
+
+    art = train_twin(sml(), [REF], TARGET, "temperature", HOURS, dt.date(2012, 3, 14), 5)
+    return art.save(tmp_path_factory.mktemp("artifact") / "desk.json")

@@ -156,10 +156,12 @@ class Twin:
         not a reference, a duplicate, outside the operating window, or from a past day."""
         if sensor not in self.references or not math.isfinite(value):
             return False
+        # Open the day first: its carry-over is the last value from *before* this reading.
+        in_window = self._window_for(ts)
         last = self.last.get(sensor)
         if last is None or ts > last[0]:
             self.last[sensor] = (ts, value)
-        if not self._window_for(ts):
+        if not in_window:
             return False
         if (sensor, ts) in self._seen:
             return False

@@ -1,0 +1,86 @@
+"""Shared pieces of the daemon tests: a trained artifact, configs, waiting on conditions."""
+
+from __future__ import annotations
+
+import datetime as dt
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import pandas as pd
+
+from pseudotwin.config import ServiceConfig, load_config
+from pseudotwin.convert import load
+from pseudotwin.horizon import OperatingHours
+
+TZ = "Europe/Madrid"
+HOURS = OperatingHours(timezone=TZ)
+REF, TARGET = "dining/temp", "room/temp"
+DAY = dt.date(2012, 3, 20)
+
+
+def sml() -> pd.DataFrame:
+    return load("sml2010")
+
+
+def day_readings(df: pd.DataFrame, day: dt.date = DAY, sensors=(REF,)) -> pd.DataFrame:
+    """One local day's readings of ``sensors`` from 00:00 to 19:30, in time order."""
+    start = HOURS.at(day, 0.0)
+    end = HOURS.at(day, 19.5)
+    sub = df[df["sensor"].isin(sensors) & (df["ts"] >= start) & (df["ts"] < end)]
+    return sub.sort_values(["ts", "sensor"], kind="stable").reset_index(drop=True)
+
+
+def write_config(folder: Path, port: int, artifact: Path, *, target: bool = True,
+                 keepalive: int = 30, **service: object) -> Path:
+    extra = "".join(f"{k} = {v!r}\n".replace("'", '"') for k, v in service.items())
+    text = f"""
+[broker]
+host = "127.0.0.1"
+port = {port}
+client_id = "pt-{folder.name}"
+keepalive = {keepalive}
+
+[service]
+base_topic = "pt"
+timezone = "{TZ}"
+state_dir = "state"
+{extra}
+[[sensors]]
+id = "{REF}"
+topic = "house/dining/temp"
+unit = "°C"
+min = -10
+max = 50
+
+[[sensors]]
+id = "{TARGET}"
+topic = "house/room/temp"
+unit = "°C"
+min = -10
+max = 50
+
+[[twins]]
+id = "desk"
+references = ["{REF}"]
+{f'target = "{TARGET}"' if target else ""}
+quantity = "temperature"
+artifact = "{artifact}"
+"""
+    p = folder / "config.toml"
+    p.write_text(text, encoding="utf-8")
+    return p
+
+
+def config(folder: Path, port: int, artifact: Path, **kw: object) -> ServiceConfig:
+    return load_config(write_config(folder, port, artifact, **kw))
+
+
+def wait_for(pred: Callable[[], object], timeout: float = 30.0, what: str = "condition") -> None:
+    """Poll ``pred`` until true; fail with ``what`` after ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return
+        time.sleep(0.02)
+    raise AssertionError(f"timed out waiting for {what() if callable(what) else what}")

@@ -1,0 +1,287 @@
+"""The live daemon against a real Mosquitto broker, in process (paho, real twins)."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import logging
+import threading
+from pathlib import Path
+
+import paho.mqtt.client as mqtt
+import pytest
+from paho.mqtt.enums import CallbackAPIVersion
+
+from daemon_support import DAY, HOURS, REF, TARGET, config, day_readings, sml, wait_for
+from pseudotwin.artifact import Artifact
+from pseudotwin.clock import ReplayClock
+from pseudotwin.errors import NumericalError
+from pseudotwin.evaluate import replay_estimates
+from pseudotwin.gp.posterior import IncrementalPosterior
+from pseudotwin.replay import replay
+from pseudotwin.service import Service
+
+
+class Viewer:
+    """Collects everything the daemon publishes under pt/#."""
+
+    def __init__(self, port: int, topic: str = "pt/#", client_id: str | None = None,
+                 clean: bool = True) -> None:
+        self.msgs: list[tuple[str, object]] = []
+        self.lock = threading.Lock()
+        self.ready = threading.Event()
+        self.c = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=client_id or "",
+                             clean_session=clean)
+        self.c.on_connect = lambda c, u, f, rc, p: (c.subscribe(topic, 1), self.ready.set())
+        self.c.on_message = self._on
+        self.c.connect("127.0.0.1", port)
+        self.c.loop_start()
+        assert self.ready.wait(10)
+
+    def _on(self, c, u, m) -> None:
+        if m.retain:  # a retained message is an earlier test's last estimate
+            return
+        body = m.payload.decode()
+        with self.lock:
+            self.msgs.append((m.topic, json.loads(body) if body.startswith("{") else body))
+
+    def on(self, suffix: str) -> list[dict]:
+        with self.lock:
+            return [b for t, b in self.msgs if t.endswith(suffix) and isinstance(b, dict)]
+
+    def close(self) -> None:
+        self.c.disconnect()
+        self.c.loop_stop()
+
+
+def publisher(port: int, client_id: str = "bridge") -> mqtt.Client:
+    c = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=client_id, clean_session=False)
+    c.reconnect_delay_set(1, 2)
+    c.connect("127.0.0.1", port)
+    c.loop_start()
+    return c
+
+
+def reading(ts: dt.datetime, value: float) -> bytes:
+    return json.dumps({"ts": ts.isoformat(), "value": value}).encode()
+
+
+@pytest.fixture
+def service_factory(mosquitto, desk_artifact, tmp_path):
+    made: list[Service] = []
+
+    def make(start: dt.datetime, speed: float = 1.0, **kw) -> Service:
+        cfg = config(tmp_path, mosquitto.port, desk_artifact, **kw)
+        s = Service(cfg, ReplayClock(start, speed))
+        s.start(wait_connected=15)
+        made.append(s)
+        return s
+
+    yield make
+    for s in made:
+        if not s.stop_event.is_set():
+            s.stop()
+
+
+def test_live_estimates_equal_evaluate(service_factory, mosquitto, desk_artifact) -> None:
+    """A real day replayed through the broker gives exactly evaluate's estimates."""
+    df = sml()
+    start = HOURS.at(DAY, 7.0)
+    end = HOURS.at(DAY, 19.25)
+    speed = 4000.0
+    viewer = Viewer(mosquitto.port)
+    svc = service_factory(start, speed)
+    n = replay(svc.cfg, df[df["sensor"].isin([REF, TARGET])], start, end, speed)
+    refs_in_day = day_readings(df)
+    n_pub = int(((refs_in_day["ts"] >= HOURS.at(DAY, 8.0)) & (refs_in_day["ts"] < end)).sum())
+    wait_for(lambda: len({e["ts"] for e in viewer.on("/estimate")}) >= n_pub, what="estimates")
+    assert n > 2 * n_pub
+    art = Artifact.load(desk_artifact)
+    offline = replay_estimates(art, df[df["ts"] < end], DAY)
+    offline = offline[offline["ts"] >= HOURS.at(DAY, 8.0)]
+    live: dict[tuple[str, str], dict] = {}
+    for suffix, kind in (("/estimate", art.primary), ("/baseline/triv", "triv"),
+                         ("/baseline/varma", "varma"), ("/baseline/corrgp-lcm", "corrgp-lcm")):
+        for e in viewer.on(suffix):
+            live[(kind, e["ts"])] = e
+    checked = 0
+    for _, row in offline.iterrows():
+        if row["model"].startswith("ref:"):
+            continue
+        key = (row["model"], row["ts"].isoformat().replace("+00:00", "Z"))
+        e = live[key]
+        assert e["value"] == round(row["value"], 6), key
+        assert e["std"] == round(row["std"], 6), key
+        assert e["quality"] == row["quality"] == "ok"
+        checked += 1
+    assert checked == 4 * n_pub
+    # the monitor scored the live desk sensor, and nothing went to the init phase
+    mon = viewer.on("/monitor")
+    assert mon and mon[-1]["target"]["n"] > 40
+    assert all(e["quality"] != "init" for e in viewer.on("/estimate"))
+    viewer.close()
+
+
+def test_bad_payloads_are_counted_logged_once_and_never_block(
+    service_factory, mosquitto, caplog
+) -> None:
+    caplog.set_level(logging.WARNING, logger="pseudotwin.service")
+    now = HOURS.at(DAY, 9.0)
+    svc = service_factory(now, 1.0)
+    viewer = Viewer(mosquitto.port, "pt/desk/estimate")
+    pub = publisher(mosquitto.port, "bad-bridge")
+    t = lambda h: HOURS.at(DAY, h)  # noqa: E731
+    topic = "house/dining/temp"
+    good = [(t(8.0), 20.0), (t(8.75), 20.5), (t(8.5), 20.2), (t(8.8), 20.6)]  # one late
+    bad = {
+        "not-json": b"{not json",
+        "missing-key": json.dumps({"time": t(8.1).isoformat(), "val": 1.0}).encode(),
+        "non-finite": b'{"ts": "%s", "value": NaN}' % t(8.2).isoformat().encode(),
+        "not-a-number": json.dumps({"ts": t(8.3).isoformat(), "value": "21.5"}).encode(),
+        "out-of-range": reading(t(8.4), 99.0),
+        "future": reading(t(20.0), 20.0),
+        "too-old": reading(HOURS.at(DAY - dt.timedelta(days=5), 9.0), 20.0),
+        "too-large": b"{" + b" " * 1_000_000 + b"}",
+        "bad-timestamp": json.dumps({"ts": "yesterday", "value": 20.0}).encode(),
+    }
+    sequence = [reading(*good[0]), *bad.values(), reading(*good[1]), reading(*good[0]),
+                b'{"ts": "%s", "value": Infinity}' % t(8.6).isoformat().encode(),
+                reading(*good[2]), reading(*good[3])]
+    for p in sequence:
+        pub.publish(topic, p, qos=1).wait_for_publish(10)
+    wait_for(lambda: svc.accepted + sum(svc.rejected.values()) == len(sequence),
+             what="every payload handled")
+    rt = svc.twins["desk"]
+    window = [(r.ts, r.value) for r in rt.twin.window if r.sensor == REF]
+    # every valid reading is used once (the duplicate is not), in the window
+    assert sorted(window) == sorted(good)
+    assert svc.accepted == len(good) + 1  # the duplicate parsed fine, the twin dropped it
+    expected = {("dining/temp", k): 1 for k in bad}
+    expected[("dining/temp", "non-finite")] = 2
+    assert dict(svc.rejected) == expected
+    lines = [r.getMessage() for r in caplog.records if "rejected reading" in r.getMessage()]
+    assert len(lines) == sum(expected.values())
+    for reason in bad:
+        assert any(f"({reason})" in m and "dining/temp" in m for m in lines)
+    # still alive and answering
+    pub.publish(topic, reading(t(8.9), 20.7), qos=1).wait_for_publish(10)
+    wait_for(lambda: any(e["ts"].startswith(t(8.9).astimezone(dt.UTC).isoformat()[:19])
+                         for e in viewer.on("/estimate")), what="estimate after bad input")
+    pub.loop_stop()
+    viewer.close()
+
+
+def test_silent_reference_turns_stale_and_recovers(service_factory, mosquitto) -> None:
+    speed = 600.0  # 15 min of daemon time per 1.5 s
+    svc = service_factory(HOURS.at(DAY, 8.0), speed, stale_after_minutes=30,
+                          publish_every_minutes=15)
+    viewer = Viewer(mosquitto.port, "pt/desk/estimate")
+    pub = publisher(mosquitto.port, "stale-bridge")
+    pub.publish("house/dining/temp", reading(svc.clock.now(), 20.0), qos=1).wait_for_publish(10)
+    wait_for(lambda: any(e["quality"] == "stale" for e in viewer.on("/estimate")),
+             timeout=30, what="a stale estimate")
+    stale = [e for e in viewer.on("/estimate") if e["quality"] == "stale"][0]
+    first = viewer.on("/estimate")[0]
+    assert first["quality"] == "ok"
+    gap = (dt.datetime.fromisoformat(stale["ts"]) - dt.datetime.fromisoformat(first["ts"]))
+    assert gap > dt.timedelta(minutes=30)
+    back = svc.clock.now()
+    pub.publish("house/dining/temp", reading(back, 20.4), qos=1).wait_for_publish(10)
+    wait_for(lambda: any(e["quality"] == "ok" and dt.datetime.fromisoformat(e["ts"]) >= back
+                         for e in viewer.on("/estimate")), what="ok again")
+    pub.loop_stop()
+    viewer.close()
+
+
+def test_numerical_failure_publishes_triv_fallback_then_recovers(
+    service_factory, mosquitto, monkeypatch
+) -> None:
+    svc = service_factory(HOURS.at(DAY, 10.0), 1.0)
+    viewer = Viewer(mosquitto.port, "pt/desk/estimate")
+    pub = publisher(mosquitto.port, "fault-bridge")
+    original = IncrementalPosterior.add
+    fail = threading.Event()
+
+    def add(self, t, o, r):  # fault injection: the posterior's factor breaks once
+        if fail.is_set():
+            fail.clear()
+            raise NumericalError("injected")
+        return original(self, t, o, r)
+
+    monkeypatch.setattr(IncrementalPosterior, "add", add)
+    for i, h in enumerate((8.0, 8.25, 8.5)):
+        if i == 1:
+            fail.set()
+        pub.publish("house/dining/temp", reading(HOURS.at(DAY, h), 20 + i / 10), qos=1)
+        wait_for(lambda n=i: len(viewer.on("/estimate")) > n, what=f"estimate {i}")
+    e = viewer.on("/estimate")
+    assert (e[0]["quality"], e[0]["model"]) == ("ok", "corrgp-triv")
+    assert (e[1]["quality"], e[1]["model"]) == ("fallback", "triv")
+    assert (e[2]["quality"], e[2]["model"]) == ("ok", "corrgp-triv")
+    assert svc.twins["desk"].twin.fallbacks == 1
+    pub.loop_stop()
+    viewer.close()
+
+
+def test_broker_killed_mid_day_loses_no_reading(service_factory, mosquitto) -> None:
+    svc = service_factory(HOURS.at(DAY, 12.0), 1.0)
+    viewer = Viewer(mosquitto.port, "pt/desk/estimate", client_id="viewer-kill", clean=False)
+    pub = publisher(mosquitto.port, "kill-bridge")
+    hours = [8 + i / 4 for i in range(16)]
+    for h in hours[:6]:
+        pub.publish("house/dining/temp", reading(HOURS.at(DAY, h), 20 + h / 10), qos=1)
+    wait_for(lambda: svc.accepted == 6, what="first readings")
+    mosquitto.kill()
+    wait_for(lambda: not svc.connected.is_set(), what="daemon notices the outage")
+    for h in hours[6:]:  # published while the broker is down: queued by the bridge client
+        pub.publish("house/dining/temp", reading(HOURS.at(DAY, h), 20 + h / 10), qos=1)
+    mosquitto.start()
+    wait_for(lambda: svc.connected.is_set(), timeout=60, what="daemon reconnects by itself")
+    def window() -> list[float]:
+        return sorted(r.hours for r in svc.twins["desk"].twin.window if r.sensor == REF)
+
+    # QoS 1 is at-least-once: a redelivered reading is accepted again but the twin keeps one
+    wait_for(lambda: window() == hours, timeout=30,
+             what=lambda: f"every reading in the window ({window()})")
+    assert svc.accepted >= len(hours)
+    wait_for(lambda: len({e["ts"] for e in viewer.on("/estimate")}) == len(hours),
+             timeout=30, what="estimates resume")
+    pub.loop_stop()
+    viewer.close()
+
+
+def test_grid_instants_follow_local_wall_clock_on_dst_days(tmp_path, mosquitto,
+                                                            desk_artifact) -> None:
+    cfg = config(tmp_path, mosquitto.port, desk_artifact, publish_every_minutes=60)
+    svc = Service(cfg)  # not started: only its grid arithmetic is used
+    spring = dt.date(2012, 3, 25)  # Madrid: 02:00 → 03:00
+    t = svc._next_grid(HOURS.at(spring, 0.0))
+    assert t == dt.datetime(2012, 3, 25, 6, 0, tzinfo=dt.UTC)  # 08:00 CEST
+    t2 = svc._next_grid(HOURS.at(spring, 19.0))
+    assert HOURS.day_of(t2) == spring + dt.timedelta(days=1) and HOURS.hours_of(t2) == 8.0
+    autumn = dt.date(2012, 10, 28)  # 03:00 → 02:00
+    assert svc._next_grid(HOURS.at(autumn, 7.0)) == dt.datetime(2012, 10, 28, 7, 0,
+                                                                 tzinfo=dt.UTC)
+    svc.journal.close()
+
+
+def test_restart_restores_the_window_from_the_journal(mosquitto, desk_artifact,
+                                                       tmp_path: Path) -> None:
+    cfg = config(tmp_path, mosquitto.port, desk_artifact)
+    df = day_readings(sml())
+    a = Service(cfg, ReplayClock(HOURS.at(DAY, 12.0), 1.0))
+    for _, r in df.iterrows():
+        from pseudotwin.readings import Reading
+
+        rd = Reading(r["sensor"], r["ts"].to_pydatetime(), float(r["value"]))
+        a.journal.append(rd)
+        a._apply(rd, publish=False)
+    a.journal.close()
+    b = Service(cfg, ReplayClock(HOURS.at(DAY, 12.0), 1.0))
+    assert b.restore() == len(df)
+    ta, tb = a.twins["desk"].twin, b.twins["desk"].twin
+    assert [(r.sensor, r.ts, r.value) for r in ta.window] == \
+        [(r.sensor, r.ts, r.value) for r in tb.window]
+    t = HOURS.at(DAY, 11.0)
+    assert ta.estimate(t) == tb.estimate(t)
+    b.journal.close()

@@ -1,0 +1,93 @@
+"""The rolling horizon inside the Twin: midnight rollover, DST days, duplicates, order."""
+
+from __future__ import annotations
+
+import datetime as dt
+
+import pytest
+
+from daemon_support import HOURS, REF
+from pseudotwin.artifact import Artifact
+from pseudotwin.twin import Twin
+
+
+@pytest.fixture(scope="module")
+def art(desk_artifact) -> Artifact:
+    return Artifact.load(desk_artifact)
+
+
+def at(day: dt.date, h: float) -> dt.datetime:
+    return HOURS.at(day, h)
+
+
+def test_midnight_rollover_starts_a_fresh_window_with_the_carried_value(art) -> None:
+    d1, d2 = dt.date(2012, 3, 20), dt.date(2012, 3, 21)
+    a = Twin(art)
+    for h in (8.0, 12.0, 18.0):
+        a.observe(REF, at(d1, h), 20.0 + h / 10)
+    a.observe(REF, at(d1, 23.0), 19.0)  # outside any window: only remembered
+    assert a.day == d1 and len(a.window) == 3
+    day2 = [(8.0, 18.0), (9.0, 18.5), (10.0, 19.0)]
+    for h, v in day2:
+        a.observe(REF, at(d2, h), v)
+    assert a.day == d2
+    assert [(r.hours, r.value) for r in a.window] == [(HOURS.init_start, 19.0), *day2]
+    # a twin that only ever saw the last value of day 1 agrees exactly: nothing else leaks
+    b = Twin(art)
+    b.observe(REF, at(d1, 23.0), 19.0)
+    for h, v in day2:
+        b.observe(REF, at(d2, h), v)
+    assert a.estimate(at(d2, 10.5)) == b.estimate(at(d2, 10.5))
+
+
+def test_no_estimates_outside_the_window_and_init_before_day_start(art) -> None:
+    d = dt.date(2012, 3, 20)
+    t = Twin(art)
+    t.observe(REF, at(d, 7.0), 20.0)
+    assert t.estimate(at(d, 7.0)) == {}  # before the init phase
+    init = t.estimate(at(d, 7.75))
+    assert {e.quality for e in init.values()} == {"init"}
+    ok = t.estimate(at(d, 8.0))
+    assert ok["corrgp-triv"].quality == "ok"
+    assert t.estimate(at(d, 19.5)) == {}  # after day end
+
+
+@pytest.mark.parametrize("day,utc_hour_of_8", [(dt.date(2012, 3, 25), 6),
+                                              (dt.date(2012, 10, 28), 7)])
+def test_dst_days_keep_wall_clock_operating_hours(art, day: dt.date, utc_hour_of_8: int) -> None:
+    t = Twin(art)
+    eight = at(day, 8.0)
+    assert eight.astimezone(dt.UTC).hour == utc_hour_of_8
+    t.observe(REF, at(day, 7.5), 15.0)
+    t.observe(REF, eight, 15.5)
+    assert [r.hours for r in t.window] == [7.5, 8.0]
+    e = t.estimate(eight)["corrgp-triv"]
+    assert e.quality == "ok" and 10 < e.value < 25
+    # the last slot of the day still lies in the window on both DST days
+    assert t.estimate(at(day, 19.0)) != {}
+
+
+def test_duplicates_are_dropped_and_late_readings_inserted(art) -> None:
+    d = dt.date(2012, 3, 20)
+    a, b = Twin(art), Twin(art)
+    pts = [(8.0, 20.0), (8.5, 20.4), (8.25, 20.2)]  # the last one arrives late
+    for h, v in pts:
+        assert a.observe(REF, at(d, h), v)
+    assert not a.observe(REF, at(d, 8.0), 20.0)  # duplicate
+    for h, v in sorted(pts):
+        b.observe(REF, at(d, h), v)
+    ea, eb = a.estimate(at(d, 9.0)), b.estimate(at(d, 9.0))
+    for kind in ("corrgp-triv", "corrgp-lcm", "triv"):
+        assert ea[kind].value == pytest.approx(eb[kind].value, rel=1e-9)
+    assert not a.observe("not/a/reference", at(d, 9.0), 1.0)
+    assert not a.observe(REF, at(dt.date(2012, 3, 19), 9.0), 1.0)  # a past day's window
+
+
+def test_stale_reference_marks_estimates_stale(art) -> None:
+    d = dt.date(2012, 3, 20)
+    t = Twin(art, stale_after=dt.timedelta(minutes=30))
+    t.observe(REF, at(d, 8.0), 20.0)
+    assert t.estimate(at(d, 8.25))["corrgp-triv"].quality == "ok"
+    assert {e.quality for e in t.estimate(at(d, 9.0)).values()} == {"stale"}
+    t.observe(REF, at(d, 9.0), 20.5)
+    assert t.estimate(at(d, 9.0))["corrgp-triv"].quality == "ok"
