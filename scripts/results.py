@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import hashlib
 import logging
 import subprocess
 import sys
@@ -44,11 +45,18 @@ PROFILE = "corrgp-triv (profile)"
 # Column order of every model table; ref:* pseudo-models follow.
 MODEL_ORDER = ("corrgp-triv", PROFILE, "corrgp-lcm", "triv", "varma")
 PRIMARY, BASE = "corrgp-triv", "triv"
+
+
+def triv1_label(reference: str) -> str:
+    """TRIV on corrgp-triv's single reference (runs with several references)."""
+    return f"triv ({reference} only)"
+
 # A model "degrades with the seasons" when its monthly NRMSE rises by more than this share
 # of its own mean monthly NRMSE per month (least-squares slope over the month index).
 SEASON_REL_SLOPE = 0.10
 # Below this mean difference [NRMSE points] two models are called practically equal.
 TIE_POINTS = 0.05
+TIE_RELATIVE = 2.0  # … or below this share of the baseline's mean daily NRMSE [%]
 
 
 @dataclass(frozen=True)
@@ -107,7 +115,8 @@ RUNS: tuple[RunSpec, ...] = (
         "UCI Appliances house (Belgium, 11 Jan–27 May 2016, 10-min, house clock fixed UTC+1): "
         "reference `ironing/temp` (T7, ironing room), target `parents/temp` (T9, parents' "
         "room) — the pair with the highest overall r (0.945) in PROVENANCE, most of which is "
-        "the common seasonal trend (median daily r 0.49). Different rooms, not one room.",
+        "the common seasonal trend (PROVENANCE: median daily r 0.49 over whole days). "
+        "Different rooms, not one room.",
         long_term=True,
     ),
 )
@@ -118,8 +127,9 @@ RUN_NAMES = tuple(r.name for r in RUNS)
 class RunResult:
     spec: RunSpec
     ev: Evaluation
-    daily: pd.DataFrame  # all models incl. the profile variant and ref:*
+    daily: pd.DataFrame  # all models incl. the extra variants and ref:*
     monthly: pd.DataFrame
+    estimates: pd.DataFrame  # ts, model, value, std, truth, quality (all models)
     seconds: float
     notes: list[str] = field(default_factory=list)
 
@@ -145,33 +155,40 @@ def run_one(spec: RunSpec, history: pd.DataFrame) -> RunResult:
     write_outputs(ev, history, out)
     _progress(f"{spec.name}: {ev.daily['day'].nunique()} test day(s) in {ev.seconds:.1f} s; "
               f"outputs in {out.relative_to(REPO)}/")
-    daily, monthly = ev.daily, ev.monthly
+    frames: list[tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]] = [
+        (ev.daily, ev.monthly, ev.estimates)
+    ]
     notes: list[str] = []
+    variants: list[tuple[str, str, str, dict[str, Any]]] = []  # label, folder, model, options
     if spec.long_term:
-        _progress(f"{spec.name}: corrgp-triv with ref_mean='profile' …")
+        variants.append((PROFILE, "profile", PRIMARY, {PRIMARY: {"ref_mean": "profile"}}))
+    if len(spec.references) > 1:
+        # corrgp-triv uses one reference; TRIV on that same reference is its like-for-like
+        # baseline (and exactly its prior mean).
+        first = spec.references[0]
+        variants.append((triv1_label(first), "triv1", BASE, {BASE: {"references": (first,)}}))
+    for label, folder, model, options in variants:
+        _progress(f"{spec.name}: {label} …")
         ev2 = evaluate(history, spec.references, spec.target, spec.quantity, hours,
-                       spec.train_start, spec.train_days, (PRIMARY,),
-                       options={PRIMARY: {"ref_mean": "profile"}})
-        out2 = OUT / f"{spec.name}-profile"
+                       spec.train_start, spec.train_days, (model,), options=options)
+        out2 = OUT / f"{spec.name}-{folder}"
         write_outputs(ev2, history, out2)
-        _progress(f"{spec.name}: profile variant in {ev2.seconds:.1f} s; outputs in "
+        _progress(f"{spec.name}: {label} in {ev2.seconds:.1f} s; outputs in "
                   f"{out2.relative_to(REPO)}/")
         if ev2.artifact.training["days"] != ev.artifact.training["days"]:
-            notes.append("the profile variant trained on different days: "
+            notes.append(f"{label} trained on different days: "
                          f"{', '.join(ev2.artifact.training['days'])}")
-        daily = pd.concat(
-            [daily, ev2.daily[ev2.daily["model"] == PRIMARY].assign(model=PROFILE)],
-            ignore_index=True,
-        )
-        monthly = pd.concat(
-            [monthly, ev2.monthly[ev2.monthly["model"] == PRIMARY].assign(model=PROFILE)],
-            ignore_index=True,
-        )
-    quality = ev.estimates.groupby(["model", "quality"]).size()
+        d2, m2, e2 = (f[f["model"] == model].assign(model=label)
+                      for f in (ev2.daily, ev2.monthly, ev2.estimates))
+        frames.append((d2, m2, e2))
+    daily, monthly, estimates = (
+        pd.concat([f[i] for f in frames], ignore_index=True) for i in range(3)
+    )
+    quality = estimates.groupby(["model", "quality"]).size()
     for (model, q), n in quality.items():
         if q != "ok" and not str(model).startswith(REF_PREFIX):
             notes.append(f"{n} estimate(s) of {model} had quality `{q}`")
-    return RunResult(spec, ev, daily, monthly, time.perf_counter() - t0, notes)
+    return RunResult(spec, ev, daily, monthly, estimates, time.perf_counter() - t0, notes)
 
 
 # ---------------------------------------------------------------------------- formatting
@@ -188,7 +205,14 @@ def _f(x: Any, nd: int = 2) -> str:
 
 def _ordered(models: Sequence[str]) -> list[str]:
     ms = set(models)
-    return [m for m in MODEL_ORDER if m in ms] + sorted(m for m in ms if m not in MODEL_ORDER)
+    head = [m for m in MODEL_ORDER if m in ms]
+    extra = sorted(m for m in ms if m.startswith(BASE + " ("))
+    if BASE in head:
+        i = head.index(BASE) + 1
+        head[i:i] = extra
+    else:
+        head += extra
+    return head + sorted(m for m in ms if m not in head)
 
 
 def _table(header: Sequence[str], rows: Sequence[Sequence[str]], left: int = 1) -> str:
@@ -202,15 +226,30 @@ def _label(model: str) -> str:
     return f"{model} (raw)" if model.startswith(REF_PREFIX) else model
 
 
-def summary_md(daily: pd.DataFrame) -> str:
+def _signed(x: float, nd: int = 2) -> str:
+    """Signed number; a value that rounds to zero prints as 0.00 (never -0.00)."""
+    v = round(float(x), nd)
+    return _f(v, nd) if v == 0 or not np.isfinite(v) else f"{v:+.{nd}f}"
+
+
+def _bias(estimates: pd.DataFrame) -> pd.Series:
+    """Mean signed error (estimate − truth) per model over all scored readings."""
+    return (estimates["value"] - estimates["truth"]).groupby(estimates["model"]).mean()
+
+
+def summary_md(res: RunResult) -> str:
+    daily = res.daily
     g = daily.groupby("model").agg(
         nrmse=("nrmse_pct", "mean"), dmax=("dmax_pct", "mean"),
         r=("pearson_r", "median"), days=("day", "nunique"),
     )
+    bias = _bias(res.estimates)
+    unit = res.ev.artifact.unit
     rows = [[_label(m), _f(g.at[m, "nrmse"]), _f(g.at[m, "dmax"]), _f(g.at[m, "r"], 3),
-             str(int(g.at[m, "days"]))] for m in _ordered(list(g.index))]
-    return _table(["model", "mean daily NRMSE %", "mean ΔT_max %", "median daily r", "days"],
-                  rows)
+             _signed(bias.get(m, np.nan)), str(int(g.at[m, "days"]))]
+            for m in _ordered(list(g.index))]
+    return _table(["model", "mean daily NRMSE %", "mean ΔT_max %", "median daily r",
+                   f"mean error [{unit}]", "days"], rows)
 
 
 def monthly_md(res: RunResult) -> str:
@@ -235,7 +274,7 @@ def daily_md(res: RunResult) -> str:
     nr = res.daily.pivot(index="day", columns="model", values="nrmse_pct")
     rr = res.daily.pivot(index="day", columns="model", values="pearson_r")
     n = res.daily[res.daily["model"] == PRIMARY].set_index("day")["n"]
-    models = [m for m in MODEL_ORDER if m in nr.columns]
+    models = [m for m in _ordered(list(nr.columns)) if not m.startswith(REF_PREFIX)]
     refs = [REF_PREFIX + s for s in res.ev.artifact.references if REF_PREFIX + s in rr.columns]
     header = ["day", "n", *models, "corrgp-triv vs triv",
               *[f"r {m[len(REF_PREFIX):]}" for m in refs]]
@@ -265,17 +304,29 @@ class Duel:
     loss_days: list[str]
 
     @property
-    def improvement(self) -> float:
-        """Mean daily NRMSE of ``other`` minus corrgp-triv's [points]; > 0 = better."""
-        return self.mean_other - self.mean_primary
+    def excess(self) -> float:
+        """corrgp-triv's mean daily NRMSE minus the baseline's [points]; < 0 = better."""
+        return self.mean_primary - self.mean_other
 
     @property
     def relative(self) -> float:
-        return 100.0 * self.improvement / self.mean_other if self.mean_other else float("nan")
+        """``excess`` in % of the baseline's mean daily NRMSE."""
+        return 100.0 * self.excess / self.mean_other if self.mean_other else float("nan")
 
     @property
     def beats(self) -> bool:
-        return self.improvement > 0 and 2 * self.wins > self.days
+        return self.excess < 0 and 2 * self.wins > self.days
+
+    @property
+    def tie(self) -> bool:
+        return abs(self.excess) < TIE_POINTS or abs(self.relative) < TIE_RELATIVE
+
+    def sentence(self, name: str) -> str:
+        return (
+            f"better than {name} on {self.wins} of {self.days} days; mean daily NRMSE "
+            f"{_f(self.mean_primary)} % vs {_f(self.mean_other)} % (difference "
+            f"{_signed(self.excess)} points, {_signed(self.relative)} %)"
+        )
 
 
 def duel(daily: pd.DataFrame, other: str) -> Duel | None:
@@ -295,111 +346,182 @@ def _median_r(daily: pd.DataFrame, ref_model: str, days: Sequence[str]) -> float
     return float(s.median()) if s.notna().any() else float("nan")
 
 
-def verdict_md(res: RunResult) -> str:
-    daily, art = res.daily, res.ev.artifact
-    ref = res.primary_ref
-    ref_model = REF_PREFIX + ref
-    parts: list[str] = []
-    vs_triv = duel(daily, BASE)
-    if vs_triv is None:
-        return "No common days of corrgp-triv and triv: no verdict."
-    t = vs_triv
-    tie = abs(t.improvement) < TIE_POINTS
-    if t.beats:
-        head = "**corrgp-triv beats TRIV**"
-    elif tie:
-        head = "**corrgp-triv does not beat TRIV (practically equal)**"
-    else:
-        head = "**corrgp-triv does not beat TRIV**"
-    parts.append(
-        f"{head}: lower daily NRMSE on {t.wins} of {t.days} days; mean daily NRMSE "
-        f"{_f(t.mean_primary)} % vs {_f(t.mean_other)} % (improvement {_f(t.improvement)} "
-        f"points, {_f(t.relative, 1)} % of TRIV's error)."
-    )
-    v = duel(daily, "varma")
-    if v is not None:
-        name = getattr(art.models.get("varma"), "model_name_", "varma")
-        fell = (f" (VARMA fell back to `{name}`: "
-                f"{getattr(art.models['varma'], 'fit_message_', '')})" if name != "varma" else "")
-        parts.append(
-            f"Against VARMA{fell}: better on {v.wins} of {v.days} days, mean {_f(v.mean_primary)}"
-            f" % vs {_f(v.mean_other)} % (improvement {_f(v.improvement)} points)."
+@dataclass(frozen=True)
+class Evidence:
+    """Daily Pearson r of corrgp-triv's raw reference vs the target, split by outcome."""
+
+    ref: str
+    r_all: float
+    r_win: float
+    r_loss: float
+    n_win: int
+    n_loss: int
+    rho: float  # Spearman: daily r vs corrgp-triv's daily gain over TRIV
+
+    def sentence(self) -> str:
+        split = []
+        if self.n_win:
+            split.append(f"{_f(self.r_win, 3)} on the {self.n_win} days corrgp-triv wins")
+        if self.n_loss:
+            split.append(f"{_f(self.r_loss, 3)} on the {self.n_loss} days it loses")
+        return (
+            f"Evidence — daily Pearson r of the raw reference `{self.ref}` vs the target: "
+            f"median {_f(self.r_all, 3)} over all days, " + ", ".join(split)
+            + f"; Spearman rank correlation of the daily r with corrgp-triv's daily gain over "
+            f"TRIV {_f(self.rho, 2)}."
         )
-    lcm = duel(daily, "corrgp-lcm")
-    if lcm is not None:
-        parts.append(
-            f"Against the zero-mean corrgp-lcm: better on {lcm.wins} of {lcm.days} days "
-            f"({_f(lcm.mean_primary)} % vs {_f(lcm.mean_other)} %)."
-        )
-    # Evidence: how much the reference tells about the target on the days won and lost.
-    r_all = _median_r(daily, ref_model, daily["day"].unique())
-    r_win = _median_r(daily, ref_model, t.win_days)
-    r_loss = _median_r(daily, ref_model, t.loss_days)
+
+    @property
+    def separates(self) -> bool:
+        """The days lost have a clearly lower r than the days won."""
+        return bool(self.n_win and self.n_loss and self.r_loss < self.r_win - 0.1)
+
+
+def evidence(res: RunResult, t: Duel) -> Evidence:
+    daily = res.daily
+    ref_model = REF_PREFIX + res.primary_ref
     piv = daily.pivot(index="day", columns="model", values="nrmse_pct")
     rr = daily[daily["model"] == ref_model].set_index("day")["pearson_r"]
     gain = (piv[BASE] - piv[PRIMARY]).dropna()
     both = pd.concat([gain.rename("gain"), rr.rename("r")], axis=1).dropna()
     rho = float(both["gain"].corr(both["r"], method="spearman")) if len(both) > 3 else np.nan
-    evidence = (
-        f"Evidence (daily Pearson r of the raw reference `{ref}` vs the target): median "
-        f"{_f(r_all, 3)} over all days, {_f(r_win, 3)} on the {len(t.win_days)} days "
-        f"corrgp-triv wins, {_f(r_loss, 3)} on the {len(t.loss_days)} days it loses; Spearman "
-        f"rank correlation of r with corrgp-triv's daily gain over TRIV {_f(rho, 2)}."
+    return Evidence(
+        res.primary_ref, _median_r(daily, ref_model, daily["day"].unique()),
+        _median_r(daily, ref_model, t.win_days), _median_r(daily, ref_model, t.loss_days),
+        len(t.win_days), len(t.loss_days), rho,
     )
-    parts.append(evidence)
-    if not t.beats:
-        parts.append(_why(r_all, r_win, r_loss, rho, tie))
+
+
+def verdict_md(res: RunResult) -> str:
+    daily, art = res.daily, res.ev.artifact
+    t = duel(daily, BASE)
+    if t is None:
+        return "No common days of corrgp-triv and triv: no verdict."
+    if t.beats:
+        head = "**corrgp-triv beats TRIV**"
+    elif t.tie:
+        head = "**corrgp-triv does not beat TRIV (practically equal)**"
     else:
-        parts.append(_when(r_win, r_loss, rho))
+        head = "**corrgp-triv does not beat TRIV**"
+    parts = [f"{head}: {t.sentence('TRIV')}."]
+    # The TRIV that is corrgp-triv's own prior mean: the baseline on the same reference.
+    own = triv1_label(res.primary_ref) if len(art.references) > 1 else BASE
+    t1 = duel(daily, own) if own != BASE else None
+    if t1 is not None:
+        parts.append(
+            f"TRIV here averages {len(art.references)} references, corrgp-triv uses "
+            f"`{res.primary_ref}` only; against TRIV on `{res.primary_ref}` alone (its own "
+            f"prior mean) it is {t1.sentence('that TRIV')}."
+        )
+    v = duel(daily, "varma")
+    if v is not None:
+        vm = art.models.get("varma")
+        name = getattr(vm, "model_name_", "varma")
+        fell = (f" (here the fallback `{name}`: {getattr(vm, 'fit_message_', '')})"
+                if name != "varma" else "")
+        parts.append(f"Against VARMA{fell}: {v.sentence('VARMA')}.")
+    lcm = duel(daily, "corrgp-lcm")
+    if lcm is not None:
+        parts.append(f"Against the zero-mean corrgp-lcm: {lcm.sentence('corrgp-lcm')}.")
+    ev = evidence(res, t)
+    parts.append(ev.sentence())
+    bias = _bias(res.estimates)
+    if not t.beats:
+        why = _why(t, t1, ev, bias, art.unit, own)
+        if why[5].isupper() and why[6].islower():  # "Why: The …" → "Why: the …"
+            why = why[:5] + why[5].lower() + why[6:]
+        parts.append(why)
+    elif ev.rho > 0.2:
+        parts.append("Its gain is larger on days with a higher reference–target r, as the "
+                     "method expects.")
+    elif not ev.separates:
+        parts.append(
+            f"The daily r does not separate the days won from those lost ({_f(ev.r_win, 3)} vs "
+            f"{_f(ev.r_loss, 3)}): the gain is not confined to days on which the reference "
+            "co-varies strongly with the target."
+        )
+    med_r = daily.groupby("model")["pearson_r"].median()
+    r_p, r_b = med_r.get(PRIMARY, np.nan), med_r.get(BASE, np.nan)
+    if t.beats and r_p < r_b - 0.1:
+        parts.append(
+            f"Its estimate follows the target's within-day course less well than TRIV's "
+            f"(median daily r with the truth {_f(r_p, 3)} vs {_f(r_b, 3)}): the gain is in the "
+            "level of the estimate, not in tracking the day's shape."
+        )
+    raw = daily[daily["model"] == REF_PREFIX + res.primary_ref]["nrmse_pct"].mean()
+    if np.isfinite(raw) and raw < t.mean_other:
+        parts.append(
+            f"Note: the raw reference alone scores {_f(raw)} % mean daily NRMSE, lower than "
+            "TRIV: the offset profile learnt on the five training days does not carry over to "
+            "the test days, and corrgp-triv inherits it as its prior mean."
+        )
     drift = _varma_drift(daily)
     if drift:
         parts.append(drift)
     return " ".join(parts)
 
 
-def _why(r_all: float, r_win: float, r_loss: float, rho: float, tie: bool) -> str:
-    """Why corrgp-triv does not beat TRIV, read off the r evidence (stated as such)."""
+def _why(t: Duel, t1: Duel | None, ev: Evidence, bias: pd.Series, unit: str, own: str) -> str:
+    """Why corrgp-triv does not beat TRIV, read off the r evidence (rules stated in the text)."""
     why = "Why: "
-    if np.isfinite(r_all) and r_all >= 0.95:
+    if t1 is not None:
+        one_ref = t1.mean_other - t.mean_other
+        gp = t1.excess
         why += (
-            f"within each day the reference tracks the target almost perfectly (median r "
-            f"{_f(r_all, 3)}), so TRIV's offset profile plus the live reference already "
-            "explains the target; the GP's correction of the reference's deviation from its "
-            "typical day has little left to add and "
-            + ("the two end up practically equal." if tie else
-               "its residual errors cost more than they gain.")
+            f"of the {_signed(t.excess)} points, {_signed(one_ref)} come from using one "
+            f"reference instead of all (TRIV on `{ev.ref}` alone vs TRIV) and {_signed(gp)} "
+            "from the GP's correction on top of that prior mean. "
         )
-    elif np.isfinite(r_win) and np.isfinite(r_loss) and r_loss < r_win - 0.1:
-        why += (
-            f"it loses mainly on days when the reference tells less about the target (median r "
-            f"{_f(r_loss, 3)} on lost vs {_f(r_win, 3)} on won days). The GP transfers the "
-            "reference's deviation from its typical day to the target through the coupling "
-            "learnt on the training days; when the two rooms do not move together that day, "
-            "the transfer adds error that TRIV (offset + reference) does not make."
+        if gp <= 0:
+            return why + (
+                "The GP itself does not make the estimate worse; the loss is the price of "
+                "corrgp-triv using a single reference where TRIV averages several."
+            )
+    b_p, b_t = bias.get(PRIMARY, np.nan), bias.get(own, np.nan)
+    errs = (f"mean signed error of corrgp-triv {_signed(b_p)} {unit} vs "
+            f"{_signed(b_t)} {unit} of {own}")
+    if ev.separates:
+        return why + (
+            f"It loses mainly on days when the reference tells less about the target "
+            f"(median r {_f(ev.r_loss, 3)} on lost vs {_f(ev.r_win, 3)} on won days). The GP "
+            "transfers the reference's deviation from its typical day to the target through "
+            "the coupling learnt on the training days; when the two do not move together "
+            "that day, the transfer adds error that TRIV (offset + reference) does not make."
         )
-    elif np.isfinite(r_all) and r_all < 0.5:
-        why += (
-            f"the within-day co-variation of reference and target is weak (median r "
-            f"{_f(r_all, 3)}), so there is little for the correlated GP to exploit beyond "
-            "TRIV's offset; what the GP transfers from the reference is largely noise."
+    if t.tie:
+        if np.isfinite(ev.r_all) and ev.r_all >= 0.9:
+            return why + (
+                f"Within each day the reference tracks the target closely (median r "
+                f"{_f(ev.r_all, 3)}), so TRIV's offset profile plus the live reference already "
+                "carries the target's course; the GP's correction of the reference's deviation "
+                "from its typical day has almost nothing left to add, and the two end up "
+                "practically equal."
+            )
+        return why + (
+            f"The within-day co-variation of reference and target is moderate to weak "
+            f"(median r {_f(ev.r_all, 3)}) and the daily r does not separate the days won from "
+            "those lost; the GP's correction stays small, so corrgp-triv ends up practically "
+            "equal to its TRIV prior mean."
         )
-    else:
-        why += (
-            f"the daily r does not separate the days it wins from those it loses ({_f(r_win, 3)} "
-            f"vs {_f(r_loss, 3)}, rank correlation {_f(rho, 2)}); the r evidence does not "
-            "explain the difference, which is small relative to the day-to-day spread."
+    if np.isfinite(ev.r_all) and ev.r_all >= 0.9:
+        return why + (
+            f"Not for lack of information: the reference tracks the target closely on all "
+            f"kinds of day (median r {_f(ev.r_all, 3)}), so TRIV's offset profile plus the "
+            "live reference already carries the target's course. The GP adds a correction "
+            "from the reference's deviation from its (shifted) training-day profile through "
+            "the coupling learnt on five days, and on the test days that correction moves the "
+            f"estimate away from the truth ({errs})."
         )
-    return why
-
-
-def _when(r_win: float, r_loss: float, rho: float) -> str:
-    if np.isfinite(rho) and rho > 0.2:
-        return ("Its advantage is larger on days with a higher reference–target r, as the "
-                "method expects.")
-    if np.isfinite(r_win) and np.isfinite(r_loss) and r_loss < r_win - 0.1:
-        return (f"The days it loses have a lower reference–target r ({_f(r_loss, 3)} vs "
-                f"{_f(r_win, 3)}).")
-    return ""
+    if np.isfinite(ev.r_all) and ev.r_all < 0.5:
+        return why + (
+            f"The within-day co-variation of reference and target is weak (median r "
+            f"{_f(ev.r_all, 3)}), so there is little for the correlated GP to exploit beyond "
+            f"TRIV's offset; what it transfers from the reference is largely noise ({errs})."
+        )
+    return why + (
+        f"The daily r does not explain it: it does not separate the days won from those lost "
+        f"(rank correlation with the gain {_f(ev.rho, 2)}); {errs}."
+    )
 
 
 def _varma_drift(daily: pd.DataFrame) -> str:
@@ -413,8 +535,8 @@ def _varma_drift(daily: pd.DataFrame) -> str:
     return (
         f"VARMA's error grows with the distance from the training days (mean daily NRMSE "
         f"{_f(first)} % over the first third of the test days, {_f(last)} % over the last "
-        "third): its trend `ct` fitted on five days is extrapolated to every later day (the "
-        "caveat documented in `models/varma.py`)."
+        "third), consistent with its trend `ct`: the drift fitted on five days is "
+        "extrapolated to every later day (the caveat documented in `models/varma.py`)."
     )
 
 
@@ -439,9 +561,9 @@ def seasonal_md(res: RunResult) -> str:
             rel[m] = slope[m] / float(np.mean(y[ok]))
     rows = [[mo, str(int(days.get(mo, 0))), *[_f(piv.at[mo, m]) for m in models],
              _f(r.get(mo, np.nan), 3)] for mo in piv.index]
-    rows.append(["slope [points/month]", "", *[_f(slope.get(m, np.nan), 3) for m in models], ""])
+    rows.append(["slope [points/month]", "", *[_f(slope.get(m, np.nan)) for m in models], ""])
     rows.append(["slope / mean [%/month]", "",
-                 *[_f(100 * rel.get(m, np.nan), 1) for m in models], ""])
+                 *[_f(100 * rel.get(m, np.nan)) for m in models], ""])
     table = _table(["month", "days", *[names.get(m, m) for m in models],
                     f"median r {res.primary_ref}"], rows)
 
@@ -459,13 +581,20 @@ def seasonal_md(res: RunResult) -> str:
     rule = (f"Rule: a model *degrades* when the least-squares slope of its monthly NRMSE over "
             f"the month index exceeds {100 * SEASON_REL_SLOPE:.0f} % of its mean monthly NRMSE "
             "per month; otherwise it *holds*.")
-    facts = (f"corrgp-lcm (zero mean) {span('corrgp-lcm')}, slope {_f(slope.get('corrgp-lcm'), 3)}"
+    facts = (f"corrgp-lcm (zero mean) {span('corrgp-lcm')}, slope {_f(slope.get('corrgp-lcm'))}"
              f" points/month ({lcm_t}); corrgp-triv (shifted) {span(PRIMARY)}, slope "
-             f"{_f(slope.get(PRIMARY), 3)} points/month ({triv_t})")
+             f"{_f(slope.get(PRIMARY))} points/month ({triv_t})")
     if PROFILE in slope:
-        facts += (f"; corrgp-triv (profile) {span(PROFILE)}, slope {_f(slope[PROFILE], 3)} "
+        facts += (f"; corrgp-triv (profile) {span(PROFILE)}, slope {_f(slope[PROFILE])} "
                   f"points/month ({trend(PROFILE)})")
     facts += f"; TRIV {span(BASE)} ({trend(BASE)})."
+    best = str(piv["corrgp-lcm"].idxmin())
+    if best != first:
+        facts += (f" corrgp-lcm is not monotonic: its lowest month is {best} "
+                  f"({_f(piv.at[best, 'corrgp-lcm'])} %).")
+    below = [str(mo) for mo in piv.index if piv.at[mo, PRIMARY] < piv.at[mo, BASE]]
+    facts += (f" corrgp-triv (shifted) is below TRIV in {len(below)} of {len(piv.index)} "
+              f"months ({', '.join(below) or 'none'}).")
     if lcm_t == "degrades" and triv_t == "holds":
         finding = ("**The thesis's finding is reproduced**: the zero-mean LCM degrades with "
                    "the seasons while the TRIV-mean model holds.")
@@ -484,7 +613,16 @@ def seasonal_md(res: RunResult) -> str:
         better = "shifted" if diff > 0 else "profile"
         finding += (f" Shifted vs unshifted reference prior mean: the {better} variant is "
                     f"better on average by {_f(abs(diff))} points of monthly NRMSE.")
-    return "\n\n".join([table, rule, facts + " " + finding])
+    intro = (
+        "corrgp-triv (shifted) is the default: the reference's prior mean is its training-day "
+        "profile P_ref shifted to the day's level in the init phase. corrgp-triv (profile) is "
+        "the same model with the unshifted P_ref (`options={\"corrgp-triv\": {\"ref_mean\": "
+        "\"profile\"}}`, CLI `--ref-mean profile`). corrgp-lcm has a zero mean and one shared "
+        "normalization of all outputs from the training days. Monthly mean of daily NRMSE %; "
+        f"the last column is the median daily r of the raw reference `{res.primary_ref}` vs "
+        "the target."
+    )
+    return "\n\n".join([intro, table, rule, facts + " " + finding])
 
 
 # ---------------------------------------------------------------------------- document
@@ -497,6 +635,17 @@ def _commit() -> str:
         return p.stdout.strip() or "unknown"
     except (OSError, subprocess.SubprocessError):
         return "unknown"
+
+
+def _source_hash() -> str:
+    """SHA-256 (12 hex) over the package's Python sources: identifies the code even when the
+    working tree differs from the commit."""
+    h = hashlib.sha256()
+    pkg = REPO / "daemon" / "pseudotwin"
+    for f in sorted(pkg.rglob("*.py")):
+        h.update(str(f.relative_to(pkg)).encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()[:12]
 
 
 def _versions() -> str:
@@ -538,15 +687,20 @@ HOW_TO_READ = """\
 """
 
 
-def render(results: Sequence[RunResult], total: float, partial: bool) -> str:
+def render(results: Sequence[RunResult], total: float, partial: bool, source: str) -> str:
+    """``source``: the package source hash when the run started (and the code was imported)."""
     now = dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    changed = _source_hash() != source
     lines = [
         "# Accuracy results",
         "",
         f"Generated by `{COMMAND}`"
         + (f" `--only {','.join(r.spec.name for r in results)}` (partial)" if partial else "")
-        + f" on {now} at commit `{_commit()}` in {total / 60:.1f} min ({total:.0f} s).",
+        + f" on {now} at commit `{_commit()}` (package sources sha256 `{source}`) in "
+        f"{total / 60:.1f} min ({total:.0f} s).",
         f"Regenerate with `{COMMAND}` (from the repository root). Versions: {_versions()}.",
+        *(["", "**Warning: the package sources changed while this ran; regenerate.**"]
+          if changed else []),
         "",
         HOW_TO_READ,
         "## Overview",
@@ -592,7 +746,7 @@ def _section(res: RunResult) -> list[str]:
     ]
     if res.notes:
         lines += ["Notes: " + "; ".join(res.notes) + ".", ""]
-    lines += ["### Summary", "", summary_md(res.daily), "", "### Verdict", "",
+    lines += ["### Summary", "", summary_md(res), "", "### Verdict", "",
               verdict_md(res), ""]
     if spec.long_term:
         lines += ["### Seasons: zero-mean LCM vs TRIV-mean Corr-GP", "", seasonal_md(res), ""]
@@ -623,6 +777,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr,
                         format="%(levelname)s %(name)s: %(message)s")
     t0 = time.perf_counter()
+    source = _source_hash()
     specs = [r for r in RUNS if a.only is None or r.name in a.only]
     partial = a.only is not None
     target = a.out or (PARTIAL if partial else DOC)
@@ -636,7 +791,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         results.append(run_one(spec, histories[spec.dataset]))
     total = time.perf_counter() - t0
     target.parent.mkdir(parents=True, exist_ok=True)
-    target.write_text(render(results, total, partial), encoding="utf-8")
+    target.write_text(render(results, total, partial, source), encoding="utf-8")
     _progress(f"wrote {target} in {total:.0f} s")
     return 0
 

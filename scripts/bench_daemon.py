@@ -1,0 +1,223 @@
+#!/usr/bin/env python3
+"""Benchmark: the daemon with 100 twins fed 5-minute COV readings at 60× replay speed.
+
+Each twin has its own reference sensor and artifact (copies of one twin trained on SML2010,
+dining room → bedroom, with the sensor names changed). Readings come from the real day
+2012-03-20 of SML2010, interpolated to 5 minutes and offset per room (a few seconds apart,
+as independent sensors report), published through a real Mosquitto broker while the daemon
+runs as its own process in replay mode at the same speed.
+
+Measured: end-to-end latency from a reading's publish to the arrival of the estimate it
+caused (median, p99), the daemon's CPU time (per reading and as a share of one core) and its
+peak RSS (VmHWM). Prints a table and, last, one JSON line.
+Usage: .venv/bin/python scripts/bench_daemon.py [--twins 100] [--hours 2] [--speed 60]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import paho.mqtt.client as mqtt
+from paho.mqtt.enums import CallbackAPIVersion
+
+import pseudotwin  # noqa: F401
+from pseudotwin.clock import ReplayClock
+from pseudotwin.convert import load
+from pseudotwin.horizon import OperatingHours
+from pseudotwin.training import train_twin
+
+ROOT = Path(__file__).resolve().parent.parent
+TZ = "Europe/Madrid"
+DAY = dt.date(2012, 3, 20)
+REF, TARGET = "dining/temp", "room/temp"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def relabel(obj, mapping: dict[str, str]):
+    """The artifact with its sensor names replaced (keys and values)."""
+    if isinstance(obj, dict):
+        return {mapping.get(k, k): relabel(v, mapping) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [relabel(v, mapping) for v in obj]
+    return mapping.get(obj, obj) if isinstance(obj, str) else obj
+
+
+def proc_stats(pid: int) -> tuple[float, int]:
+    """CPU seconds (user + system) and peak RSS [kB] of a process."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    ticks = os.sysconf("SC_CLK_TCK")
+    cpu = (int(fields[11]) + int(fields[12])) / ticks
+    hwm = 0
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                hwm = int(line.split()[1])
+    return cpu, hwm
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--twins", type=int, default=100)
+    ap.add_argument("--hours", type=float, default=2.0, help="day time to replay from 08:00")
+    ap.add_argument("--speed", type=float, default=60.0)
+    a = ap.parse_args()
+    hours = OperatingHours(timezone=TZ)
+    tmp = Path(tempfile.mkdtemp(prefix="pseudotwin-bench-"))
+    try:
+        df = load("sml2010")
+        art = train_twin(df, [REF], TARGET, "temperature", hours, dt.date(2012, 3, 14), 5)
+        base = json.loads(json.dumps(art.to_dict(), allow_nan=True))
+        (tmp / "artifacts").mkdir()
+        sensors, twins = [], []
+        for i in range(a.twins):
+            ref, tgt = f"room{i:03d}/wall/temp", f"room{i:03d}/desk/temp"
+            d = relabel(base, {REF: ref, TARGET: tgt})
+            (tmp / "artifacts" / f"t{i:03d}.json").write_text(json.dumps(d))
+            sensors.append(f'[[sensors]]\nid = "{ref}"\ntopic = "b/{ref}"\nunit = "°C"\n'
+                           f"min = -10\nmax = 50\n")
+            twins.append(f'[[twins]]\nid = "t{i:03d}"\nreferences = ["{ref}"]\n'
+                         f'quantity = "temperature"\nartifact = "artifacts/t{i:03d}.json"\n')
+        port = free_port()
+        (tmp / "config.toml").write_text(
+            f'[broker]\nhost = "127.0.0.1"\nport = {port}\nclient_id = "bench"\n\n'
+            f'[service]\nbase_topic = "pt"\ntimezone = "{TZ}"\nstate_dir = "state"\n'
+            f"stale_after_minutes = 30\nlog_level = \"WARNING\"\n\n"
+            + "\n".join(sensors) + "\n" + "\n".join(twins))
+        conf = tmp / "mosquitto.conf"
+        conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\n"
+                        f"max_queued_messages 100000\n"
+                        + (f"user {os.environ.get('USER', 'root')}\n" if os.geteuid() == 0
+                           else ""))
+        broker = subprocess.Popen([shutil.which("mosquitto") or "/usr/sbin/mosquitto", "-c",
+                                   str(conf)], stderr=subprocess.DEVNULL)
+
+        # 5-minute readings of the real day, interpolated, per room offset by a few seconds
+        day = df[(df["sensor"] == REF) & (df["ts"] >= hours.at(DAY, 0.0))
+                 & (df["ts"] < hours.at(DAY, 23.9))]
+        t0 = hours.at(DAY, 7.5)
+        n_steps = int((a.hours + 0.5) * 12)
+        grid = [t0 + dt.timedelta(minutes=5 * k) for k in range(n_steps)]
+        src_t = day["ts"].astype("int64").to_numpy() / 1e9
+        vals = np.interp([g.timestamp() for g in grid], src_t, day["value"].to_numpy())
+        events = sorted(
+            (g + dt.timedelta(seconds=(7 * i) % 290), i, float(v) + 0.01 * (i % 7))
+            for k, (g, v) in enumerate(zip(grid, vals, strict=True)) for i in range(a.twins)
+        )
+
+        start = t0 - dt.timedelta(minutes=1)
+        daemon = subprocess.Popen(
+            [str(ROOT / ".venv" / "bin" / "pseudotwin"), "run", "--config",
+             str(tmp / "config.toml"), "--replay-from", start.isoformat(),
+             "--speed", str(a.speed)],
+            stdout=open(tmp / "daemon.log", "w"), stderr=subprocess.STDOUT)  # noqa: SIM115
+        sent: dict[tuple[int, str], float] = {}
+        lat: list[float] = []
+        lock = threading.Lock()
+        online = threading.Event()
+
+        def on_message(c, u, m) -> None:
+            now = time.monotonic()
+            if m.topic == "pt/status":
+                if m.payload == b"online":
+                    online.set()
+                return
+            body = json.loads(m.payload)
+            i = int(m.topic.split("/")[1][1:])
+            with lock:
+                t = sent.pop((i, body["ts"]), None)
+                if t is not None:
+                    lat.append(now - t)
+
+        sub = mqtt.Client(CallbackAPIVersion.VERSION2, client_id="bench-sub")
+        sub.on_connect = lambda c, *_: c.subscribe([("pt/+/estimate", 1), ("pt/status", 1)])
+        sub.on_message = on_message
+        for _ in range(100):
+            try:
+                sub.connect("127.0.0.1", port)
+                break
+            except OSError:
+                time.sleep(0.05)
+        sub.loop_start()
+        if not online.wait(120):
+            print((tmp / "daemon.log").read_text())
+            return 1
+        cpu0, _ = proc_stats(daemon.pid)
+        pub = mqtt.Client(CallbackAPIVersion.VERSION2, client_id="bench-pub")
+        pub.max_queued_messages_set(0)
+        pub.connect("127.0.0.1", port)
+        pub.loop_start()
+        clock = ReplayClock(start, a.speed)
+        stop = threading.Event()
+        wall0 = time.monotonic()
+        published = in_hours = 0
+        for ts, i, v in events:
+            clock.wait_until(ts, stop)
+            key = (i, ts.astimezone(dt.UTC).isoformat().replace("+00:00", "Z"))
+            if hours.hours_of(ts) >= hours.day_start:
+                with lock:
+                    sent[key] = time.monotonic()
+                in_hours += 1
+            pub.publish(f"b/room{i:03d}/wall/temp",
+                        json.dumps({"ts": ts.isoformat(), "value": round(v, 3)}), qos=1)
+            published += 1
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and len(lat) < in_hours:
+            time.sleep(0.1)
+        wall = time.monotonic() - wall0
+        cpu1, hwm = proc_stats(daemon.pid)
+        daemon.send_signal(signal.SIGTERM)
+        daemon.wait(60)
+        pub.loop_stop()
+        sub.loop_stop()
+        broker.terminate()
+        broker.wait(10)
+        ms = np.array(lat) * 1e3
+        fig = {
+            "twins": a.twins, "speed": a.speed, "day_hours": a.hours,
+            "readings_published": published, "estimates_matched": len(lat),
+            "estimates_expected": in_hours,
+            "latency_median_ms": round(float(np.median(ms)), 2),
+            "latency_p99_ms": round(float(np.percentile(ms, 99)), 2),
+            "latency_max_ms": round(float(ms.max()), 2),
+            "readings_per_s": round(published / wall, 1),
+            "daemon_cpu_s": round(cpu1 - cpu0, 2),
+            "daemon_cpu_share_of_core": round((cpu1 - cpu0) / wall, 3),
+            "daemon_cpu_ms_per_reading": round(1e3 * (cpu1 - cpu0) / published, 3),
+            "daemon_peak_rss_mb": round(hwm / 1024, 1),
+            "daemon_exit": daemon.returncode,
+        }
+        print(f"{a.twins} twins, 5-min COV readings at {a.speed:g}×, {a.hours:g} h of day time "
+              f"({published} readings in {wall:.0f} s, {fig['readings_per_s']}/s)")
+        print(f"  reading → estimate latency: median {fig['latency_median_ms']} ms, "
+              f"p99 {fig['latency_p99_ms']} ms, max {fig['latency_max_ms']} ms "
+              f"({len(lat)} of {in_hours} estimates matched)")
+        print(f"  daemon CPU: {fig['daemon_cpu_s']} s = {fig['daemon_cpu_share_of_core']:.1%} "
+              f"of one core, {fig['daemon_cpu_ms_per_reading']} ms per reading; "
+              f"peak RSS {fig['daemon_peak_rss_mb']} MB")
+        print(json.dumps(fig))
+        return 0
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
