@@ -52,7 +52,8 @@ __all__ = [
 
 #: Called per twin by :func:`load_config`/:func:`check_config` when its artifact file exists;
 #: returns problem messages (without location), e.g. "artifact was trained for sensors ...".
-ArtifactCheck = Callable[["TwinConfig"], list[str]]
+# (twin, the service's operating hours if they are valid) → problems
+ArtifactCheck = Callable[["TwinConfig", "OperatingHours | None"], list[str]]
 
 MAX_TOPIC_BYTES = 65535  # MQTT strings carry a 16-bit length prefix.
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
@@ -626,6 +627,7 @@ class _Loader:
         self.runtime = runtime
         self.artifact_check = artifact_check
         self.problems: list[str] = []
+        self.hours: OperatingHours | None = None
 
     def add(self, location: str, message: str) -> None:
         self.problems.append(f"{location}: {message}")
@@ -688,6 +690,7 @@ class _Loader:
         self.problems.extend(_cross_problems(
             raw_base if isinstance(raw_base, str) else None, sensors, twins, bad_ids
         ))
+        self.hours = service["hours"] if service is not None else None
         if self.runtime:
             self.runtime_checks(broker, service, twins)
         elif self.artifact_check is not None:
@@ -843,7 +846,7 @@ class _Loader:
     def run_artifact_check(self, loc: str, twin: TwinConfig) -> None:
         assert self.artifact_check is not None
         try:
-            messages = list(self.artifact_check(twin))
+            messages = list(self.artifact_check(twin, self.hours))
         except (PseudotwinError, OSError, ValueError) as exc:
             messages = [str(exc)]
         for msg in messages:
