@@ -122,8 +122,9 @@ class FakeCrateDB:
 
         self._server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
         self._server.daemon_threads = True
-        self._thread = threading.Thread(target=self._server.serve_forever, name="fake-cratedb",
-                                        daemon=True)
+        # A short poll interval keeps stop() (and so every test's teardown) fast.
+        self._thread = threading.Thread(target=self._server.serve_forever, args=(0.02,),
+                                        name="fake-cratedb", daemon=True)
         self._thread.start()
         return self
 
@@ -291,6 +292,9 @@ def _auth(header: str | None) -> tuple[str | None, bool]:
 class _Handler(BaseHTTPRequestHandler):
     server_fake: FakeCrateDB
     protocol_version = "HTTP/1.1"  # keep-alive, as urllib3's pool expects
+    # Headers and body go out in two writes; with Nagle on, a keep-alive client waits for
+    # the delayed ACK (~40 ms) on every request.
+    disable_nagle_algorithm = True
 
     def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - base signature
         pass  # quiet: tests assert on recorded requests, not on an access log

@@ -196,6 +196,12 @@ def cmd_convert(argv: list[str]) -> int:
     return convert_main(argv)
 
 
+def cmd_import(argv: list[str]) -> int:
+    from .importer import main as import_main
+
+    return import_main(argv)
+
+
 def cmd_check_config(argv: list[str]) -> int:
     from .config import check_config_main
 
@@ -205,6 +211,7 @@ def cmd_check_config(argv: list[str]) -> int:
 DELEGATED: dict[str, Callable[[list[str]], int]] = {
     "convert": cmd_convert,
     "check-config": cmd_check_config,
+    "import": cmd_import,
 }
 
 
@@ -213,7 +220,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="pseudotwin",
         description="Pseudo-measurements of desk temperature and CO2 from room reference "
                     "sensors with a correlated Gaussian process (Corr-GP) digital twin.",
-        epilog="Subcommands: train, evaluate, run, replay, convert, check-config. "
+        epilog="Subcommands: train, evaluate, run, replay, convert, check-config, import. "
                "'pseudotwin SUBCOMMAND --help' explains each.",
     )
     p.add_argument("--version", action="version", version=f"pseudotwin {__version__}")
@@ -263,6 +270,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     sub.add_parser("convert", help="convert a shared dataset into canonical CSV", add_help=False)
     sub.add_parser("check-config", help="validate a daemon configuration file", add_help=False)
+    sub.add_parser("import", help="load a canonical history file into the history store",
+                   add_help=False)
     return p
 
 

@@ -67,7 +67,17 @@ def import_history(
     Raises DataError for a malformed file, StoreError when the store cannot be written.
     """
     p = Path(path)
-    df = read_history(p)  # validated canonical frame, sorted by ts
+    return import_frame(store, read_history(p), p, chunk_rows, progress)
+
+
+def import_frame(
+    store: Store,
+    df: pd.DataFrame,
+    path: Path,
+    chunk_rows: int = IMPORT_CHUNK,
+    progress: Callable[[int, int], None] | None = None,
+) -> ImportSummary:
+    """Write an already validated canonical frame (read from ``path``) in chunks."""
     total = len(df)
     new = 0
     for i in range(0, total, chunk_rows):
@@ -75,7 +85,7 @@ def import_history(
         if progress is not None:
             progress(min(i + chunk_rows, total), total)
     return ImportSummary(
-        path=p,
+        path=path,
         rows_read=total,
         rows_new=new,
         sensors=tuple(sorted(df["sensor"].unique())),
@@ -116,8 +126,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = _parser().parse_args(list(sys.argv[1:] if argv is None else argv))
         t0 = time.perf_counter()
+        # Validate the file first: a bad file must not create or touch the store.
+        df = read_history(args.file)
         with open_store(args.store) as store:
-            summary = import_history(store, args.file)
+            summary = import_frame(store, df, args.file)
             print(f"{summary.line()} ({time.perf_counter() - t0:.1f} s, into {store.url})")
         return 0
     except SystemExit as exc:  # --help

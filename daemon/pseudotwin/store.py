@@ -807,7 +807,8 @@ def _bulk_count(results: list[dict] | None, sent: int, table: str, url: str) -> 
             f"{url}: CrateDB rejected {len(failed)} of {len(results)} rows of {table}; "
             f"first: row {i} ({msg or 'no error message given'})"
         )
-    return sum(1 if r.get("rowcount", -1) == -1 else int(r["rowcount"]) for r in results)
+    counts = [r.get("rowcount") for r in results]
+    return sum(rc if isinstance(rc, int) and rc >= 0 else 1 for rc in counts)
 
 
 # ------------------------------------------------------------------------------ factory
@@ -838,6 +839,13 @@ def open_store(url: str | os.PathLike[str]) -> Store:
     return SQLiteStore(text)
 
 
+def _with_port(host: str) -> str:
+    """``host`` with CrateDB's HTTP port 4200 added when it names none (the client would
+    otherwise use the scheme's 80/443); IPv6 hosts are bracketed, ``[::1]:4200``."""
+    after_ipv6 = host.rsplit("]", 1)[-1]
+    return host if ":" in after_ipv6 else f"{host}:4200"
+
+
 def _open_crate(text: str, http: str) -> CrateStore:
     parts = urlsplit(text)
     netloc = parts.netloc
@@ -858,5 +866,5 @@ def _open_crate(text: str, http: str) -> CrateStore:
     schema = query.get("schema", [DEFAULT_CRATE_SCHEMA])[-1].strip()
     if not schema.isidentifier():
         raise ConfigError(f"{text!r}: schema {schema!r} is not a plain identifier")
-    servers = [f"{http}://{h}" for h in hosts]
+    servers = [f"{http}://{_with_port(h)}" for h in hosts]
     return CrateStore(servers, schema, url=text)
