@@ -34,8 +34,11 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import signal
 import socket
 import struct
+import subprocess
+import sys
 import threading
 import time
 import uuid
@@ -517,6 +520,31 @@ def test_daemon_configuration_file_with_a_plc_section(tmp_path: Path) -> None:
                for p in caught.value.problems)
     assert any(p.startswith("plc.symbols[0].sensor: unknown sensor 'room1/hmi/tmp'")
                for p in caught.value.problems)
+
+
+def test_sigterm_stops_the_bridge_process_cleanly(
+    plc: Plc, env: Env, mqtt_client: MqttClientFactory
+) -> None:
+    # In its own process the bridge still connects, checks the symbols, reads the initial
+    # values and deletes its notifications over ADS/TCP; only the test server's in-process
+    # notification delivery needs the test process, so changes are not checked here.
+    inbox = _subscribe(mqtt_client, env)
+    path = env.write_config()
+    proc = subprocess.Popen([sys.executable, "-m", "pseudotwin.bridge", "--config", str(path)],
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_initial(inbox, env)
+        inbox.wait(f"{env.base}/bridge/plc", lambda p: p == b"up")
+        assert all(plc.variable(name).notifications for name, *_ in VARIABLES)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=DEADLINE)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert inbox.wait(f"{env.base}/bridge/status", lambda p: p == b"offline")
+    assert not any(plc.variable(name).notifications for name, *_ in VARIABLES)
 
 
 def test_help(capsys: pytest.CaptureFixture[str]) -> None:

@@ -149,7 +149,7 @@ def test_bad_payloads_are_counted_logged_once_and_never_block(
                 reading(*good[2]), reading(*good[3])]
     for p in sequence:
         pub.publish(topic, p, qos=1).wait_for_publish(10)
-    wait_for(lambda: svc.accepted + sum(svc.rejected.values()) == len(sequence),
+    wait_for(lambda: svc.accepted + svc.rejections.total() == len(sequence),
              what="every payload handled")
     rt = svc.twins["desk"]
     window = [(r.ts, r.value) for r in rt.twin.window if r.sensor == REF]
@@ -158,7 +158,7 @@ def test_bad_payloads_are_counted_logged_once_and_never_block(
     assert svc.accepted == len(good) + 1  # the duplicate parsed fine, the twin dropped it
     expected = {("dining/temp", k): 1 for k in bad}
     expected[("dining/temp", "non-finite")] = 2
-    assert dict(svc.rejected) == expected
+    assert dict(svc.rejections.counts) == expected
     lines = [r.getMessage() for r in caplog.records if "rejected reading" in r.getMessage()]
     assert len(lines) == sum(expected.values())
     for reason in bad:

@@ -492,7 +492,7 @@ class _BridgeLoader:
         # The daemon's loader in its non-runtime mode: it must not require the twins'
         # artifacts, which are none of the bridge's business.
         self.inner = _Loader(base_dir, runtime=False, artifact_check=None)
-        self.problems = self.inner.problems  # one list: problems in file order of sections
+        self.problems = self.inner.problems  # one list for the daemon's sections and ours
 
     def load(self, doc: dict[str, Any]) -> BridgeConfig | None:
         for key in doc:
@@ -640,6 +640,10 @@ class SymbolProblems(ConfigProblems):
 class _PlcNotRunning(Exception):
     """The PLC answers, but its runtime is not in RUN: values are frozen, and a restart may
     invalidate notification handles, so the link counts as down."""
+
+
+#: Failures of the PLC link itself (anything else is logged with a traceback).
+_EXPECTED = (pyads.ADSError, _PlcNotRunning, OSError, RuntimeError)
 
 
 @dataclass
@@ -864,7 +868,11 @@ class Bridge:
                     self.fatal = exc
                     log.error("the PLC does not match the configuration:\n%s", exc)
                     return
-                except (pyads.ADSError, _PlcNotRunning, OSError, RuntimeError) as exc:
+                except Exception as exc:  # noqa: BLE001 - any failure: back off and retry
+                    if not isinstance(exc, _EXPECTED):
+                        # A bug rather than the network; retrying beats a supervisor thread
+                        # that died silently while the process looks alive.
+                        log.exception("unexpected error while connecting to the PLC")
                     self._mark_down(f"cannot connect: {_describe(exc)}")
                     if self._sleep(delay):
                         return
@@ -897,8 +905,10 @@ class Bridge:
                                                 r.cfg.max_delay_ms, r.cfg.cycle_ms)
                 # By index group/offset rather than by name: one lookup per connect, and
                 # it also works with servers that cannot notify by handle (pyads' own
-                # test server). A PLC program download changes the offsets, but it also
-                # restarts the runtime, which the state poll sees, and then we resolve again.
+                # test server). Limitation: a PLC program download or online change that
+                # moves a variable without a state change seen by the poll leaves the
+                # notification on the old offset until the next reconnect (watching the
+                # PLC's symbol version, index group 0xF008, would catch it).
                 handles = conn.add_device_notification(
                     (r.index_group, r.index_offset), attr, self._callback(link, r)
                 )
@@ -960,7 +970,9 @@ class Bridge:
         while not self._sleep(self.cfg.plc.poll_seconds):
             try:
                 self._check_running(link.conn)
-            except (pyads.ADSError, _PlcNotRunning, RuntimeError) as exc:
+            except Exception as exc:  # noqa: BLE001 - whatever it is, the link is not usable
+                if not isinstance(exc, _EXPECTED):
+                    log.exception("unexpected error while polling the PLC state")
                 return exc
         return None
 

@@ -42,16 +42,25 @@ def _date(text: str) -> dt.date:
         raise argparse.ArgumentTypeError(f"{text!r} is not a date YYYY-MM-DD") from None
 
 
-def _add_twin_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--history", required=True, type=Path,
-                   help="canonical history file (CSV or Parquet): sensor,ts,value")
+def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
+    if train:
+        src = p.add_mutually_exclusive_group(required=True)
+        src.add_argument("--history", type=Path,
+                         help="canonical history file (CSV or Parquet): sensor,ts,value")
+        src.add_argument("--store", metavar="URL",
+                         help="history store: SQLite file or crate://host:4200")
+        src.add_argument("--config", type=Path, help="use the store of this daemon config")
+    else:
+        p.add_argument("--history", required=True, type=Path,
+                       help="canonical history file (CSV or Parquet): sensor,ts,value")
     p.add_argument("--references", required=True, type=_csv,
                    help="reference sensor(s), comma-separated, e.g. hmi/temp,ceiling/temp")
     p.add_argument("--target", required=True, help="the desk sensor to pseudo-measure")
     p.add_argument("--quantity", required=True, choices=("temperature", "co2"),
                    help="selects the default kernel: RQ for temperature, Matérn 5/2 for CO2")
-    p.add_argument("--train-start", required=True, type=_date,
-                   help="first candidate training day YYYY-MM-DD (local)")
+    p.add_argument("--train-start", required=not train, type=_date,
+                   help="first candidate training day YYYY-MM-DD (local)"
+                        + ("; default: the first day of the data" if train else ""))
     p.add_argument("--train-days", type=int, default=5,
                    help="training days: the first N days from --train-start on which every "
                         "sensor reports (default 5)")
@@ -85,13 +94,38 @@ def _options(a: argparse.Namespace) -> dict:
     return {"corrgp-triv": {**gp, "ref_mean": a.ref_mean}, "corrgp-lcm": dict(gp)}
 
 
-def cmd_train(a: argparse.Namespace) -> int:
+def _training_history(a: argparse.Namespace, hours) -> tuple:
+    """The history to train on and the first candidate day, from a file or the store."""
     from .history import read_history
+
+    if a.history is not None:
+        df = read_history(a.history)
+        if a.train_start is None:
+            return df, hours.day_of(df["ts"].min().to_pydatetime())
+        return df, a.train_start
+    from .store import open_store
+    from .training import history_from_store
+
+    url = a.store
+    if url is None:
+        from .config import load_config
+
+        url = load_config(a.config).store
+        if url is None:
+            from .errors import ConfigError
+
+            raise ConfigError(f"{a.config}: no store configured in [service]")
+    with open_store(url) as store:
+        return history_from_store(store, [*a.references, a.target], hours, a.train_start,
+                                  a.train_days)
+
+
+def cmd_train(a: argparse.Namespace) -> int:
     from .training import train_twin
 
     hours = _hours(a)
-    df = read_history(a.history)
-    art = train_twin(df, a.references, a.target, a.quantity, hours, a.train_start,
+    df, start = _training_history(a, hours)
+    art = train_twin(df, a.references, a.target, a.quantity, hours, start,
                      a.train_days, a.models, _options(a))
     path = art.save(a.out)
     days = ", ".join(art.training["days"])
@@ -190,6 +224,45 @@ def cmd_replay(a: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_record(a: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    from .config import check_config
+    from .errors import ConfigError
+    from .recorder import Recorder
+
+    try:
+        cfg = check_config(a.config)
+        rec = Recorder(cfg)
+    except ConfigError as exc:
+        print(f"pseudotwin record: configuration error in {a.config}:\n{exc}", file=sys.stderr)
+        return EX_CONFIG
+    done = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda n, f: done.set())
+    rec.start()
+    while not done.wait(1.0):
+        pass
+    rec.stop()
+    return 0
+
+
+def cmd_backfill(a: argparse.Namespace) -> int:
+    from .backfill import backfill
+    from .config import load_config
+    from .errors import ConfigError
+    from .store import open_store
+
+    cfg = load_config(a.config)
+    if cfg.store is None:
+        raise ConfigError(f"{a.config}: no store configured in [service] (store = ...)")
+    with open_store(cfg.store) as store:
+        summary = backfill(cfg, a.twin, a.start, a.end, store, progress=not a.quiet)
+    print("\n".join(summary.lines()))
+    return 0
+
+
 def cmd_convert(argv: list[str]) -> int:
     from .convert import main as convert_main
 
@@ -202,6 +275,12 @@ def cmd_import(argv: list[str]) -> int:
     return import_main(argv)
 
 
+def cmd_bridge(argv: list[str]) -> int:
+    from .bridge import main as bridge_main
+
+    return bridge_main(argv)
+
+
 def cmd_check_config(argv: list[str]) -> int:
     from .config import check_config_main
 
@@ -212,6 +291,7 @@ DELEGATED: dict[str, Callable[[list[str]], int]] = {
     "convert": cmd_convert,
     "check-config": cmd_check_config,
     "import": cmd_import,
+    "bridge": cmd_bridge,
 }
 
 
@@ -220,7 +300,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="pseudotwin",
         description="Pseudo-measurements of desk temperature and CO2 from room reference "
                     "sensors with a correlated Gaussian process (Corr-GP) digital twin.",
-        epilog="Subcommands: train, evaluate, run, replay, convert, check-config, import. "
+        epilog="Subcommands: train, evaluate, run, record, backfill, bridge, replay, import, "
+               "convert, check-config. "
                "'pseudotwin SUBCOMMAND --help' explains each.",
     )
     p.add_argument("--version", action="version", version=f"pseudotwin {__version__}")
@@ -230,8 +311,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     t = sub.add_parser("train", help="train a twin's models and write the model artifact",
                        description="Train Corr-GP, TRIV and VARMA models of one twin on a few "
-                                   "days with a temporary desk sensor; write a JSON artifact.")
-    _add_twin_args(t)
+                                   "days with a temporary desk sensor; write a JSON artifact. "
+                                   "From a file or the history store; without --train-start "
+                                   "the first --train-days days on which every sensor reports "
+                                   "in operating hours are chosen (and printed).")
+    _add_twin_args(t, train=True)
     t.add_argument("--out", required=True, type=Path, help="artifact file to write (.json)")
     t.set_defaults(func=cmd_train)
 
@@ -268,9 +352,29 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--speed", type=float, default=60.0, help="speed-up factor (default 60)")
     rp.set_defaults(func=cmd_replay)
 
+    rc = sub.add_parser("record", help="record every valid reading into the history store",
+                        description="Subscribe to the configured sensor topics and write every "
+                                    "valid reading to the store ([service] store) in batches; "
+                                    "buffers to disk while the store is unreachable.")
+    rc.add_argument("--config", required=True, type=Path, help="TOML configuration file")
+    rc.set_defaults(func=cmd_record)
+
+    bf = sub.add_parser("backfill", help="write a twin's estimates for past days to the store",
+                        description="Replay stored readings day by day through the daemon's "
+                                    "twin code and write every model's estimates to the "
+                                    "estimates table. Idempotent and resumable.")
+    bf.add_argument("--config", required=True, type=Path, help="TOML configuration file")
+    bf.add_argument("--twin", required=True, help="twin id from the configuration")
+    bf.add_argument("--from", dest="start", required=True, type=_date, help="first day")
+    bf.add_argument("--to", dest="end", required=True, type=_date, help="last day (inclusive)")
+    bf.add_argument("--quiet", action="store_true", help="no progress output")
+    bf.set_defaults(func=cmd_backfill)
+
     sub.add_parser("convert", help="convert a shared dataset into canonical CSV", add_help=False)
     sub.add_parser("check-config", help="validate a daemon configuration file", add_help=False)
     sub.add_parser("import", help="load a canonical history file into the history store",
+                   add_help=False)
+    sub.add_parser("bridge", help="publish PLC symbols (ADS notifications) as MQTT readings",
                    add_help=False)
     return p
 

@@ -538,6 +538,7 @@ class ServiceConfig:
     max_skew_seconds: float = 300
     queue_size: int = 10000
     log_level: str = "INFO"
+    store: str | None = None  # history DB: SQLite file path or crate://host:4200
 
     def __post_init__(self) -> None:
         if isinstance(self.state_dir, str):
@@ -610,12 +611,14 @@ class _Loader:
     twin's unknown reference: the user sees everything in one run.
     """
 
-    TOP_KEYS = ("broker", "service", "sensors", "twins")
+    # [bridge] and [plc] belong to `pseudotwin bridge` (bridge.py); one file may serve both.
+    TOP_KEYS = ("broker", "service", "sensors", "twins", "bridge", "plc")
     BROKER_KEYS = ("host", "port", "tls", "ca_file", "username", "password_env",
                    "password_file", "client_id", "keepalive")
     SERVICE_KEYS = ("timezone", "state_dir", "base_topic", "day_start", "day_end",
                     "init_minutes", "slot_minutes", "publish_every_minutes",
-                    "stale_after_minutes", "max_skew_seconds", "log_level", "queue_size")
+                    "stale_after_minutes", "max_skew_seconds", "log_level", "queue_size",
+                    "store")
     SENSOR_KEYS = ("id", "topic", "format", "ts_key", "value_key", "unit", "min", "max")
     SENSOR_REQUIRED = ("id", "topic", "unit", "min", "max")
     TWIN_KEYS = ("id", "quantity", "references", "target", "artifact")
@@ -739,11 +742,31 @@ class _Loader:
             found.append(("state_dir", f"expected a path string, got {_type_name(state_dir)}"))
         for where, msg in found:
             self.add(f"service.{where}", msg)
+        store = self.store_url(table.get("store"))
         hours = self.load_hours(table)
         if found or hours is None or not complete or not isinstance(state_dir, Path):
             return None
         scalars["log_level"] = str(scalars["log_level"]).upper()
-        return {"hours": hours, "state_dir": state_dir, **scalars}
+        return {"hours": hours, "state_dir": state_dir, "store": store, **scalars}
+
+    def store_url(self, value: object) -> str | None:
+        """The history store: a SQLite file (relative to this file) or crate://host:4200."""
+        if value is None:
+            return None
+        if not isinstance(value, str) or not value.strip():
+            self.add("service.store", f"expected a SQLite path or crate:// URL, got {value!r}")
+            return None
+        if "://" in value:
+            if not value.startswith(("crate://", "crate+https://", "sqlite://")):
+                self.add("service.store", f"unknown store URL scheme in {value!r} "
+                                          "(a SQLite file path, sqlite:///path or crate://host:4200)")
+                return None
+            if "@" in value.split("://", 1)[1].split("/", 1)[0]:
+                self.add("service.store", "credentials do not belong in the store URL; set "
+                                          "PSEUDOTWIN_CRATE_USER / PSEUDOTWIN_CRATE_PASSWORD")
+                return None
+            return value
+        return str(self.base_dir / value)
 
     def load_hours(self, table: dict[str, Any]) -> OperatingHours | None:
         found: Found = []

@@ -25,10 +25,12 @@ business, not this module's.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import re
+from collections import Counter
 from dataclasses import dataclass
-from datetime import UTC, datetime, timedelta
+from datetime import UTC, date, datetime, timedelta
 from enum import StrEnum
 from typing import Any
 
@@ -214,3 +216,30 @@ def parse_payload(
         raise Rejected(Reason.TOO_OLD, f"timestamp {ts.isoformat()} is before the current "
                                        f"window start {not_before.astimezone(UTC).isoformat()}")
     return Reading(sensor.id, ts, value)
+
+
+class RejectionCounter:
+    """Counts rejected readings per (sensor, reason) and local day, and logs each one —
+    up to ``log_limit`` per key and day, then only counts (a broken sensor must not flood
+    the log). Shared by the daemon and the recorder so both treat bad input alike."""
+
+    def __init__(self, logger: logging.Logger, log_limit: int = 10) -> None:
+        self.log = logger
+        self.log_limit = log_limit
+        self.counts: Counter[tuple[str, str]] = Counter()
+        self.day: date | None = None
+
+    def add(self, sensor: str, rej: Rejected, day: date) -> None:
+        if day != self.day:
+            self.day, self.counts = day, Counter()
+        key = (sensor, str(rej.reason))
+        self.counts[key] += 1
+        n = self.counts[key]
+        if n <= self.log_limit:
+            self.log.warning("rejected reading of %s (%s): %s", sensor, rej.reason, rej.message)
+        if n == self.log_limit:
+            self.log.warning("further %s rejections of %s today are only counted",
+                             rej.reason, sensor)
+
+    def total(self) -> int:
+        return sum(self.counts.values())

@@ -19,22 +19,22 @@ import logging
 import queue
 import threading
 import time
-from collections import Counter, defaultdict
+from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import paho.mqtt.client as mqtt
-from paho.mqtt.enums import CallbackAPIVersion
 
 from .artifact import Artifact, artifact_hash
 from .clock import Clock, SystemClock
 from .config import SensorConfig, ServiceConfig, TwinConfig
 from .errors import ConfigError
 from .journal import Journal
+from .mqttconn import make_client
 from .outputs import estimate_payload, monitor_payload
-from .readings import Reading, Rejected, parse_payload
+from .readings import Reading, Rejected, RejectionCounter, parse_payload
 from .sdnotify import notify, watchdog_interval
 from .twin import Twin, TwinEstimate
 
@@ -105,8 +105,7 @@ class Service:
         self.stop_event = threading.Event()
         self.connected = threading.Event()
         self.journal = Journal(Path(cfg.state_dir) / "journal")
-        self.rejected: Counter[tuple[str, str]] = Counter()
-        self.rejected_day: dt.date | None = None
+        self.rejections = RejectionCounter(log, LOG_REJECTIONS_PER_KEY)
         self.accepted = 0
         self.published = 0
         self.heartbeat = time.monotonic()
@@ -118,15 +117,8 @@ class Service:
 
     # -- MQTT (network thread: no model work here) -----------------------------------------
     def _make_client(self) -> mqtt.Client:
-        b = self.cfg.broker
-        c = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=b.client_id,
-                        clean_session=False, manual_ack=True)
-        c.will_set(f"{self.cfg.base_topic}/status", "offline", qos=1, retain=True)
-        if b.username:
-            c.username_pw_set(b.username, b.password())
-        if b.tls:
-            c.tls_set(ca_certs=str(b.ca_file) if b.ca_file else None)
-        c.reconnect_delay_set(1, 30)
+        c = make_client(self.cfg.broker, self.cfg.broker.client_id,
+                        f"{self.cfg.base_topic}/status")
         c.on_connect = self._on_connect
         c.on_disconnect = self._on_disconnect
         c.on_message = self._on_message
@@ -214,25 +206,13 @@ class Service:
             r = parse_payload(sensor, payload, arrival, max_skew=self.cfg.max_skew,
                               not_before=self._not_before(arrival))
         except Rejected as rej:
-            self._reject(sensor.id, str(rej.reason), rej.message, arrival)
+            self.rejections.add(sensor.id, rej, self.hours.day_of(arrival))
             self._ack(token)
             return
         self.journal.append(r)
         self.accepted += 1
         self._apply(r, publish=True)
         self._ack(token)
-
-    def _reject(self, sensor: str, reason: str, message: str, now: dt.datetime) -> None:
-        day = self.hours.day_of(now)
-        if day != self.rejected_day:
-            self.rejected_day, self.rejected = day, Counter()
-        key = (sensor, reason)
-        self.rejected[key] += 1
-        n = self.rejected[key]
-        if n <= LOG_REJECTIONS_PER_KEY:
-            log.warning("rejected reading of %s (%s): %s", sensor, reason, message)
-        if n == LOG_REJECTIONS_PER_KEY:
-            log.warning("further %s rejections of %s today are only counted", reason, sensor)
 
     def _apply(self, r: Reading, publish: bool) -> None:
         for rt in self.by_sensor.get(r.sensor, ()):
@@ -279,7 +259,7 @@ class Service:
             "window_readings": len(tw.window),
             "mean_std": float(np.mean(rt.stds)) if rt.stds else None,
             "fallbacks": tw.fallbacks,
-            "rejected": {f"{s}:{why}": n for (s, why), n in self.rejected.items()
+            "rejected": {f"{s}:{why}": n for (s, why), n in self.rejections.counts.items()
                          if s in rt.cfg.sensors},
             "refs_pearson_r": _ref_correlations(tw),
         }
@@ -328,15 +308,34 @@ class Service:
 
     # -- life cycle -----------------------------------------------------------------------
     def restore(self) -> int:
-        """Rebuild today's windows from the journal; returns the readings replayed."""
+        """Rebuild today's windows from the journal — or, with no journal of today and a
+        history store configured (a warm start), from the store. Returns readings replayed."""
         n = 0
-        since = self._not_before(self.clock.now()) - dt.timedelta(days=1)
+        now = self.clock.now()
+        since = self._not_before(now) - dt.timedelta(days=1)
         for r in self.journal.replay(since):
             self._apply(r, publish=False)
             n += 1
         if n:
             log.info("restored state from %d journaled readings", n)
+        elif self.cfg.store:
+            n = self._warm_start(since, now)
         return n
+
+    def _warm_start(self, since: dt.datetime, now: dt.datetime) -> int:
+        from .store import open_store
+
+        sensors = sorted(self.by_sensor)
+        try:
+            with open_store(self.cfg.store) as store:
+                frame = store.read_readings(sensors, since, now + dt.timedelta(seconds=1))
+        except Exception as exc:  # noqa: BLE001 — a warm start is best effort
+            log.warning("warm start from the history store failed (%s); starting empty", exc)
+            return 0
+        for s, ts, v in zip(frame["sensor"], frame["ts"], frame["value"], strict=True):
+            self._apply(Reading(s, ts.to_pydatetime(), float(v)), publish=False)
+        log.info("warm start: rebuilt today's windows from %d stored readings", len(frame))
+        return len(frame)
 
     def start(self, wait_connected: float | None = 30.0) -> None:
         self.restore()
@@ -376,7 +375,7 @@ class Service:
         self.client.disconnect()
         self.client.loop_stop()
         log.info("stopped: %d readings accepted, %d messages published, %d rejected",
-                 self.accepted, self.published, sum(self.rejected.values()))
+                 self.accepted, self.published, self.rejections.total())
 
 
 def _corr(a: np.ndarray, b: np.ndarray) -> float | None:

@@ -139,10 +139,12 @@ class EstimateRow:
             raise ValueError("EstimateRow.ts must be timezone-aware")
 
     @classmethod
-    def from_estimate(cls, twin: str, estimate: TwinEstimate, artifact_hash: str) -> EstimateRow:
-        """The row of one :class:`~pseudotwin.twin.TwinEstimate` of ``twin``."""
-        return cls(twin, estimate.model, estimate.ts, estimate.value, estimate.std,
-                   estimate.quality, artifact_hash)
+    def from_estimate(cls, twin: str, kind: str, estimate: TwinEstimate,
+                      artifact_hash: str) -> EstimateRow:
+        """The row of one estimate of ``twin``'s model stream ``kind`` (the key: a fallback
+        estimate's ``model`` is "triv", but it belongs to the stream it stood in for)."""
+        return cls(twin, kind, estimate.ts, estimate.value, estimate.std, estimate.quality,
+                   artifact_hash)
 
 
 # ------------------------------------------------------------------------------ helpers

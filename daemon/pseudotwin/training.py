@@ -16,6 +16,7 @@ from .errors import DataError
 from .history import DayReadings, require_sensors, split_days
 from .horizon import OperatingHours
 from .models.base import TrainingSet
+from .store import Store
 
 log = logging.getLogger(__name__)
 
@@ -102,3 +103,44 @@ def train_twin(
             "sensors": [*refs, target],
         },
     )
+
+
+def history_from_store(
+    store: Store,
+    sensors: Sequence[str],
+    hours: OperatingHours,
+    start: dt.date | None = None,
+    n_days: int = 5,
+) -> tuple[pd.DataFrame, dt.date]:
+    """The readings needed to train on the first ``n_days`` usable days in the store.
+
+    Streams the store one day at a time from ``start`` (default: the first stored reading of
+    the sensors) and keeps only the usable days and the day before each (its carry-over), so a
+    year of history is never loaded. Returns the frame and the first usable day.
+    """
+    span = store.reading_range(list(sensors))
+    if span is None:
+        raise DataError(f"the history store has no readings of {', '.join(sensors)}")
+    first = start or hours.day_of(span[0])
+    if start is None and hours.hours_of(span[0]) > hours.init_start:
+        first += dt.timedelta(days=1)  # the data begins mid-day: that day is not a full one
+    last = hours.day_of(span[1])
+    kept: list[pd.DataFrame] = []
+    chosen: list[dt.date] = []
+    prev: pd.DataFrame | None = None
+    for day, frame in store.iter_days(list(sensors), first, last, hours.timezone):
+        both = frame if prev is None else pd.concat([prev, frame], ignore_index=True)
+        if not frame.empty and day_is_usable(split_days(both, sensors, hours, [day])[0],
+                                             sensors, hours):
+            kept.append(both)
+            chosen.append(day)
+            if len(chosen) == n_days:
+                break
+        prev = frame
+    if len(chosen) < n_days:
+        raise DataError(
+            f"too little training data in the store: {len(chosen)} day(s) from {first} on "
+            f"have readings of all of {', '.join(sensors)} in operating hours, {n_days} needed"
+        )
+    df = pd.concat(kept, ignore_index=True).drop_duplicates(["sensor", "ts"])
+    return df.sort_values("ts", kind="stable").reset_index(drop=True), chosen[0]

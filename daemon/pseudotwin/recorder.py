@@ -1,0 +1,239 @@
+"""``pseudotwin record``: every valid reading of the configured sensors into the history store.
+
+Readings arrive over MQTT (QoS 1, persistent session, manual acks) and are written in batches
+(at most ``flush_seconds`` old). A message is acknowledged only once its reading is in the
+store or in the on-disk spool: when the store is unreachable, batches go to
+``state_dir/recorder-spool.jsonl`` and are retried until they are in; store writes are
+idempotent, so a retry never duplicates. Bad payloads are counted and skipped exactly as in
+the daemon (the same parser and the same :class:`RejectionCounter`).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import logging
+import queue
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import paho.mqtt.client as mqtt
+
+from .clock import Clock, SystemClock
+from .config import SensorConfig, ServiceConfig
+from .errors import ConfigError, PseudotwinError
+from .mqttconn import make_client
+from .readings import Reading, Rejected, RejectionCounter, parse_payload
+from .store import Store, open_store
+
+log = logging.getLogger(__name__)
+
+
+class Spool:
+    """Batches the store could not take, on disk until it can (JSON lines, flushed)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        path.parent.mkdir(parents=True, exist_ok=True)
+
+    def add(self, readings: list[Reading]) -> None:
+        with open(self.path, "a", encoding="utf-8") as fh:
+            for r in readings:
+                fh.write(json.dumps({"sensor": r.sensor, "ts": r.ts.isoformat(),
+                                     "value": r.value}) + "\n")
+            fh.flush()
+
+    def load(self) -> list[Reading]:
+        if not self.path.exists():
+            return []
+        out = []
+        with open(self.path, encoding="utf-8") as fh:
+            for line in fh:
+                try:
+                    o = json.loads(line)
+                    out.append(Reading(o["sensor"], dt.datetime.fromisoformat(o["ts"]),
+                                       float(o["value"])))
+                except (ValueError, KeyError, TypeError):
+                    log.warning("spool line unreadable (cut short by a crash?), skipped")
+        return out
+
+    def clear(self) -> None:
+        self.path.unlink(missing_ok=True)
+
+    def __len__(self) -> int:
+        if not self.path.exists():
+            return 0
+        with open(self.path, encoding="utf-8") as fh:
+            return sum(1 for _ in fh)
+
+
+class Recorder:
+    def __init__(self, cfg: ServiceConfig, store: Store | None = None,
+                 clock: Clock | None = None, flush_seconds: float = 1.0,
+                 batch_max: int = 2000, retry_seconds: float = 5.0) -> None:
+        if store is None and cfg.store is None:
+            raise ConfigError("service.store: the recorder needs a history store "
+                              "(a SQLite file path or crate://host:4200)")
+        self.cfg = cfg
+        self.store_url = cfg.store
+        self.store = store
+        self.clock = clock or SystemClock()
+        self.flush_seconds = flush_seconds
+        self.batch_max = batch_max
+        self.retry_seconds = retry_seconds
+        self.queue: queue.Queue[tuple[Any, ...]] = queue.Queue(maxsize=cfg.queue_size)
+        self.spool = Spool(Path(cfg.state_dir) / "recorder-spool.jsonl")
+        self.rejections = RejectionCounter(log)
+        self.stop_event = threading.Event()
+        self.connected = threading.Event()
+        self.written = 0
+        self.spooled = 0
+        self._gen = 0
+        self._next_retry = 0.0
+        self.status_topic = f"{cfg.base_topic}/recorder/status"
+        self.client = make_client(cfg.broker, f"{cfg.broker.client_id}-recorder",
+                                  self.status_topic)
+        self.client.on_connect = self._on_connect
+        self.client.on_disconnect = lambda *a: self.connected.clear()
+        self.client.on_message = self._on_message
+        self._worker = threading.Thread(target=self._run, name="recorder", daemon=True)
+
+    # -- MQTT (network thread) --------------------------------------------------------------
+    def _on_connect(self, client, userdata, flags, reason_code, properties) -> None:
+        if reason_code.is_failure:
+            log.error("broker refused the connection: %s", reason_code)
+            return
+        self._gen += 1
+        client.subscribe([(s.topic, 1) for s in self.cfg.sensors.values()])
+        client.publish(self.status_topic, "online", qos=1, retain=True)
+        log.info("recorder connected; recording %d sensor topics", len(self.cfg.sensors))
+        self.connected.set()
+
+    def _on_message(self, client, userdata, msg: mqtt.MQTTMessage) -> None:
+        item = (self.cfg.sensor_for_topic(msg.topic), msg.payload, self.clock.now(),
+                (self._gen, msg.mid, msg.qos))
+        while not self.stop_event.is_set():
+            try:
+                self.queue.put(item, timeout=1.0)
+                return
+            except queue.Full:
+                log.warning("recorder queue full; the store is behind")
+
+    def _ack(self, token: tuple[int, int, int]) -> None:
+        gen, mid, qos = token
+        if qos > 0 and gen == self._gen:
+            self.client.ack(mid, qos)
+
+    # -- the worker -----------------------------------------------------------------------
+    def _parse(self, sensor: SensorConfig | None, payload: bytes,
+               arrival: dt.datetime) -> Reading | None:
+        if sensor is None:
+            return None
+        try:
+            return parse_payload(sensor, payload, arrival, max_skew=self.cfg.max_skew,
+                                 not_before=None)  # history keeps late readings too
+        except Rejected as rej:
+            self.rejections.add(sensor.id, rej, self.cfg.hours.day_of(arrival))
+            return None
+
+    def _store(self) -> Store:
+        if self.store is None:
+            assert self.store_url is not None
+            self.store = open_store(self.store_url)
+        return self.store
+
+    def _write(self, readings: list[Reading]) -> bool:
+        try:
+            self.written += self._store().write_readings(readings)
+            return True
+        except (PseudotwinError, OSError) as exc:
+            log.warning("history store unavailable (%s); spooling %d readings to disk",
+                        exc, len(readings))
+            self._drop_store()
+            return False
+        except Exception as exc:  # e.g. the crate client's connection errors
+            log.warning("history store write failed (%s: %s); spooling %d readings",
+                        type(exc).__name__, exc, len(readings))
+            self._drop_store()
+            return False
+
+    def _drop_store(self) -> None:
+        if self.store is not None and self.store_url is not None:
+            try:
+                self.store.close()
+            except Exception:  # noqa: BLE001 — closing a broken connection may fail too
+                pass
+            self.store = None
+
+    def _retry_spool(self) -> None:
+        if time.monotonic() < self._next_retry or not self.spool.path.exists():
+            return
+        pending = self.spool.load()
+        if pending and self._write(pending):
+            log.info("wrote %d spooled readings to the history store", len(pending))
+            self.spool.clear()
+        elif not pending:
+            self.spool.clear()
+        else:
+            self._next_retry = time.monotonic() + self.retry_seconds
+
+    def _flush(self, batch: list[Reading], tokens: list[tuple[int, int, int]]) -> None:
+        self._retry_spool()  # older readings first
+        if batch and (self.spool.path.exists() or not self._write(batch)):
+            self.spool.add(batch)
+            self.spooled += len(batch)
+            self._next_retry = min(self._next_retry or time.monotonic(),
+                                   time.monotonic() + self.retry_seconds)
+        for t in tokens:  # in the store or in the spool: safe to acknowledge
+            self._ack(t)
+
+    def _run(self) -> None:
+        batch: list[Reading] = []
+        tokens: list[tuple[int, int, int]] = []
+        deadline = time.monotonic() + self.flush_seconds
+        while True:
+            timeout = max(0.0, deadline - time.monotonic())
+            try:
+                item = self.queue.get(timeout=timeout)
+            except queue.Empty:
+                item = None
+            if item is not None and item[0] == "stop":
+                self._flush(batch, tokens)
+                return
+            if item is not None:
+                sensor, payload, arrival, token = item
+                r = self._parse(sensor, payload, arrival)
+                if r is not None:
+                    batch.append(r)
+                    tokens.append(token)
+                else:
+                    self._ack(token)
+            if time.monotonic() >= deadline or len(batch) >= self.batch_max:
+                self._flush(batch, tokens)
+                batch, tokens = [], []
+                deadline = time.monotonic() + self.flush_seconds
+
+    # -- life cycle -----------------------------------------------------------------------
+    def start(self, wait_connected: float | None = 30.0) -> None:
+        self._worker.start()
+        b = self.cfg.broker
+        self.client.connect_async(b.host, b.port, keepalive=b.keepalive)
+        self.client.loop_start()
+        if wait_connected is not None and not self.connected.wait(wait_connected):
+            log.warning("recorder not connected to %s:%d yet; still trying", b.host, b.port)
+
+    def stop(self) -> None:
+        self.stop_event.set()
+        self.queue.put(("stop",))
+        self._worker.join(timeout=60)
+        if self.client.is_connected():
+            self.client.publish(self.status_topic, "offline", qos=1, retain=True) \
+                .wait_for_publish(timeout=5)
+        self.client.disconnect()
+        self.client.loop_stop()
+        if self.store is not None:
+            self.store.close()
+        log.info("recorder stopped: %d readings written, %d spooled, %d rejected",
+                 self.written, self.spooled, self.rejections.total())

@@ -1,0 +1,134 @@
+"""Recorder, backfill, training from the store and the daemon's warm start (real SQLite,
+real Mosquitto, real twins)."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from daemon_support import DAY, HOURS, REF, TARGET, config, sml, wait_for, write_config
+from pseudotwin.artifact import Artifact
+from pseudotwin.backfill import backfill
+from pseudotwin.cli import main
+from pseudotwin.clock import ReplayClock
+from pseudotwin.evaluate import replay_estimates
+from pseudotwin.recorder import Recorder
+from pseudotwin.service import Service
+from pseudotwin.store import open_store
+from test_daemon import publisher, reading
+
+
+@pytest.fixture(scope="module")
+def sml_store(tmp_path_factory) -> Path:
+    """SML2010 up to 2012-03-24 in a SQLite store."""
+    path = tmp_path_factory.mktemp("db") / "history.db"
+    df = sml()
+    with open_store(str(path)) as store:
+        store.write_readings(df[df["ts"] < "2012-03-24T23:00Z"])
+    return path
+
+
+def test_recorder_writes_every_valid_reading_and_spools_while_the_store_is_away(
+    mosquitto, desk_artifact, tmp_path: Path
+) -> None:
+    db = tmp_path / "later" / "history.db"  # its folder does not exist yet: store "down"
+    cfg = config(tmp_path, mosquitto.port, desk_artifact, store=str(db))
+    rec = Recorder(cfg, retry_seconds=0.2)
+    rec.start(wait_connected=15)
+    pub = publisher(mosquitto.port, "rec-bridge")
+    ts = [HOURS.at(DAY, 8 + i / 60) for i in range(40)]
+    for i, t in enumerate(ts[:20]):
+        pub.publish("house/dining/temp", reading(t, 20 + i / 100), qos=1)
+    pub.publish("house/dining/temp", b"{broken", qos=1)
+    pub.publish("house/room/temp", reading(ts[0], 99.0), qos=1)  # out of range
+    wait_for(lambda: rec.spooled == 20, what="first batch spooled while the store is down")
+    assert rec.written == 0 and rec.rejections.total() == 2
+    db.parent.mkdir()  # the store comes back
+    for i, t in enumerate(ts[20:], start=20):
+        pub.publish("house/dining/temp", reading(t, 20 + i / 100), qos=1)
+    wait_for(lambda: rec.written == 40, what="spool and new readings written")
+    rec.stop()
+    pub.loop_stop()
+    with open_store(str(db)) as store:
+        got = store.read_readings([REF])
+    assert len(got) == 40  # count in = count stored
+    assert [t.to_pydatetime() for t in got["ts"]] == ts
+    assert not rec.spool.path.exists()
+
+
+def test_backfill_equals_evaluate_and_is_idempotent_and_resumable(
+    mosquitto, desk_artifact, sml_store: Path, tmp_path: Path
+) -> None:
+    cfg = config(tmp_path, mosquitto.port, desk_artifact, store=str(sml_store))
+    d1, d3 = dt.date(2012, 3, 20), dt.date(2012, 3, 22)
+    with open_store(str(sml_store)) as store:
+        s1 = backfill(cfg, "desk", d1, d1, store, progress=False)
+        assert (s1.days, s1.skipped) == (1, {})
+        s2 = backfill(cfg, "desk", d1, d3, store, progress=False)  # resumes after day 1
+        assert s2.days == 2 and s2.skipped == {"already backfilled": [str(d1)]}
+        est = store.read_estimates("desk")
+        assert store.done_days("desk") == {d1, d1 + dt.timedelta(days=1), d3}
+        # a rerun of a finished range writes nothing
+        s3 = backfill(cfg, "desk", d1, d3, store, progress=False)
+        assert s3.days == 0 and s3.estimates == 0
+        assert len(store.read_estimates("desk")) == len(est)
+    assert set(est["model"]) == {"corrgp-triv", "corrgp-lcm", "triv", "varma"}
+    assert len(est) == s1.estimates + s2.estimates
+    # the same numbers as evaluate at the same instants (SML2010: refs and target share ts)
+    art = Artifact.load(desk_artifact)
+    df = sml()
+    ev = replay_estimates(art, df[df["ts"] < "2012-03-22T23:00Z"], d1)
+    ev = ev[ev["model"] == "corrgp-triv"].set_index("ts")["value"]
+    bf = est[est["model"] == "corrgp-triv"].copy()
+    bf["ts"] = pd.DatetimeIndex(bf["ts"]).tz_convert("UTC")
+    bf = bf.set_index("ts")["value"]
+    common = ev.index.intersection(bf.index)
+    assert len(common) > 3 * 40
+    pd.testing.assert_series_equal(bf[common], ev[common], check_names=False,
+                                   check_index_type=False, rtol=1e-12)
+
+
+def test_backfill_reports_days_without_readings(
+    mosquitto, desk_artifact, sml_store: Path, tmp_path: Path, capsys
+) -> None:
+    cfg_path = write_config(tmp_path, mosquitto.port, desk_artifact, store=str(sml_store))
+    rc = main(["backfill", "--config", str(cfg_path), "--twin", "desk", "--from", "2012-03-24",
+               "--to", "2012-03-26", "--quiet"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "skipped 2 day(s), no reference readings: 2012-03-25, 2012-03-26" in out
+    rc = main(["backfill", "--config", str(cfg_path), "--twin", "nope", "--from", "2012-03-24",
+               "--to", "2012-03-24"])
+    assert rc == 2 and "no twin 'nope'" in capsys.readouterr().err
+
+
+def test_train_from_the_store_picks_full_days_itself(sml_store: Path, tmp_path: Path,
+                                                      capsys) -> None:
+    out = tmp_path / "a.json"
+    rc = main(["--log-level", "WARNING", "train", "--store", str(sml_store), "--references",
+               REF, "--target", TARGET, "--quantity", "temperature", "--timezone",
+               "Europe/Madrid", "--models", "corrgp-triv,triv", "--out", str(out)])
+    assert rc == 0
+    printed = capsys.readouterr().out
+    # the data begins 2012-03-13 11:45: the first full day is the 14th
+    assert "2012-03-14, 2012-03-15, 2012-03-16, 2012-03-17, 2012-03-18" in printed
+    art = json.loads(out.read_text())
+    assert art["training"]["days"][0] == "2012-03-14"
+
+
+def test_daemon_warm_starts_from_the_store_without_a_checkpoint(
+    mosquitto, desk_artifact, sml_store: Path, tmp_path: Path
+) -> None:
+    cfg = config(tmp_path, mosquitto.port, desk_artifact, store=str(sml_store))
+    now = HOURS.at(DAY, 12.0)
+    svc = Service(cfg, ReplayClock(now, 1.0))
+    n = svc.restore()
+    assert n > 0
+    window = [r for r in svc.twins["desk"].twin.window if r.sensor == REF]
+    assert window and max(r.ts for r in window) <= now + dt.timedelta(seconds=1)
+    assert min(r.hours for r in window) == HOURS.init_start  # the carried value
+    svc.journal.close()
