@@ -445,9 +445,14 @@ class VarmaModel:
                 iters = retvals.get("iterations", "?")
                 params = np.asarray(res.params, float)
                 if not retvals.get("converged", False):
+                    # L-BFGS-B's warnflag 1 means an iteration *or* function-evaluation
+                    # limit was hit, 2 an abnormal stop (e.g. a failed line search).
+                    why = {1: "iteration or function-evaluation limit reached",
+                           2: "abnormal termination of the line search"}.get(
+                        retvals.get("warnflag"), f"warnflag {retvals.get('warnflag')}")
                     params, message = None, (
-                        f"VARMAX{(self.p, self.q)} did not converge in {iters} iterations "
-                        f"(maxiter {self.maxiter}, warnflag {retvals.get('warnflag')})"
+                        f"VARMAX{(self.p, self.q)} did not converge after {iters} "
+                        f"iterations ({why}; maxiter {self.maxiter})"
                     )
                 elif not (np.isfinite(params).all() and math.isfinite(float(res.llf))):
                     params, message = None, f"VARMAX{(self.p, self.q)} gave non-finite values"
