@@ -53,11 +53,11 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import NoReturn
 
 import numpy as np
 import pandas as pd
 
+from .cliutil import Parser, UsageError
 from .errors import ConfigError, DataError, PseudotwinError
 from .history import COLUMNS, write_history
 
@@ -429,19 +429,8 @@ def convert(dataset: str, source: Path | None, out: Path) -> ConvertSummary:
 PROG = "pseudotwin convert"
 
 
-class _UsageError(Exception):
-    pass
-
-
-class _Parser(argparse.ArgumentParser):
-    # argparse would print the usage block and exit; the CLI contract is one error line and
-    # a return code, so turn its complaints into an exception main() reports.
-    def error(self, message: str) -> NoReturn:
-        raise _UsageError(message)
-
-
 def _parser() -> argparse.ArgumentParser:
-    p = _Parser(
+    p = Parser(
         prog=PROG,
         description="Convert a shared dataset into canonical history CSV (sensor,ts,value).",
     )
@@ -461,17 +450,17 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{name:<{width}}  {spec.description}")
             return 0
         if args.dataset is None:
-            raise _UsageError("a dataset name is required (see --list)")
+            raise UsageError("a dataset name is required (see --list)")
         _dataset(args.dataset)
         if args.out is None:
-            raise _UsageError("--out FILE.csv is required")
+            raise UsageError("--out FILE.csv is required")
         t0 = time.perf_counter()
         summary = convert(args.dataset, args.source, args.out)
         print(f"{summary.line()} ({time.perf_counter() - t0:.1f} s)")
         return 0
     except SystemExit as exc:  # --help
         return exc.code if isinstance(exc.code, int) else 0
-    except (_UsageError, PseudotwinError) as exc:
+    except (UsageError, PseudotwinError) as exc:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:

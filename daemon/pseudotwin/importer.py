@@ -14,10 +14,10 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NoReturn
 
 import pandas as pd
 
+from .cliutil import Parser, UsageError
 from .errors import PseudotwinError
 from .history import read_history
 from .store import Store, open_store
@@ -94,19 +94,8 @@ def import_frame(
     )
 
 
-class _UsageError(Exception):
-    pass
-
-
-class _Parser(argparse.ArgumentParser):
-    # argparse prints a usage block and exits on bad arguments; the CLI contract is one
-    # error line and exit status 2, reported by main().
-    def error(self, message: str) -> NoReturn:
-        raise _UsageError(message)
-
-
 def _parser() -> argparse.ArgumentParser:
-    p = _Parser(
+    p = Parser(
         prog=PROG,
         description="Load a canonical history file (CSV or Parquet with columns "
                     "sensor,ts,value; ts ISO 8601 with offset or epoch s/ms) into the "
@@ -134,7 +123,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     except SystemExit as exc:  # --help
         return exc.code if isinstance(exc.code, int) else 0
-    except (_UsageError, PseudotwinError) as exc:
+    except (UsageError, PseudotwinError) as exc:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:

@@ -15,7 +15,7 @@ from __future__ import annotations
 import datetime as dt
 import logging
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -26,9 +26,6 @@ from .history import DayReadings
 from .models.base import DayEstimator
 
 log = logging.getLogger(__name__)
-
-QUALITIES = ("ok", "stale", "fallback", "init")
-
 
 @dataclass(frozen=True)
 class TwinEstimate:
@@ -170,10 +167,6 @@ class Twin:
             self._repair()
         self._feed(WindowReading(sensor, ts, self.hours.hours_of(ts), value))
         return True
-
-    def replay(self, readings: Iterable[tuple[str, dt.datetime, float]]) -> None:
-        for sensor, ts, value in readings:
-            self.observe(sensor, ts, value)
 
     # -- monitoring -------------------------------------------------------------------
     def slot_values(self) -> dict[str, np.ndarray]:

@@ -16,8 +16,9 @@ from ..horizon import OperatingHours
 from .base import Estimate, TrainingSet
 
 
-def _fill(profile: np.ndarray) -> np.ndarray:
-    """Fill slots no training day covered by linear interpolation over the covered ones."""
+def fill_slots(profile: np.ndarray) -> np.ndarray:
+    """Fill slots no training day covered by linear interpolation over the covered ones:
+    [S] → [S]; raises DataError when no slot is covered."""
     ok = np.isfinite(profile)
     if not ok.any():
         raise DataError("no training day covers any slot of the operating hours")
@@ -53,9 +54,9 @@ class TrivModel:
         with np.errstate(invalid="ignore"), _quiet():
             for r in refs:
                 ref = slot_matrix(training, r)
-                offsets.append(_fill(np.nanmean(tgt - ref, axis=0)))
-                self.profiles_[r] = _fill(np.nanmean(ref, axis=0))
-            self.profiles_[training.target] = _fill(np.nanmean(tgt, axis=0))
+                offsets.append(fill_slots(np.nanmean(tgt - ref, axis=0)))
+                self.profiles_[r] = fill_slots(np.nanmean(ref, axis=0))
+            self.profiles_[training.target] = fill_slots(np.nanmean(tgt, axis=0))
             self.offsets_ = np.array(offsets)
             for m, r in enumerate(refs):
                 estimates.append(self.offsets_[m][None, :] + slot_matrix(training, r))
@@ -144,7 +145,7 @@ class TrivDay:
 
 
 class _quiet:
-    """Silence numpy's 'mean of empty slice' for slots no day covers (handled by _fill)."""
+    """Silence numpy's 'mean of empty slice' for slots no day covers (handled by fill_slots)."""
 
     def __enter__(self) -> None:
         import warnings

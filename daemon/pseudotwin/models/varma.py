@@ -51,6 +51,7 @@ from statsmodels.tsa.statespace.varmax import VARMAX
 from ..errors import ArtifactError, DataError, NumericalError
 from ..horizon import OperatingHours
 from .base import Estimate, TrainingSet
+from .triv import fill_slots
 
 log = logging.getLogger(__name__)
 
@@ -163,15 +164,6 @@ def _quiet_varmax(endog: np.ndarray, order: tuple[int, int], trend: str, **kw: A
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return VARMAX(endog, order=order, trend=trend, **kw)
-
-
-def _fill_slots(profile: np.ndarray) -> np.ndarray:
-    """Interpolate window slots no training day covers: [S] → [S]; raises if none is."""
-    ok = np.isfinite(profile)
-    if not ok.any():
-        raise DataError("no training day covers any slot of the operating hours")
-    x = np.arange(len(profile))
-    return np.interp(x, x[ok], profile[ok])
 
 
 def _spectral_radius(transition: np.ndarray) -> float:
@@ -363,7 +355,7 @@ class VarmaModel:
                 raise DataError(f"VARMA: sensor {s} has no readings on the training days")
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slots: filled next
-                profile[:, j] = _fill_slots(np.nanmean(vals[:, :, j], axis=0))
+                profile[:, j] = fill_slots(np.nanmean(vals[:, :, j], axis=0))
         day0 = min(d.day for d in training.days)
         n_days = (max(d.day for d in training.days) - day0).days + 1
         grid = np.full((n_days * n, len(sensors)), np.nan)  # [n_days · n_slots, k]
