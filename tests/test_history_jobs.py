@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 
 from daemon_support import DAY, HOURS, REF, TARGET, config, sml, wait_for, write_config
-from pseudotwin.artifact import Artifact
+from pseudotwin.artifact import Artifact, artifact_hash
 from pseudotwin.backfill import backfill
 from pseudotwin.cli import main
 from pseudotwin.clock import ReplayClock
@@ -72,7 +72,8 @@ def test_backfill_equals_evaluate_and_is_idempotent_and_resumable(
         s2 = backfill(cfg, "desk", d1, d3, store, progress=False)  # resumes after day 1
         assert s2.days == 2 and s2.skipped == {"already backfilled": [str(d1)]}
         est = store.read_estimates("desk")
-        assert store.done_days("desk") == {d1, d1 + dt.timedelta(days=1), d3}
+        key = f"desk@{artifact_hash(desk_artifact)[:16]}"  # progress per artifact version
+        assert store.done_days(key) == {d1, d1 + dt.timedelta(days=1), d3}
         # a rerun of a finished range writes nothing
         s3 = backfill(cfg, "desk", d1, d3, store, progress=False)
         assert s3.days == 0 and s3.estimates == 0

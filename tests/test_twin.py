@@ -91,3 +91,16 @@ def test_stale_reference_marks_estimates_stale(art) -> None:
     assert {e.quality for e in t.estimate(at(d, 9.0)).values()} == {"stale"}
     t.observe(REF, at(d, 9.0), 20.5)
     assert t.estimate(at(d, 9.0))["corrgp-triv"].quality == "ok"
+
+
+def test_arrival_order_never_changes_estimates_even_without_carry_over(art) -> None:
+    """The corrgp-triv level shift comes from the init phase: a late init reading counts."""
+    d = dt.date(2012, 3, 20)
+    pts = [(8.5, 20.0), (7.75, 18.0), (9.0, 20.5)]  # the init reading arrives second
+    a, b = Twin(art), Twin(art)
+    for h, v in pts:
+        a.observe(REF, at(d, h), v)
+    for h, v in sorted(pts):
+        b.observe(REF, at(d, h), v)
+    for kind, e in a.estimate(at(d, 9.5)).items():
+        assert e.value == pytest.approx(b.estimate(at(d, 9.5))[kind].value, rel=1e-9), kind

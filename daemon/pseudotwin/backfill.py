@@ -4,7 +4,8 @@ Stored readings are replayed day by day through the same :class:`~pseudotwin.twi
 daemon runs, in the order the daemon would have seen them: at every reference reading, and at
 every instant of the publish grid, every model's estimate is written to the estimates table
 (upserted on twin, model, ts — a rerun rewrites, never duplicates). Each finished day is
-recorded, so an interrupted backfill continues after the last finished day. One day of
+recorded (per artifact version), so an interrupted backfill continues after the last finished
+day, and a retrained twin is backfilled anew. One day of
 readings is in memory at a time.
 """
 
@@ -133,7 +134,9 @@ def backfill(
     refs = list(art.references)
     summary = BackfillSummary()
     t0 = time.perf_counter()
-    done = store.done_days(twin_id)
+    # Progress belongs to an artifact version: after a retrain every day is due again.
+    progress_key = f"{twin_id}@{digest[:16]}"
+    done = store.done_days(progress_key)
     days = [start + dt.timedelta(days=i) for i in range((end - start).days + 1)]
     todo = [d for d in days if d not in done]
     for d in days:
@@ -153,7 +156,7 @@ def backfill(
         prev = day
         if frame.empty:
             summary.skip(day, "no reference readings")
-            store.mark_day_done(twin_id, day, 0)
+            store.mark_day_done(progress_key, day, 0)
             continue
         # One row per (model, instant): a grid instant that coincides with a reading gives
         # the same estimate twice, and the store would only overwrite it.
@@ -164,7 +167,7 @@ def backfill(
         n = 0
         for k in range(0, len(batch), batch_rows):
             n += store.write_estimates(batch[k:k + batch_rows])
-        store.mark_day_done(twin_id, day, n)
+        store.mark_day_done(progress_key, day, n)
         summary.days += 1
         summary.estimates += n
         if bar:

@@ -51,7 +51,11 @@ class Journal:
     def _rotate(self, day: dt.date) -> None:
         self.close()
         self._day = day
-        self._fh = open(self._path(day), "a", encoding="utf-8")  # noqa: SIM115
+        path = self._path(day)
+        torn = path.exists() and path.stat().st_size and not path.read_bytes().endswith(b"\n")
+        self._fh = open(path, "a", encoding="utf-8")  # noqa: SIM115
+        if torn:  # a crash cut the last line short: never glue the next one onto it
+            self._fh.write("\n")
         self.prune(day)
 
     def prune(self, today: dt.date) -> None:
@@ -68,6 +72,7 @@ class Journal:
             self.fsync()
             self._fh.close()
             self._fh = None
+        self._day = None
 
     def replay(self, since: dt.datetime) -> Iterator[Reading]:
         """Journaled readings of the files that may hold readings at or after ``since``."""

@@ -160,9 +160,11 @@ class Service:
     def _ack(self, token: tuple[int, int, int]) -> None:
         gen, mid, qos = token
         # A mid from an earlier connection may name another message now: the broker
-        # redelivers the old one anyway, and the twins drop it as a duplicate.
-        if qos > 0 and gen == self._gen:
-            self.client.ack(mid, qos)
+        # redelivers the old one anyway, and the twins drop it as a duplicate. The lock keeps
+        # a reconnect from slipping in between the check and the ack.
+        with self._lock:
+            if qos > 0 and gen == self._gen:
+                self.client.ack(mid, qos)
 
     def _publish(self, topic: str, payload: bytes, retain: bool = True) -> None:
         self.client.publish(topic, payload, qos=1, retain=retain)
@@ -186,9 +188,8 @@ class Service:
                 elif kind == "tick":
                     self._handle_tick(item[1])
             except Exception:  # the daemon must outlive any one bad event
+                # Not acknowledged: what failed before the journal is delivered again.
                 log.exception("unexpected error while handling a %s event", kind)
-                if kind == "msg":
-                    self._ack(item[-1])
 
     def _not_before(self, now: dt.datetime) -> dt.datetime:
         # Yesterday's window start: readings redelivered after a night's outage still give
@@ -209,18 +210,28 @@ class Service:
             self.rejections.add(sensor.id, rej, self.hours.day_of(arrival))
             self._ack(token)
             return
-        self.journal.append(r)
+        try:
+            self.journal.append(r)
+        except OSError as exc:
+            # Not acknowledged: the broker keeps it and delivers it again after a reconnect.
+            log.error("journal write failed (%s); reading of %s not acknowledged", exc, r.sensor)
+            return
         self.accepted += 1
-        self._apply(r, publish=True)
-        self._ack(token)
+        try:
+            self._apply(r, publish=True)
+        finally:
+            self._ack(token)  # journaled: a restart replays it, whatever happened here
 
     def _apply(self, r: Reading, publish: bool) -> None:
         for rt in self.by_sensor.get(r.sensor, ()):
-            if r.sensor in rt.twin.references:
-                if rt.twin.observe(r.sensor, r.ts, r.value) and publish:
-                    self._publish_estimates(rt, rt.twin.estimate(r.ts))
-            elif r.sensor == rt.cfg.target:
-                self._score_target(rt, r)
+            try:  # one twin's failure must not keep the reading from the others
+                if r.sensor in rt.twin.references:
+                    if rt.twin.observe(r.sensor, r.ts, r.value) and publish:
+                        self._publish_estimates(rt, rt.twin.estimate(r.ts))
+                elif r.sensor == rt.cfg.target:
+                    self._score_target(rt, r)
+            except Exception:  # noqa: BLE001 — logged with its traceback; the rest goes on
+                log.exception("twin %s failed on a reading of %s", rt.cfg.id, r.sensor)
 
     def _score_target(self, rt: TwinRuntime, r: Reading) -> None:
         h = self.hours.hours_of(r.ts)
@@ -314,7 +325,7 @@ class Service:
         now = self.clock.now()
         since = self._not_before(now) - dt.timedelta(days=1)
         for r in self.journal.replay(since):
-            self._apply(r, publish=False)
+            self._apply(r, publish=False)  # guarded per twin, as live
             n += 1
         if n:
             log.info("restored state from %d journaled readings", n)
@@ -364,7 +375,9 @@ class Service:
         self.stop_event.set()
         self.queue.put(("stop",))
         for th in self._threads:
-            th.join(timeout=30)
+            # The worker drains the queue first; the journal must outlive it (systemd's
+            # TimeoutStopSec bounds a stuck drain).
+            th.join()
         self.journal.close()
         if self.client.is_connected():
             info = self.client.publish(self.status_topic, "offline", qos=1, retain=True)

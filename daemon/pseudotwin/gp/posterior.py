@@ -87,7 +87,11 @@ class IncrementalPosterior:
             pivot2 = 1.0 + self.jitter - float(row @ row)
         self.n = n + 1
         if not (pivot2 > PIVOT_MIN) or not np.all(np.isfinite(row)):
-            self._refactorize()
+            try:
+                self._refactorize()
+            except NumericalError:
+                self.n = n  # leave the posterior as it was: without this observation
+                raise
             return
         piv = np.sqrt(pivot2)
         self._L[n, :n] = row

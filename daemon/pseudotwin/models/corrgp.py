@@ -259,7 +259,11 @@ class CorrGpTriv(_GpModel):
 
 
 class TrivGpDay:
-    """Live state: ICM posterior on the reference's deviations from its prior mean."""
+    """Live state: ICM posterior on the reference's deviations from its prior mean.
+
+    The level shift is a function of the *set* of readings (all init-phase deviations, or
+    the earliest reading's when there is none), so arrival order never changes it.
+    """
 
     def __init__(self, model: CorrGpTriv) -> None:
         self.model = model
@@ -268,8 +272,8 @@ class TrivGpDay:
         self.held = HeldValues()
         self.values: list[float] = []  # raw reference values, in the posterior's order
         self.init_dev: list[float] = []
+        self.earliest: tuple[float, float] | None = None  # (hours, deviation)
         self.shift = 0.0
-        self.frozen = False
 
     def _residual(self, hours: float, value: float) -> float:
         m = self.model
@@ -280,19 +284,18 @@ class TrivGpDay:
             return
         m = self.model
         self.held.update(sensor, hours, value)
-        in_init = hours < m.hours_.day_start
-        if not self.frozen and (in_init or not self.init_dev):
-            # The shift is learnt in the init phase; with no init reading at all, the first
-            # reading of the day sets it once.
-            self.init_dev.append(value - m.triv_.profile(self.ref, hours))
-            self.frozen = not in_init
-            new_shift = m._shift(np.array(self.init_dev))
-            if new_shift != self.shift:
-                self.shift = new_shift
-                pairs = zip(self.post.t, self.values, strict=True)
-                self.post.set_residuals(np.array([self._residual(t, v) for t, v in pairs]))
-        self.values.append(value)
+        dev = value - m.triv_.profile(self.ref, hours)
+        if hours < m.hours_.day_start:
+            self.init_dev.append(dev)
+        if self.earliest is None or hours < self.earliest[0]:
+            self.earliest = (hours, dev)
+        new_shift = m._shift(np.array(self.init_dev or [self.earliest[1]]))
+        if new_shift != self.shift:
+            self.shift = new_shift
+            pairs = zip(self.post.t, self.values, strict=True)
+            self.post.set_residuals(np.array([self._residual(t, v) for t, v in pairs]))
         self.post.add(hours, 0, self._residual(hours, value))
+        self.values.append(value)  # after add: a failed add leaves both unchanged
 
     def predict(self, hours: float) -> Estimate:
         m = self.model

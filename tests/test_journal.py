@@ -1,0 +1,36 @@
+"""The daemon's journal: crash-cut lines, rotation and pruning."""
+
+from __future__ import annotations
+
+import datetime as dt
+from pathlib import Path
+
+from pseudotwin.journal import Journal
+from pseudotwin.readings import Reading
+
+
+def r(h: int, value: float, day: int = 20) -> Reading:
+    return Reading("s", dt.datetime(2012, 3, day, h, tzinfo=dt.UTC), value)
+
+
+def test_a_line_cut_short_by_a_crash_costs_only_itself(tmp_path: Path) -> None:
+    j = Journal(tmp_path)
+    j.append(r(8, 1.0))
+    j.close()
+    path = tmp_path / "2012-03-20.jsonl"
+    path.write_text(path.read_text() + '{"sensor": "s", "ts": "2012-03-20T08:3')  # torn
+    j = Journal(tmp_path)  # the restarted daemon
+    j.append(r(9, 2.0))
+    j.close()
+    got = [(x.ts.hour, x.value) for x in Journal(tmp_path).replay(r(0, 0).ts)]
+    assert got == [(8, 1.0), (9, 2.0)]
+
+
+def test_days_rotate_and_old_days_are_pruned(tmp_path: Path) -> None:
+    j = Journal(tmp_path, keep_days=2)
+    for day in (17, 18, 19, 20):
+        j.append(r(8, float(day), day))
+    j.close()
+    assert sorted(p.name for p in tmp_path.glob("*.jsonl")) == ["2012-03-19.jsonl",
+                                                               "2012-03-20.jsonl"]
+    assert [x.value for x in Journal(tmp_path).replay(r(0, 0, 19).ts)] == [19.0, 20.0]
