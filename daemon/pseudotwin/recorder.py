@@ -26,6 +26,7 @@ from .config import SensorConfig, ServiceConfig
 from .errors import ConfigError, PseudotwinError
 from .mqttconn import make_client
 from .readings import Reading, Rejected, RejectionCounter, parse_payload
+from .sdnotify import notify
 from .store import Store, open_store
 
 log = logging.getLogger(__name__)
@@ -223,11 +224,13 @@ class Recorder:
         self.client.loop_start()
         if wait_connected is not None and not self.connected.wait(wait_connected):
             log.warning("recorder not connected to %s:%d yet; still trying", b.host, b.port)
+        notify("READY=1")
 
     def stop(self) -> None:
+        notify("STOPPING=1")
         self.stop_event.set()
         self.queue.put(("stop",))
-        self._worker.join(timeout=60)
+        self._worker.join()  # drains the queue: everything received ends up stored or spooled
         if self.client.is_connected():
             self.client.publish(self.status_topic, "offline", qos=1, retain=True) \
                 .wait_for_publish(timeout=5)
