@@ -89,7 +89,7 @@ from .config import (
     _read,
     _suggest,
     _type_name,
-    topic_problem,
+    base_topic_problem,
 )
 from .errors import ConfigError
 from .replay import payload_for
@@ -400,11 +400,9 @@ def _bridge_scalar_problems(*, client_id: object, base_topic: object, queue_size
                                        "uses; the bridge needs its own"))
     if _expect(found, "base_topic", base_topic, "string"):
         assert isinstance(base_topic, str)
-        problem = topic_problem(base_topic, sensor=False)
+        problem = base_topic_problem(base_topic)
         if problem:
             found.append(("base_topic", problem))
-        elif base_topic.endswith("/"):
-            found.append(("base_topic", "must not end with '/'"))
     if _expect(found, "queue_size", queue_size, "integer"):
         assert isinstance(queue_size, int)
         if queue_size < 1:

@@ -178,10 +178,27 @@ def _load_service_config(path: Path):
     return check_config(path, artifact_check=_artifact_check)
 
 
-def cmd_run(a: argparse.Namespace) -> int:
+def _serve(process) -> int:
+    """Start a long-running process (daemon, recorder) and stop it on SIGTERM/SIGINT."""
     import signal
     import threading
 
+    done = threading.Event()
+
+    def on_signal(signum: int, frame: object) -> None:
+        log.info("received %s; stopping", signal.Signals(signum).name)
+        done.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    process.start()
+    while not done.wait(1.0):
+        pass
+    process.stop()
+    return 0
+
+
+def cmd_run(a: argparse.Namespace) -> int:
     from .clock import ReplayClock, SystemClock
     from .errors import ConfigError
     from .service import Service
@@ -196,20 +213,7 @@ def cmd_run(a: argparse.Namespace) -> int:
     if a.replay_from:
         log.info("replay mode: clock starts at %s and runs at %g× real time",
                  a.replay_from.isoformat(), a.speed)
-    service = Service(cfg, clock)
-    done = threading.Event()
-
-    def on_signal(signum: int, frame: object) -> None:
-        log.info("received %s; stopping", signal.Signals(signum).name)
-        done.set()
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
-    service.start()
-    while not done.wait(1.0):
-        pass
-    service.stop()
-    return 0
+    return _serve(Service(cfg, clock))
 
 
 def cmd_replay(a: argparse.Namespace) -> int:
@@ -225,9 +229,6 @@ def cmd_replay(a: argparse.Namespace) -> int:
 
 
 def cmd_record(a: argparse.Namespace) -> int:
-    import signal
-    import threading
-
     from .config import check_config
     from .errors import ConfigError
     from .recorder import Recorder
@@ -238,14 +239,7 @@ def cmd_record(a: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"pseudotwin record: configuration error in {a.config}:\n{exc}", file=sys.stderr)
         return EX_CONFIG
-    done = threading.Event()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda n, f: done.set())
-    rec.start()
-    while not done.wait(1.0):
-        pass
-    rec.stop()
-    return 0
+    return _serve(rec)
 
 
 def cmd_backfill(a: argparse.Namespace) -> int:

@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import sys
+from collections.abc import Callable
 from typing import NoReturn
+
+from .errors import PseudotwinError
 
 
 class UsageError(Exception):
@@ -15,3 +19,19 @@ class Parser(argparse.ArgumentParser):
     # exit status 2, so its complaints become an exception the subcommand's main() reports.
     def error(self, message: str) -> NoReturn:
         raise UsageError(message)
+
+
+def run_reporting(prog: str, body: Callable[[], int]) -> int:
+    """Run a subcommand's body; every expected failure becomes one error line and status 2,
+    never a traceback."""
+    try:
+        return body()
+    except SystemExit as exc:  # --help
+        return exc.code if isinstance(exc.code, int) else 0
+    except (UsageError, PseudotwinError) as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"{prog}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 2

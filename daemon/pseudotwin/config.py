@@ -168,6 +168,16 @@ def topic_problem(topic: str, *, sensor: bool = True) -> str | None:
     return None
 
 
+def base_topic_problem(topic: str) -> str | None:
+    """Why ``topic`` cannot prefix output topics, or None (shared with the bridge)."""
+    problem = topic_problem(topic, sensor=False)
+    if problem:
+        return problem
+    if topic.endswith("/"):
+        return "must not end with '/' (outputs go to '<base_topic>/<twin>/...')"
+    return None
+
+
 def _parse_hhmm(text: str) -> float | None:
     m = _HHMM.fullmatch(text)
     if not m:
@@ -416,12 +426,9 @@ def _service_scalar_problems(
     found: Found = []
     if _expect(found, "base_topic", base_topic, "string"):
         assert isinstance(base_topic, str)
-        problem = topic_problem(base_topic, sensor=False)
+        problem = base_topic_problem(base_topic)
         if problem:
             found.append(("base_topic", problem))
-        elif base_topic.endswith("/"):
-            found.append(("base_topic", "must not end with '/' (outputs go to "
-                                        "'<base_topic>/<twin>/...')"))
     if _expect(found, "publish_every_minutes", publish_every_minutes, "number"):
         assert isinstance(publish_every_minutes, int | float)
         seconds = publish_every_minutes * 60.0

@@ -57,8 +57,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .cliutil import Parser, UsageError
-from .errors import ConfigError, DataError, PseudotwinError
+from .cliutil import Parser, UsageError, run_reporting
+from .errors import ConfigError, DataError
 from .history import COLUMNS, write_history
 
 SHARED_DATA_ENV = "PSEUDOTWIN_SHARED_DATA"
@@ -442,7 +442,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    try:
+    def body() -> int:
         args = _parser().parse_args(argv)
         if args.list:
             width = max(map(len, DATASETS))
@@ -458,15 +458,8 @@ def main(argv: list[str] | None = None) -> int:
         summary = convert(args.dataset, args.source, args.out)
         print(f"{summary.line()} ({time.perf_counter() - t0:.1f} s)")
         return 0
-    except SystemExit as exc:  # --help
-        return exc.code if isinstance(exc.code, int) else 0
-    except (UsageError, PseudotwinError) as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return 2
-    except OSError as exc:
-        where = f"{exc.filename}: " if exc.filename else ""
-        print(f"{PROG}: error: {where}{exc.strerror or exc}", file=sys.stderr)
-        return 2
+
+    return run_reporting(PROG, body)
 
 
 if __name__ == "__main__":

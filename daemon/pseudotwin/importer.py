@@ -17,8 +17,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from .cliutil import Parser, UsageError
-from .errors import PseudotwinError
+from .cliutil import Parser, run_reporting
 from .history import read_history
 from .store import Store, open_store
 
@@ -112,7 +111,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``pseudotwin import``; returns the exit status (0 ok, 2 error)."""
-    try:
+    def body() -> int:
         args = _parser().parse_args(list(sys.argv[1:] if argv is None else argv))
         t0 = time.perf_counter()
         # Validate the file first: a bad file must not create or touch the store.
@@ -121,12 +120,5 @@ def main(argv: Sequence[str] | None = None) -> int:
             summary = import_frame(store, df, args.file)
             print(f"{summary.line()} ({time.perf_counter() - t0:.1f} s, into {store.url})")
         return 0
-    except SystemExit as exc:  # --help
-        return exc.code if isinstance(exc.code, int) else 0
-    except (UsageError, PseudotwinError) as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return 2
-    except OSError as exc:
-        where = f"{exc.filename}: " if exc.filename else ""
-        print(f"{PROG}: error: {where}{exc.strerror or exc}", file=sys.stderr)
-        return 2
+
+    return run_reporting(PROG, body)
