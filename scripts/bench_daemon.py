@@ -21,7 +21,6 @@ import json
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -34,6 +33,7 @@ import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 
 import pseudotwin  # noqa: F401
+from brokerutil import free_port, start_broker
 from pseudotwin.clock import ReplayClock
 from pseudotwin.convert import load
 from pseudotwin.horizon import OperatingHours
@@ -43,12 +43,6 @@ ROOT = Path(__file__).resolve().parent.parent
 TZ = "Europe/Madrid"
 DAY = dt.date(2012, 3, 20)
 REF, TARGET = "dining/temp", "room/temp"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def relabel(obj, mapping: dict[str, str]):
@@ -102,13 +96,7 @@ def main() -> int:
             f'[service]\nbase_topic = "pt"\ntimezone = "{TZ}"\nstate_dir = "state"\n'
             f"stale_after_minutes = 30\nlog_level = \"WARNING\"\n\n"
             + "\n".join(sensors) + "\n" + "\n".join(twins))
-        conf = tmp / "mosquitto.conf"
-        conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\n"
-                        f"max_queued_messages 100000\n"
-                        + (f"user {os.environ.get('USER', 'root')}\n" if os.geteuid() == 0
-                           else ""))
-        broker = subprocess.Popen([shutil.which("mosquitto") or "/usr/sbin/mosquitto", "-c",
-                                   str(conf)], stderr=subprocess.DEVNULL)
+        broker = start_broker(tmp, port, "max_queued_messages 100000\n")
 
         # 5-minute readings of the real day, interpolated, per room offset by a few seconds
         day = df[(df["sensor"] == REF) & (df["ts"] >= hours.at(DAY, 0.0))
@@ -150,12 +138,7 @@ def main() -> int:
         sub = mqtt.Client(CallbackAPIVersion.VERSION2, client_id="bench-sub")
         sub.on_connect = lambda c, *_: c.subscribe([("pt/+/estimate", 1), ("pt/status", 1)])
         sub.on_message = on_message
-        for _ in range(100):
-            try:
-                sub.connect("127.0.0.1", port)
-                break
-            except OSError:
-                time.sleep(0.05)
+        sub.connect("127.0.0.1", port)
         sub.loop_start()
         if not online.wait(120):
             print((tmp / "daemon.log").read_text())

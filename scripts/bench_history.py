@@ -20,10 +20,8 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import os
 import resource
 import shutil
-import socket
 import subprocess
 import sys
 import tempfile
@@ -36,6 +34,7 @@ import pandas as pd
 from paho.mqtt.enums import CallbackAPIVersion
 
 import pseudotwin  # noqa: F401
+from brokerutil import free_port, start_broker
 from pseudotwin.convert import load
 from pseudotwin.horizon import OperatingHours
 from pseudotwin.store import open_store
@@ -44,12 +43,6 @@ from pseudotwin.training import train_twin
 ROOT = Path(__file__).resolve().parent.parent
 EXE = str(ROOT / ".venv" / "bin" / "pseudotwin")
 TZ = "Europe/Madrid"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def minute_series(months: int) -> pd.DataFrame:
@@ -107,24 +100,12 @@ def main() -> int:
         days = (last - first).days + 1
 
         # -- recorder ----------------------------------------------------------------------
-        conf = tmp / "mosquitto.conf"
-        conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\n"
-                        "max_queued_messages 0\nmax_inflight_messages 0\n"
-                        + (f"user {os.environ.get('USER', 'root')}\n"
-                           if os.geteuid() == 0 else ""))
-        broker = subprocess.Popen([shutil.which("mosquitto") or "/usr/sbin/mosquitto", "-c",
-                                   str(conf)], stderr=subprocess.DEVNULL)
+        broker = start_broker(tmp, port, "max_queued_messages 0\nmax_inflight_messages 0\n")
         rec_db = tmp / "rec.db"
         cfg.write_text(cfg.read_text().replace('store = "history.db"', 'store = "rec.db"'))
-        for _ in range(100):
-            try:
-                socket.create_connection(("127.0.0.1", port), 0.2).close()
-                break
-            except OSError:
-                time.sleep(0.05)
         rec = subprocess.Popen([EXE, "--log-level", "WARNING", "record", "--config", str(cfg)],
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        time.sleep(1.0)  # noqa: the recorder subscribes; a benchmark, not a test
+        time.sleep(1.0)  # let the recorder subscribe (a benchmark, not a test)
         pub = mqtt.Client(CallbackAPIVersion.VERSION2, client_id="bench-rec-pub")
         pub.max_inflight_messages_set(1000)
         pub.connect("127.0.0.1", port)

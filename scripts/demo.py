@@ -18,11 +18,9 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import os
 import queue
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -37,6 +35,7 @@ import pandas as pd
 from paho.mqtt.enums import CallbackAPIVersion
 
 import pseudotwin  # noqa: F401
+from brokerutil import free_port, start_broker
 from pseudotwin.config import load_config
 from pseudotwin.convert import load
 from pseudotwin.horizon import OperatingHours
@@ -64,36 +63,6 @@ state_dir = "state"
 publish_every_minutes = 60
 stale_after_minutes = 45
 {sensors}{twins}"""
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def mosquitto_bin() -> str:
-    exe = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
-    if not Path(exe).exists():
-        sys.exit("demo: Mosquitto is not installed; run scripts/bootstrap.sh first")
-    return exe
-
-
-def start_broker(folder: Path, port: int) -> subprocess.Popen:
-    conf = folder / "mosquitto.conf"
-    user = f"user {os.environ.get('USER', 'root')}\n" if os.geteuid() == 0 else ""
-    conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\n{user}")
-    proc = subprocess.Popen([mosquitto_bin(), "-c", str(conf)], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline:
-        try:
-            socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
-            return proc
-        except OSError:
-            time.sleep(0.05)
-    proc.kill()
-    sys.exit("demo: the broker did not start")
 
 
 def main() -> int:

@@ -49,13 +49,8 @@ class BackfillSummary:
 
 
 def grid_instants(cfg: ServiceConfig, day: dt.date) -> list[dt.datetime]:
-    """The publish grid of one local day (operating hours, wall clock)."""
-    step = cfg.publish_every.total_seconds() / 3600.0
-    h, out = cfg.hours.day_start, []
-    while h <= cfg.hours.day_end + 1e-9:
-        out.append(cfg.hours.at(day, h))
-        h += step
-    return out
+    """The daemon's publish grid of one local day."""
+    return cfg.hours.grid(day, cfg.publish_every.total_seconds() / 3600.0)
 
 
 def day_estimates(
@@ -78,9 +73,7 @@ def day_estimates(
 
 
 def _publishable(ests: dict[str, TwinEstimate]) -> Iterator[tuple[str, TwinEstimate]]:
-    for kind, e in ests.items():
-        if e.quality != "init" and e.finite:
-            yield kind, e
+    return ((kind, e) for kind, e in ests.items() if e.publishable)
 
 
 class Progress:

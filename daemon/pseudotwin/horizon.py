@@ -149,6 +149,15 @@ class OperatingHours:
             aware = back
         return aware if aware >= base else base
 
+    def grid(self, day: dt.date, step_hours: float) -> list[dt.datetime]:
+        """The publish grid of one local day: day start … day end every ``step_hours``
+        (wall clock, so a DST day has the same instants on the clock)."""
+        out, h = [], self.day_start
+        while h <= self.day_end + 1e-9:
+            out.append(self.at(day, h))
+            h += step_hours
+        return out
+
     def in_operating_hours(self, hours: np.ndarray | float) -> np.ndarray:
         h = np.asarray(hours, dtype=float)
         return (h >= self.day_start) & (h <= self.day_end)

@@ -246,8 +246,8 @@ class Service:
         primary = rt.twin.artifact.primary
         unit = rt.twin.artifact.unit
         for kind, e in ests.items():
-            if e.quality == "init" or not e.finite:
-                continue  # nothing is published in the init phase
+            if not e.publishable:
+                continue
             if kind == primary:
                 topic = self.cfg.twin_topic(rt.cfg.id, "estimate")
                 rt.roll(self.hours.day_of(e.ts))
@@ -291,14 +291,10 @@ class Service:
     def _next_grid(self, after: dt.datetime) -> dt.datetime:
         step_h = self.cfg.publish_every.total_seconds() / 3600.0
         day = self.hours.day_of(after)
-        for _ in range(3):
-            h = self.hours.day_start
-            while h <= self.hours.day_end + 1e-9:
-                t = self.hours.at(day, h)
+        for k in range(3):
+            for t in self.hours.grid(day + dt.timedelta(days=k), step_h):
                 if t > after:
                     return t
-                h += step_h
-            day += dt.timedelta(days=1)
         raise RuntimeError("no grid instant in three days")  # unreachable with valid config
 
     def _ticker(self) -> None:

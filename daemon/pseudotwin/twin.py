@@ -46,6 +46,12 @@ class TwinEstimate:
     def finite(self) -> bool:
         return math.isfinite(self.value)
 
+    @property
+    def publishable(self) -> bool:
+        """What the daemon publishes (and backfill stores): nothing in the init phase, and
+        no estimate without a value."""
+        return self.quality != "init" and self.finite
+
 
 @dataclass(frozen=True)
 class WindowReading:
