@@ -34,10 +34,10 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 import pseudotwin  # noqa: F401
 from brokerutil import free_port, start_broker
-from pseudotwin.clock import ReplayClock
-from pseudotwin.convert import load
-from pseudotwin.horizon import OperatingHours
-from pseudotwin.training import train_twin
+from pseudotwin.analysis.training import train_twin
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.edge.clock import ReplayClock
+from pseudotwin.history.convert import load
 
 ROOT = Path(__file__).resolve().parent.parent
 TZ = "Europe/Madrid"

@@ -35,10 +35,10 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 import pseudotwin  # noqa: F401
 from brokerutil import free_port, start_broker
-from pseudotwin.convert import load
-from pseudotwin.horizon import OperatingHours
-from pseudotwin.store import open_store
-from pseudotwin.training import train_twin
+from pseudotwin.analysis.training import train_twin
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.history.convert import load
+from pseudotwin.history.store import open_store
 
 ROOT = Path(__file__).resolve().parent.parent
 EXE = str(ROOT / ".venv" / "bin" / "pseudotwin")

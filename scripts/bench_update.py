@@ -24,12 +24,12 @@ from pathlib import Path
 import numpy as np
 
 import pseudotwin  # noqa: F401  (one BLAS thread, before numpy is used)
-from pseudotwin.convert import convert
+from pseudotwin.analysis.training import train_twin
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.series import read_history
 from pseudotwin.gp.train import gpy_model
-from pseudotwin.history import read_history
-from pseudotwin.horizon import OperatingHours
-from pseudotwin.training import train_twin
-from pseudotwin.twin import Twin
+from pseudotwin.history.convert import convert
+from pseudotwin.live.twin import Twin
 
 REFS = ("A1/temp", "A3/temp")
 TARGET = "A4/temp"

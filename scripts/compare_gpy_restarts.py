@@ -25,14 +25,14 @@ from pathlib import Path
 import numpy as np
 
 import pseudotwin  # noqa: F401
-from pseudotwin.convert import convert
+from pseudotwin.analysis.training import pick_training_days
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.series import read_history
 from pseudotwin.gp.kernels import LcmParams, Term
 from pseudotwin.gp.train import FitData, gpy_model, params_from_gpy
-from pseudotwin.history import read_history
-from pseudotwin.horizon import OperatingHours
+from pseudotwin.history.convert import convert
 from pseudotwin.models.base import TrainingSet
 from pseudotwin.models.corrgp import CorrGpLcm
-from pseudotwin.training import pick_training_days
 
 REFS = ("A1/temp", "A3/temp")
 TARGET = "A4/temp"

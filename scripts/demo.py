@@ -5,7 +5,7 @@
    and CO2), writing their artifacts;
 2. starts a Mosquitto broker on a free port and the daemon (``pseudotwin run``) in replay
    mode, its clock at 2012-03-20 07:00 Europe/Madrid running at --speed × real time;
-3. replays that day's readings through the broker (``pseudotwin.replay``), as a PLC bridge
+3. replays that day's readings through the broker (``pseudotwin.edge.replay``), as a PLC bridge
    would publish them, including the temporary desk sensor as a live target;
 4. prints each pseudo-measurement as it arrives next to the truth, then stops the daemon
    with SIGTERM and prints the day's scores.
@@ -36,11 +36,11 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 import pseudotwin  # noqa: F401
 from brokerutil import free_port, start_broker
+from pseudotwin.analysis.training import train_twin
 from pseudotwin.config import load_config
-from pseudotwin.convert import load
-from pseudotwin.horizon import OperatingHours
-from pseudotwin.replay import replay
-from pseudotwin.training import train_twin
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.edge.replay import replay
+from pseudotwin.history.convert import load
 
 ROOT = Path(__file__).resolve().parent.parent
 TZ = "Europe/Madrid"

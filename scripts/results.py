@@ -30,10 +30,10 @@ import numpy as np
 import pandas as pd
 
 import pseudotwin  # noqa: F401  (one BLAS thread, before numpy does any work)
-from pseudotwin.convert import load
-from pseudotwin.evaluate import REF_PREFIX, Evaluation, evaluate, write_outputs
-from pseudotwin.horizon import OperatingHours
-from pseudotwin.training import ALL_MODELS
+from pseudotwin.analysis.evaluate import REF_PREFIX, Evaluation, evaluate, write_outputs
+from pseudotwin.analysis.training import ALL_MODELS
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.history.convert import load
 
 REPO = Path(__file__).resolve().parents[1]
 DOC = REPO / "docs" / "results.md"

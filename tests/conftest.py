@@ -311,7 +311,7 @@ def desk_artifact(tmp_path_factory: pytest.TempPathFactory) -> Path:
     import datetime as dt
 
     from daemon_support import HOURS, REF, TARGET, sml
-    from pseudotwin.training import train_twin
+    from pseudotwin.analysis.training import train_twin
 
     art = train_twin(sml(), [REF], TARGET, "temperature", HOURS, dt.date(2012, 3, 14), 5)
     return art.save(tmp_path_factory.mktemp("artifact") / "desk.json")

@@ -10,8 +10,8 @@ from pathlib import Path
 import pandas as pd
 
 from pseudotwin.config import ServiceConfig, load_config
-from pseudotwin.convert import load
-from pseudotwin.horizon import OperatingHours
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.history.convert import load
 
 TZ = "Europe/Madrid"
 HOURS = OperatingHours(timezone=TZ)

@@ -1,7 +1,7 @@
 """A FAKE of CrateDB's HTTP ``/_sql`` endpoint — NOT CrateDB — for testing the CrateDB store.
 
 No CrateDB server can be installed on the development machines, so the CrateDB backend of
-:mod:`pseudotwin.store` is exercised through the real ``crate`` client against this thin
+:mod:`pseudotwin.history.store` is exercised through the real ``crate`` client against this thin
 stand-in. It is deliberately small: it checks the *wire protocol* (request and response
 shapes, bulk requests and their per-row results, errors) and records every statement so
 tests can assert the SQL the backend sends. It does not check CrateDB semantics beyond the
@@ -97,7 +97,7 @@ def _names(text: str) -> list[str]:
 class FakeCrateDB:
     """The fake server. ``start()``/``stop()`` or use as a context manager.
 
-    url: ``crate://127.0.0.1:<port>`` for :func:`pseudotwin.store.open_store`.
+    url: ``crate://127.0.0.1:<port>`` for :func:`pseudotwin.history.store.open_store`.
     requests: every POST /_sql received, in order; ``statements`` just their SQL.
     fail_row: optional hook ``(stmt, row_args) -> error message | None``; a message makes
         that row of a bulk request fail with rowcount -2 (to test per-row error handling).

@@ -8,12 +8,12 @@ from pathlib import Path
 
 import pytest
 
-from pseudotwin.artifact import VERSION, Artifact
-from pseudotwin.convert import load
+from pseudotwin.analysis.training import train_twin
+from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.errors import ArtifactError
-from pseudotwin.horizon import OperatingHours
-from pseudotwin.training import train_twin
-from pseudotwin.twin import Twin
+from pseudotwin.history.convert import load
+from pseudotwin.live.artifact import VERSION, Artifact
+from pseudotwin.live.twin import Twin
 
 
 @pytest.fixture(scope="module")

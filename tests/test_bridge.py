@@ -55,7 +55,8 @@ from pyads.testserver import AdsTestServer, AdvancedHandler, PLCVariable
 from pyads.testserver.handler import AmsPacket, AmsResponseData
 
 from conftest import MosquittoBroker, MqttClientFactory, TestClient
-from pseudotwin.bridge import (
+from pseudotwin.config import ConfigProblems
+from pseudotwin.edge.bridge import (
     ADSERR_SYMBOL_NOT_FOUND,
     EX_CONFIG,
     Bridge,
@@ -64,7 +65,6 @@ from pseudotwin.bridge import (
     load_bridge_config,
     main,
 )
-from pseudotwin.config import ConfigProblems
 
 ROOT = Path(__file__).resolve().parent.parent
 ADS_HOST = "127.0.0.1"
@@ -530,8 +530,10 @@ def test_sigterm_stops_the_bridge_process_cleanly(
     # notification delivery needs the test process, so changes are not checked here.
     inbox = _subscribe(mqtt_client, env)
     path = env.write_config()
-    proc = subprocess.Popen([sys.executable, "-m", "pseudotwin.bridge", "--config", str(path)],
-                            stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pseudotwin.cli", "bridge", "--config", str(path)],
+        stderr=subprocess.PIPE, text=True,
+    )
     try:
         _wait_initial(inbox, env)
         inbox.wait(f"{env.base}/bridge/plc", lambda p: p == b"up")

@@ -22,8 +22,8 @@ from pseudotwin.config import (
     check_config_main,
     load_config,
 )
+from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.errors import ArtifactError, ConfigError
-from pseudotwin.horizon import OperatingHours
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "config" / "example.toml"

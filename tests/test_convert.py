@@ -10,9 +10,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pseudotwin import convert as cv
+from pseudotwin.core.series import read_history
 from pseudotwin.errors import ConfigError, DataError
-from pseudotwin.history import read_history
+from pseudotwin.history import convert as cv
 
 REPO = Path(__file__).resolve().parents[1]
 ROOT = cv.shared_data_root()

@@ -13,13 +13,13 @@ import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 
 from daemon_support import DAY, HOURS, REF, TARGET, config, day_readings, sml, wait_for
-from pseudotwin.artifact import Artifact
-from pseudotwin.clock import ReplayClock
+from pseudotwin.analysis.evaluate import replay_estimates
+from pseudotwin.edge.clock import ReplayClock
+from pseudotwin.edge.replay import replay
+from pseudotwin.edge.service import Service
 from pseudotwin.errors import NumericalError
-from pseudotwin.evaluate import replay_estimates
 from pseudotwin.gp.posterior import IncrementalPosterior
-from pseudotwin.replay import replay
-from pseudotwin.service import Service
+from pseudotwin.live.artifact import Artifact
 
 
 class Viewer:
@@ -125,7 +125,7 @@ def test_live_estimates_equal_evaluate(service_factory, mosquitto, desk_artifact
 def test_bad_payloads_are_counted_logged_once_and_never_block(
     service_factory, mosquitto, caplog
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="pseudotwin.service")
+    caplog.set_level(logging.WARNING, logger="pseudotwin.edge.service")
     now = HOURS.at(DAY, 9.0)
     svc = service_factory(now, 1.0)
     viewer = Viewer(mosquitto.port, "pt/desk/estimate")
@@ -271,7 +271,7 @@ def test_restart_restores_the_window_from_the_journal(mosquitto, desk_artifact,
     df = day_readings(sml())
     a = Service(cfg, ReplayClock(HOURS.at(DAY, 12.0), 1.0))
     for _, r in df.iterrows():
-        from pseudotwin.readings import Reading
+        from pseudotwin.live.readings import Reading
 
         rd = Reading(r["sensor"], r["ts"].to_pydatetime(), float(r["value"]))
         a.journal.append(rd)

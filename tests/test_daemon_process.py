@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 
 from daemon_support import DAY, HOURS, REF, day_readings, sml, wait_for, write_config
-from pseudotwin.artifact import Artifact
-from pseudotwin.twin import Twin
+from pseudotwin.live.artifact import Artifact
+from pseudotwin.live.twin import Twin
 from test_daemon import Viewer, publisher, reading
 
 EXE = [sys.executable, "-m", "pseudotwin.cli"]

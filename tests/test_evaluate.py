@@ -9,12 +9,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from pseudotwin.analysis.evaluate import replay_estimates
+from pseudotwin.analysis.training import train_twin
 from pseudotwin.cli import main
-from pseudotwin.convert import load
-from pseudotwin.evaluate import replay_estimates
-from pseudotwin.history import write_history
-from pseudotwin.horizon import OperatingHours
-from pseudotwin.training import train_twin
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.series import write_history
+from pseudotwin.history.convert import load
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +74,7 @@ def test_evaluate_sml2010_writes_tables_and_plots(sml: Path, tmp_path: Path, cap
 def test_estimates_are_causal(room_a: Path) -> None:
     """Cutting the history at t changes no estimate made before t."""
     df = pd.read_csv(room_a)
-    from pseudotwin.history import normalize
+    from pseudotwin.core.series import normalize
 
     df = normalize(df)
     hours = OperatingHours(timezone="Europe/Berlin")

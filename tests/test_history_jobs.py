@@ -11,14 +11,14 @@ import pandas as pd
 import pytest
 
 from daemon_support import DAY, HOURS, REF, TARGET, config, sml, wait_for, write_config
-from pseudotwin.artifact import Artifact, artifact_hash
-from pseudotwin.backfill import backfill
+from pseudotwin.analysis.evaluate import replay_estimates
 from pseudotwin.cli import main
-from pseudotwin.clock import ReplayClock
-from pseudotwin.evaluate import replay_estimates
-from pseudotwin.recorder import Recorder
-from pseudotwin.service import Service
-from pseudotwin.store import open_store
+from pseudotwin.edge.clock import ReplayClock
+from pseudotwin.edge.recorder import Recorder
+from pseudotwin.edge.service import Service
+from pseudotwin.history.backfill import backfill
+from pseudotwin.history.store import open_store
+from pseudotwin.live.artifact import Artifact, artifact_hash
 from test_daemon import publisher, reading
 
 

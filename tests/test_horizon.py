@@ -9,9 +9,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.series import normalize, read_history, split_days, write_history
 from pseudotwin.errors import ConfigError, DataError
-from pseudotwin.history import normalize, read_history, split_days, write_history
-from pseudotwin.horizon import OperatingHours
 
 BERLIN = "Europe/Berlin"
 

@@ -8,17 +8,17 @@ import pandas as pd
 import pytest
 
 from fake_cratedb import FakeCrateDB
-from pseudotwin import convert as cv
-from pseudotwin.history import read_history, write_history
-from pseudotwin.importer import import_history, main
-from pseudotwin.store import open_store
+from pseudotwin.core.series import read_history, write_history
+from pseudotwin.history import convert as cv
+from pseudotwin.history.importer import import_history, main
+from pseudotwin.history.store import open_store
 
 ROOT = cv.shared_data_root()
 
 
 @pytest.fixture(scope="module")
 def sml_csv(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """SML2010 converted by pseudotwin.convert and written as canonical CSV."""
+    """SML2010 converted by pseudotwin.history.convert and written as canonical CSV."""
     if not ROOT.is_dir():
         pytest.skip(f"shared data not found at {ROOT}")
     path = tmp_path_factory.mktemp("sml") / "sml2010.csv"

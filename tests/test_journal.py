@@ -5,8 +5,8 @@ from __future__ import annotations
 import datetime as dt
 from pathlib import Path
 
-from pseudotwin.journal import Journal
-from pseudotwin.readings import Reading
+from pseudotwin.edge.journal import Journal
+from pseudotwin.live.readings import Reading
 
 
 def r(h: int, value: float, day: int = 20) -> Reading:

@@ -11,7 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pseudotwin.config import SensorConfig
-from pseudotwin.readings import MAX_PAYLOAD_BYTES, Reading, Reason, Rejected, parse_payload
+from pseudotwin.live.readings import MAX_PAYLOAD_BYTES, Reading, Reason, Rejected, parse_payload
 
 ARRIVAL = datetime(2024, 5, 13, 8, 15, 0, tzinfo=UTC)
 WINDOW_START = datetime(2024, 5, 13, 5, 30, 0, tzinfo=UTC)  # 07:30 Europe/Berlin

@@ -22,11 +22,10 @@ import pandas as pd
 import pytest
 
 from fake_cratedb import FakeCrateDB
-from pseudotwin import store as store_mod
+from pseudotwin.core.series import normalize
 from pseudotwin.errors import ConfigError
-from pseudotwin.history import normalize
-from pseudotwin.readings import Reading
-from pseudotwin.store import (
+from pseudotwin.history import store as store_mod
+from pseudotwin.history.store import (
     SCHEMA_VERSION,
     EstimateRow,
     Store,
@@ -34,6 +33,7 @@ from pseudotwin.store import (
     _bulk_count,
     open_store,
 )
+from pseudotwin.live.readings import Reading
 
 REAL_CRATEDB = os.environ.get("PSEUDOTWIN_TEST_CRATEDB", "").strip()
 NO_REAL_CRATEDB = (

@@ -8,8 +8,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pseudotwin.history import normalize, split_days
-from pseudotwin.horizon import OperatingHours
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.series import normalize, split_days
 from pseudotwin.models.base import TrainingSet
 from pseudotwin.models.triv import TrivModel
 

@@ -7,8 +7,8 @@ import datetime as dt
 import pytest
 
 from daemon_support import HOURS, REF
-from pseudotwin.artifact import Artifact
-from pseudotwin.twin import Twin
+from pseudotwin.live.artifact import Artifact
+from pseudotwin.live.twin import Twin
 
 
 @pytest.fixture(scope="module")

@@ -18,8 +18,8 @@ import pandas as pd
 import pytest
 from statsmodels.tsa.statespace.varmax import VARMAX
 
-from pseudotwin.history import DayReadings, split_days
-from pseudotwin.horizon import OperatingHours
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.series import DayReadings, split_days
 from pseudotwin.models.base import TrainingSet
 from pseudotwin.models.varma import VarmaDay, VarmaModel
 

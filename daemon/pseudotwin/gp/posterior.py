@@ -11,9 +11,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import solve_triangular
 
-from ..errors import NumericalError
-from .kernels import LcmParams
-from .stable import JITTER_START, ScaledCholesky, scaled_cholesky
+from pseudotwin.errors import NumericalError
+from pseudotwin.gp.kernels import LcmParams
+from pseudotwin.gp.stable import JITTER_START, ScaledCholesky, scaled_cholesky
 
 # Below this, the new pivot of the *unit-diagonal* scaled matrix has lost all digits to
 # cancellation: the extension is treated as a loss of positive definiteness.

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import LinAlgError, cho_solve, cholesky, solve_triangular
 
-from ..errors import NumericalError
+from pseudotwin.errors import NumericalError
 
 log = logging.getLogger(__name__)
 

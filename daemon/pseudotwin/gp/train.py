@@ -28,9 +28,9 @@ from GPy.inference.latent_function_inference import ExactGaussianInference
 from GPy.inference.latent_function_inference.posterior import PosteriorExact
 from scipy.optimize import minimize
 
-from ..errors import FitError, NumericalError
-from .kernels import LcmParams, Term
-from .stable import COND_WARN, scaled_cholesky
+from pseudotwin.errors import FitError, NumericalError
+from pseudotwin.gp.kernels import LcmParams, Term
+from pseudotwin.gp.stable import COND_WARN, scaled_cholesky
 
 log = logging.getLogger(__name__)
 LOG_2PI = float(np.log(2 * np.pi))

@@ -6,8 +6,8 @@ import datetime as dt
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from ..history import DayReadings
-from ..horizon import OperatingHours
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.series import DayReadings
 
 
 @dataclass(frozen=True)

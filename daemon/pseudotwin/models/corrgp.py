@@ -20,13 +20,13 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import DataError
-from ..gp.kernels import DEFAULT_KERNEL, KERNELS, LcmParams
-from ..gp.posterior import IncrementalPosterior
-from ..gp.train import FitData, FitReport, fit_lcm
-from ..horizon import OperatingHours
-from .base import Estimate, TrainingSet
-from .triv import HeldValues, TrivModel, slot_matrix
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.errors import DataError
+from pseudotwin.gp.kernels import DEFAULT_KERNEL, KERNELS, LcmParams
+from pseudotwin.gp.posterior import IncrementalPosterior
+from pseudotwin.gp.train import FitData, FitReport, fit_lcm
+from pseudotwin.models.base import Estimate, TrainingSet
+from pseudotwin.models.triv import HeldValues, TrivModel, slot_matrix
 
 MIN_POINTS_PER_OUTPUT = 8
 

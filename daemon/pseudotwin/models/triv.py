@@ -11,9 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import DataError
-from ..horizon import OperatingHours
-from .base import Estimate, TrainingSet
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.errors import DataError
+from pseudotwin.models.base import Estimate, TrainingSet
 
 
 def fill_slots(profile: np.ndarray) -> np.ndarray:

@@ -48,10 +48,10 @@ from statsmodels.tsa.statespace.tools import (
 )
 from statsmodels.tsa.statespace.varmax import VARMAX
 
-from ..errors import ArtifactError, DataError, NumericalError
-from ..horizon import OperatingHours
-from .base import Estimate, TrainingSet
-from .triv import fill_slots
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.errors import ArtifactError, DataError, NumericalError
+from pseudotwin.models.base import Estimate, TrainingSet
+from pseudotwin.models.triv import fill_slots
 
 log = logging.getLogger(__name__)
 

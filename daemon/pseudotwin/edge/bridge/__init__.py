@@ -3,7 +3,7 @@
 ``pseudotwin bridge --config FILE`` runs it. Per configured symbol the bridge registers an ADS
 device notification (transmission mode "on change") and publishes every change as one
 reading on the topic of the symbol's sensor, in that sensor's payload format
-(:func:`pseudotwin.replay.payload_for`), QoS 1. The reading's time is the FILETIME stamp the
+(:func:`pseudotwin.edge.replay.payload_for`), QoS 1. The reading's time is the FILETIME stamp the
 PLC puts on the notification, so a reading delayed by a slow network or a broker outage
 still carries the instant the PLC saw the value.
 
@@ -75,8 +75,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 from pyads import constants as adsc
 from pyads.structs import SAdsSymbolEntry
 
-from .clock import Clock, SystemClock
-from .config import (
+from pseudotwin.config import (
     BrokerConfig,
     ConfigProblems,
     Found,
@@ -91,9 +90,10 @@ from .config import (
     _type_name,
     base_topic_problem,
 )
-from .errors import ConfigError
-from .replay import payload_for
-from .sdnotify import notify, watchdog_interval
+from pseudotwin.edge.clock import Clock, SystemClock
+from pseudotwin.edge.replay import payload_for
+from pseudotwin.edge.sdnotify import notify, watchdog_interval
+from pseudotwin.errors import ConfigError
 
 __all__ = [
     "EX_CONFIG",
@@ -1203,6 +1203,3 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EX_CONFIG
     return 0
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,7 +1,7 @@
 """The thesis's evaluation protocol (DESIGN.md §7), causal, on any canonical history.
 
 Train on the first ``train_days`` usable days from ``train_start``, then replay every later
-reading through one :class:`~pseudotwin.twin.Twin` in time order — exactly as the daemon would
+reading through one :class:`~pseudotwin.live.twin.Twin` in time order — exactly as the daemon would
 receive them — and at each true target reading in operating hours ask every model for its
 estimate. The target is never fed to the twin, and an estimate at t uses only readings ≤ t.
 """
@@ -18,12 +18,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .artifact import Artifact
-from .errors import DataError
-from .history import require_sensors
-from .horizon import OperatingHours
-from .training import ALL_MODELS, train_twin
-from .twin import Twin
+from pseudotwin.analysis.training import ALL_MODELS, train_twin
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.series import require_sensors
+from pseudotwin.errors import DataError
+from pseudotwin.live.artifact import Artifact
+from pseudotwin.live.twin import Twin
 
 log = logging.getLogger(__name__)
 
@@ -159,7 +159,7 @@ def write_outputs(
     est.to_csv(out / "estimates.csv", index=False, float_format="%.6g")
     ev.daily.to_csv(out / "daily.csv", index=False, float_format="%.4f")
     ev.monthly.to_csv(out / "monthly.csv", index=False, float_format="%.4f")
-    from .plots import plot_daily_nrmse, plot_day_estimate
+    from pseudotwin.analysis.plots import plot_daily_nrmse, plot_day_estimate
 
     plot_daily_nrmse(ev.daily, out / "daily_nrmse.png", ev.artifact)
     day = plot_day or _median_day(ev)

@@ -34,8 +34,8 @@ from pathlib import Path
 from typing import Any, Literal
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError, available_timezones
 
-from .errors import ConfigError, PseudotwinError
-from .horizon import OperatingHours
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.errors import ConfigError, PseudotwinError
 
 __all__ = [
     "ArtifactCheck",

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .errors import DataError
-from .horizon import OperatingHours
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.errors import DataError
 
 COLUMNS = ("sensor", "ts", "value")
 

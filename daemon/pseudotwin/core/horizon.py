@@ -14,7 +14,7 @@ from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 import numpy as np
 import pandas as pd
 
-from .errors import ConfigError
+from pseudotwin.errors import ConfigError
 
 
 def _parse_hhmm(text: str, what: str) -> float:

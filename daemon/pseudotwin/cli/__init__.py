@@ -9,8 +9,8 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from . import __version__
-from .errors import PseudotwinError
+from pseudotwin import __version__
+from pseudotwin.errors import PseudotwinError
 
 log = logging.getLogger("pseudotwin")
 
@@ -82,7 +82,7 @@ def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
 
 
 def _hours(a: argparse.Namespace):
-    from .horizon import OperatingHours
+    from pseudotwin.core.horizon import OperatingHours
 
     return OperatingHours.from_strings(
         a.day_start, a.day_end, a.init_minutes, a.slot_minutes, a.timezone
@@ -96,23 +96,23 @@ def _options(a: argparse.Namespace) -> dict:
 
 def _training_history(a: argparse.Namespace, hours) -> tuple:
     """The history to train on and the first candidate day, from a file or the store."""
-    from .history import read_history
+    from pseudotwin.core.series import read_history
 
     if a.history is not None:
         df = read_history(a.history)
         if a.train_start is None:
             return df, hours.day_of(df["ts"].min().to_pydatetime())
         return df, a.train_start
-    from .store import open_store
-    from .training import history_from_store
+    from pseudotwin.analysis.training import history_from_store
+    from pseudotwin.history.store import open_store
 
     url = a.store
     if url is None:
-        from .config import load_config
+        from pseudotwin.config import load_config
 
         url = load_config(a.config).store
         if url is None:
-            from .errors import ConfigError
+            from pseudotwin.errors import ConfigError
 
             raise ConfigError(f"{a.config}: no store configured in [service]")
     with open_store(url) as store:
@@ -121,7 +121,7 @@ def _training_history(a: argparse.Namespace, hours) -> tuple:
 
 
 def cmd_train(a: argparse.Namespace) -> int:
-    from .training import train_twin
+    from pseudotwin.analysis.training import train_twin
 
     hours = _hours(a)
     df, start = _training_history(a, hours)
@@ -139,8 +139,8 @@ def cmd_train(a: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(a: argparse.Namespace) -> int:
-    from .evaluate import evaluate, summary_table
-    from .history import read_history
+    from pseudotwin.analysis.evaluate import evaluate, summary_table
+    from pseudotwin.core.series import read_history
 
     hours = _hours(a)
     df = read_history(a.history)
@@ -167,13 +167,13 @@ def _aware(text: str) -> dt.datetime:
 
 
 def _artifact_check(twin, hours) -> list[str]:
-    from .service import check_artifact
+    from pseudotwin.edge.service import check_artifact
 
     return check_artifact(twin, hours=hours)
 
 
 def _load_service_config(path: Path):
-    from .config import check_config
+    from pseudotwin.config import check_config
 
     return check_config(path, artifact_check=_artifact_check)
 
@@ -199,9 +199,9 @@ def _serve(process) -> int:
 
 
 def cmd_run(a: argparse.Namespace) -> int:
-    from .clock import ReplayClock, SystemClock
-    from .errors import ConfigError
-    from .service import Service
+    from pseudotwin.edge.clock import ReplayClock, SystemClock
+    from pseudotwin.edge.service import Service
+    from pseudotwin.errors import ConfigError
 
     try:
         cfg = _load_service_config(a.config)
@@ -217,9 +217,9 @@ def cmd_run(a: argparse.Namespace) -> int:
 
 
 def cmd_replay(a: argparse.Namespace) -> int:
-    from .config import load_config
-    from .history import read_history
-    from .replay import replay
+    from pseudotwin.config import load_config
+    from pseudotwin.core.series import read_history
+    from pseudotwin.edge.replay import replay
 
     cfg = load_config(a.config)
     df = read_history(a.history)
@@ -229,9 +229,9 @@ def cmd_replay(a: argparse.Namespace) -> int:
 
 
 def cmd_record(a: argparse.Namespace) -> int:
-    from .config import check_config
-    from .errors import ConfigError
-    from .recorder import Recorder
+    from pseudotwin.config import check_config
+    from pseudotwin.edge.recorder import Recorder
+    from pseudotwin.errors import ConfigError
 
     try:
         cfg = check_config(a.config)
@@ -243,10 +243,10 @@ def cmd_record(a: argparse.Namespace) -> int:
 
 
 def cmd_backfill(a: argparse.Namespace) -> int:
-    from .backfill import backfill
-    from .config import load_config
-    from .errors import ConfigError
-    from .store import open_store
+    from pseudotwin.config import load_config
+    from pseudotwin.errors import ConfigError
+    from pseudotwin.history.backfill import backfill
+    from pseudotwin.history.store import open_store
 
     cfg = load_config(a.config)
     if cfg.store is None:
@@ -258,25 +258,25 @@ def cmd_backfill(a: argparse.Namespace) -> int:
 
 
 def cmd_convert(argv: list[str]) -> int:
-    from .convert import main as convert_main
+    from pseudotwin.history.convert import main as convert_main
 
     return convert_main(argv)
 
 
 def cmd_import(argv: list[str]) -> int:
-    from .importer import main as import_main
+    from pseudotwin.history.importer import main as import_main
 
     return import_main(argv)
 
 
 def cmd_bridge(argv: list[str]) -> int:
-    from .bridge import main as bridge_main
+    from pseudotwin.edge.bridge import main as bridge_main
 
     return bridge_main(argv)
 
 
 def cmd_check_config(argv: list[str]) -> int:
-    from .config import check_config_main
+    from pseudotwin.config import check_config_main
 
     return check_config_main(argv, artifact_check=_artifact_check)
 
@@ -395,6 +395,3 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"pseudotwin {a.command}: interrupted", file=sys.stderr)
         return 130
 
-
-if __name__ == "__main__":
-    sys.exit(main())

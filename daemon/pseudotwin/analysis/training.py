@@ -11,12 +11,12 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from .artifact import MODEL_CLASSES, Artifact
-from .errors import DataError
-from .history import DayReadings, require_sensors, split_days
-from .horizon import OperatingHours
-from .models.base import TrainingSet
-from .store import Store
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.series import DayReadings, require_sensors, split_days
+from pseudotwin.errors import DataError
+from pseudotwin.history.store import Store
+from pseudotwin.live.artifact import MODEL_CLASSES, Artifact
+from pseudotwin.models.base import TrainingSet
 
 log = logging.getLogger(__name__)
 

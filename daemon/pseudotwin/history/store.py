@@ -61,12 +61,12 @@ from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 import numpy as np
 import pandas as pd
 
-from .errors import ConfigError, PseudotwinError
-from .history import COLUMNS, normalize
-from .readings import Reading
+from pseudotwin.core.series import COLUMNS, normalize
+from pseudotwin.errors import ConfigError, PseudotwinError
+from pseudotwin.live.readings import Reading
 
 if TYPE_CHECKING:
-    from .twin import TwinEstimate
+    from pseudotwin.live.twin import TwinEstimate
 
 __all__ = [
     "ESTIMATE_COLUMNS",

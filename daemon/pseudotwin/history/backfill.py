@@ -1,6 +1,6 @@
 """``pseudotwin backfill``: the daemon's estimates for past days, from the history store.
 
-Stored readings are replayed day by day through the same :class:`~pseudotwin.twin.Twin` the
+Stored readings are replayed day by day through the same :class:`~pseudotwin.live.twin.Twin` the
 daemon runs, in the order the daemon would have seen them: at every reference reading, and at
 every instant of the publish grid, every model's estimate is written to the estimates table
 (upserted on twin, model, ts — a rerun rewrites, never duplicates). Each finished day is
@@ -20,11 +20,11 @@ from dataclasses import dataclass, field
 
 import pandas as pd
 
-from .artifact import Artifact, artifact_hash
-from .config import ServiceConfig, TwinConfig
-from .errors import ConfigError
-from .store import EstimateRow, Store
-from .twin import Twin, TwinEstimate
+from pseudotwin.config import ServiceConfig, TwinConfig
+from pseudotwin.errors import ConfigError
+from pseudotwin.history.store import EstimateRow, Store
+from pseudotwin.live.artifact import Artifact, artifact_hash
+from pseudotwin.live.twin import Twin, TwinEstimate
 
 log = logging.getLogger(__name__)
 

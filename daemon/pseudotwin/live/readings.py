@@ -34,7 +34,7 @@ from datetime import UTC, date, datetime, timedelta
 from enum import StrEnum
 from typing import Any
 
-from .config import SensorConfig
+from pseudotwin.config import SensorConfig
 
 __all__ = ["MAX_PAYLOAD_BYTES", "Reading", "Reason", "Rejected", "parse_payload"]
 

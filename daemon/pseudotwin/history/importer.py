@@ -1,6 +1,6 @@
 """``pseudotwin import FILE``: load a canonical history file into the history store.
 
-The file is read and validated by :func:`pseudotwin.history.read_history` (CSV, or Parquet
+The file is read and validated by :func:`pseudotwin.core.series.read_history` (CSV, or Parquet
 when pyarrow is installed) and written in chunks. Importing is idempotent: readings are
 keyed by (sensor, ts) and a key already stored is left alone, so importing a file twice
 adds nothing the second time and an interrupted import can simply be re-run.
@@ -17,9 +17,9 @@ from pathlib import Path
 
 import pandas as pd
 
-from .cliutil import Parser, run_reporting
-from .history import read_history
-from .store import Store, open_store
+from pseudotwin.cli.util import Parser, run_reporting
+from pseudotwin.core.series import read_history
+from pseudotwin.history.store import Store, open_store
 
 PROG = "pseudotwin import"
 

@@ -7,7 +7,7 @@ import json
 import math
 from typing import Any
 
-from .twin import TwinEstimate
+from pseudotwin.live.twin import TwinEstimate
 
 
 def iso(ts: dt.datetime | None) -> str | None:

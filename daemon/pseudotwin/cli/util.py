@@ -7,7 +7,7 @@ import sys
 from collections.abc import Callable
 from typing import NoReturn
 
-from .errors import PseudotwinError
+from pseudotwin.errors import PseudotwinError
 
 
 class UsageError(Exception):

@@ -14,8 +14,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
 if TYPE_CHECKING:
-    from .artifact import Artifact
-    from .evaluate import Evaluation
+    from pseudotwin.analysis.evaluate import Evaluation
+    from pseudotwin.live.artifact import Artifact
 
 
 def plot_daily_nrmse(daily: pd.DataFrame, path: Path, artifact: Artifact) -> None:

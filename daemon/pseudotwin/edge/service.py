@@ -27,16 +27,16 @@ from typing import Any
 import numpy as np
 import paho.mqtt.client as mqtt
 
-from .artifact import Artifact, artifact_hash
-from .clock import Clock, SystemClock
-from .config import SensorConfig, ServiceConfig, TwinConfig
-from .errors import ConfigError
-from .journal import Journal
-from .mqttconn import make_client
-from .outputs import estimate_payload, monitor_payload
-from .readings import Reading, Rejected, RejectionCounter, parse_payload
-from .sdnotify import notify, watchdog_interval
-from .twin import Twin, TwinEstimate
+from pseudotwin.config import SensorConfig, ServiceConfig, TwinConfig
+from pseudotwin.edge.clock import Clock, SystemClock
+from pseudotwin.edge.journal import Journal
+from pseudotwin.edge.mqttconn import make_client
+from pseudotwin.edge.outputs import estimate_payload, monitor_payload
+from pseudotwin.edge.sdnotify import notify, watchdog_interval
+from pseudotwin.errors import ConfigError
+from pseudotwin.live.artifact import Artifact, artifact_hash
+from pseudotwin.live.readings import Reading, Rejected, RejectionCounter, parse_payload
+from pseudotwin.live.twin import Twin, TwinEstimate
 
 log = logging.getLogger(__name__)
 
@@ -330,7 +330,7 @@ class Service:
         return n
 
     def _warm_start(self, since: dt.datetime, now: dt.datetime) -> int:
-        from .store import open_store
+        from pseudotwin.history.store import open_store
 
         sensors = sorted(self.by_sensor)
         try:

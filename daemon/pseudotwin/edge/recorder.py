@@ -21,13 +21,13 @@ from typing import Any
 
 import paho.mqtt.client as mqtt
 
-from .clock import Clock, SystemClock
-from .config import SensorConfig, ServiceConfig
-from .errors import ConfigError, PseudotwinError
-from .mqttconn import make_client
-from .readings import Reading, Rejected, RejectionCounter, parse_payload
-from .sdnotify import notify
-from .store import Store, open_store
+from pseudotwin.config import SensorConfig, ServiceConfig
+from pseudotwin.edge.clock import Clock, SystemClock
+from pseudotwin.edge.mqttconn import make_client
+from pseudotwin.edge.sdnotify import notify
+from pseudotwin.errors import ConfigError, PseudotwinError
+from pseudotwin.history.store import Store, open_store
+from pseudotwin.live.readings import Reading, Rejected, RejectionCounter, parse_payload
 
 log = logging.getLogger(__name__)
 

@@ -57,9 +57,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .cliutil import Parser, UsageError, run_reporting
-from .errors import ConfigError, DataError
-from .history import COLUMNS, write_history
+from pseudotwin.cli.util import Parser, UsageError, run_reporting
+from pseudotwin.core.series import COLUMNS, write_history
+from pseudotwin.errors import ConfigError, DataError
 
 SHARED_DATA_ENV = "PSEUDOTWIN_SHARED_DATA"
 
@@ -114,7 +114,7 @@ def shared_data_root() -> Path:
     env = os.environ.get(SHARED_DATA_ENV)
     if env:
         return Path(env)
-    repo = Path(__file__).resolve().parents[2]
+    repo = Path(__file__).resolve().parents[3]
     return repo.parent / "shared" / "data"
 
 

@@ -14,12 +14,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from . import __version__
-from .errors import ArtifactError
-from .horizon import OperatingHours
-from .models.corrgp import CorrGpLcm, CorrGpTriv
-from .models.triv import TrivModel
-from .models.varma import VarmaModel
+from pseudotwin import __version__
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.errors import ArtifactError
+from pseudotwin.models.corrgp import CorrGpLcm, CorrGpTriv
+from pseudotwin.models.triv import TrivModel
+from pseudotwin.models.varma import VarmaModel
 
 FORMAT = "pseudotwin-artifact"
 VERSION = 1

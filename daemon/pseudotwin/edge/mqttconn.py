@@ -7,7 +7,7 @@ from __future__ import annotations
 import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 
-from .config import BrokerConfig
+from pseudotwin.config import BrokerConfig
 
 
 def make_client(broker: BrokerConfig, client_id: str, status_topic: str,

@@ -16,7 +16,7 @@ import os
 from collections.abc import Iterator
 from pathlib import Path
 
-from .readings import Reading
+from pseudotwin.live.readings import Reading
 
 log = logging.getLogger(__name__)
 

@@ -20,10 +20,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .artifact import Artifact
-from .errors import NumericalError
-from .history import DayReadings
-from .models.base import DayEstimator
+from pseudotwin.core.series import DayReadings
+from pseudotwin.errors import NumericalError
+from pseudotwin.live.artifact import Artifact
+from pseudotwin.models.base import DayEstimator
 
 log = logging.getLogger(__name__)
 
@@ -240,7 +240,7 @@ class Twin:
         est = self._est.get("triv")
         if est is None:
             # The twin was not asked to run TRIV: a private one keeps the fallback available.
-            from .models.corrgp import CorrGpTriv
+            from pseudotwin.models.corrgp import CorrGpTriv
 
             gp = next(
                 (m for m in self.artifact.models.values() if isinstance(m, CorrGpTriv)), None

@@ -15,9 +15,9 @@ import paho.mqtt.client as mqtt
 import pandas as pd
 from paho.mqtt.enums import CallbackAPIVersion
 
-from .clock import ReplayClock
-from .config import ServiceConfig
-from .errors import DataError
+from pseudotwin.config import ServiceConfig
+from pseudotwin.edge.clock import ReplayClock
+from pseudotwin.errors import DataError
 
 log = logging.getLogger(__name__)
 

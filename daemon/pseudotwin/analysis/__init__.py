@@ -1,0 +1,1 @@
+"""Analysis: training, causal evaluation, plots and reports."""

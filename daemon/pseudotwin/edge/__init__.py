@@ -1,0 +1,1 @@
+"""The edge: MQTT service, journal, recorder, PLC bridge, clocks and payloads."""

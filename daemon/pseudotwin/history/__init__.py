@@ -1,0 +1,1 @@
+"""History: the store, imports and conversions into it, backfill out of it."""

@@ -1,0 +1,1 @@
+"""The live path: readings → window → models → twin (one pseudo-measurement stream)."""
