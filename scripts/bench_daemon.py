@@ -36,6 +36,7 @@ import pseudotwin  # noqa: F401
 from brokerutil import free_port, start_broker
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.edge.clock import ReplayClock
 from pseudotwin.history.convert import load
 
@@ -78,7 +79,8 @@ def main() -> int:
     tmp = Path(tempfile.mkdtemp(prefix="pseudotwin-bench-"))
     try:
         df = load("sml2010")
-        art = train_twin(df, [REF], TARGET, "temperature", hours, dt.date(2012, 3, 14), 5)
+        spec = TwinSpec((REF,), TARGET, Quantity.TEMPERATURE, hours)
+        art = train_twin(df, spec, dt.date(2012, 3, 14), 5)
         base = json.loads(json.dumps(art.to_dict(), allow_nan=True))
         (tmp / "artifacts").mkdir()
         sensors, twins = [], []

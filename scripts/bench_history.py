@@ -37,6 +37,7 @@ import pseudotwin  # noqa: F401
 from brokerutil import free_port, start_broker
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.history.convert import load
 from pseudotwin.history.store import open_store
 
@@ -67,7 +68,8 @@ def main() -> int:
     tmp = Path(tempfile.mkdtemp(prefix="pseudotwin-bench-history-"))
     try:
         hours = OperatingHours(timezone=TZ)
-        art = train_twin(load("sml2010"), ["dining/temp"], "room/temp", "temperature", hours,
+        art = train_twin(load("sml2010"),
+                         TwinSpec(("dining/temp",), "room/temp", Quantity.TEMPERATURE, hours),
                          dt.date(2012, 3, 14), 5)
         art.save(tmp / "desk.json")
         db = tmp / "history.db"

@@ -27,6 +27,7 @@ import pseudotwin  # noqa: F401  (one BLAS thread, before numpy is used)
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.series import read_history
+from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.gp.train import gpy_model
 from pseudotwin.history.convert import convert
 from pseudotwin.live.twin import Twin
@@ -48,10 +49,11 @@ def main() -> int:
     start = dt.date(2016, 3, 15)
 
     t0 = time.perf_counter()
-    art_triv = train_twin(df, REFS, TARGET, "temperature", hours, start, 5, ["corrgp-triv"])
+    spec = TwinSpec(tuple(REFS), TARGET, Quantity.TEMPERATURE, hours)
+    art_triv = train_twin(df, spec, start, 5, ["corrgp-triv"])
     train_triv = time.perf_counter() - t0
     t0 = time.perf_counter()
-    art = train_twin(df, REFS, TARGET, "temperature", hours, start, 5, ["corrgp-lcm"])
+    art = train_twin(df, spec, start, 5, ["corrgp-lcm"])
     train_lcm = time.perf_counter() - t0
     lcm = art.models["corrgp-lcm"]
 

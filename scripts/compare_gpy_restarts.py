@@ -28,6 +28,7 @@ import pseudotwin  # noqa: F401
 from pseudotwin.analysis.training import pick_training_days
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.series import read_history
+from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.gp.kernels import LcmParams, Term
 from pseudotwin.gp.train import FitData, gpy_model, params_from_gpy
 from pseudotwin.history.convert import convert
@@ -63,7 +64,7 @@ def main() -> int:
         df = read_history(Path(tmp) / "a.csv")
     hours = OperatingHours(timezone="Europe/Berlin")
     days = pick_training_days(df, [*REFS, TARGET], hours, dt.date(2016, 3, 15), 5)
-    ts = TrainingSet(REFS, TARGET, hours, tuple(days), "temperature")
+    ts = TrainingSet(TwinSpec(tuple(REFS), TARGET, Quantity.TEMPERATURE, hours), tuple(days))
 
     t0 = time.perf_counter()
     ours = CorrGpLcm(kernel="rq", n_terms=a.terms).fit(ts)

@@ -39,6 +39,7 @@ from brokerutil import free_port, start_broker
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.config import load_config
 from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.edge.replay import replay
 from pseudotwin.history.convert import load
 
@@ -81,7 +82,8 @@ def main() -> int:
     df = load("sml2010")
     for tid, (ref, tgt, quantity, _) in TWINS.items():
         t0 = time.perf_counter()
-        art = train_twin(df, [ref], tgt, quantity, hours, dt.date(2012, 3, 14), 5)
+        spec = TwinSpec((ref,), tgt, Quantity.parse(quantity), hours)
+        art = train_twin(df, spec, dt.date(2012, 3, 14), 5)
         art.save(out / "artifacts" / f"{tid}.json")
         print(f"    {tid}: {', '.join(art.models)} in {time.perf_counter() - t0:.0f} s")
 

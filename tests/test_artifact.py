@@ -10,6 +10,7 @@ import pytest
 
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.errors import ArtifactError
 from pseudotwin.history.convert import load
 from pseudotwin.live.artifact import VERSION, Artifact
@@ -21,7 +22,8 @@ def trained(tmp_path_factory) -> tuple[Artifact, Path]:
     df = load("sml2010")
     df = df[df["ts"] < "2012-03-22T00:00Z"]
     hours = OperatingHours(timezone="Europe/Madrid")
-    art = train_twin(df, ["dining/co2"], "room/co2", "co2", hours, dt.date(2012, 3, 14), 5)
+    spec = TwinSpec(("dining/co2",), "room/co2", Quantity.CO2, hours)
+    art = train_twin(df, spec, dt.date(2012, 3, 14), 5)
     path = art.save(tmp_path_factory.mktemp("art") / "co2.json")
     return art, path
 

@@ -55,15 +55,14 @@ from pyads.testserver import AdsTestServer, AdvancedHandler, PLCVariable
 from pyads.testserver.handler import AmsPacket, AmsResponseData
 
 from conftest import MosquittoBroker, MqttClientFactory, TestClient
+from pseudotwin.cli.bridge import EX_CONFIG, main
 from pseudotwin.config import ConfigProblems
 from pseudotwin.edge.bridge import (
     ADSERR_SYMBOL_NOT_FOUND,
-    EX_CONFIG,
     Bridge,
     BridgeConfig,
     filetime_to_utc,
     load_bridge_config,
-    main,
 )
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -12,6 +12,7 @@ from typing import Any
 
 import pytest
 
+from pseudotwin.cli.check_config import main as check_config_main
 from pseudotwin.config import (
     BrokerConfig,
     ConfigProblems,
@@ -19,7 +20,6 @@ from pseudotwin.config import (
     ServiceConfig,
     TwinConfig,
     check_config,
-    check_config_main,
     load_config,
 )
 from pseudotwin.core.horizon import OperatingHours

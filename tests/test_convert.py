@@ -10,6 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from pseudotwin.cli import convert as cc  # the command; cv is the converters
 from pseudotwin.core.series import read_history
 from pseudotwin.errors import ConfigError, DataError
 from pseudotwin.history import convert as cv
@@ -460,7 +461,7 @@ def one_error_line(capsys: pytest.CaptureFixture[str]) -> str:
 
 
 def test_main_list(capsys: pytest.CaptureFixture[str]) -> None:
-    assert cv.main(["--list"]) == 0
+    assert cc.main(["--list"]) == 0
     out = capsys.readouterr().out.splitlines()
     assert [line.split()[0] for line in out] == list(cv.DATASETS)
 
@@ -468,7 +469,7 @@ def test_main_list(capsys: pytest.CaptureFixture[str]) -> None:
 @needs_data
 def test_main_converts(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "sml.csv"
-    assert cv.main(["sml2010", "--out", str(out)]) == 0
+    assert cc.main(["sml2010", "--out", str(out)]) == 0
     line = capsys.readouterr().out.strip()
     assert "\n" not in line and line.startswith("sml2010: 20685 rows, 5 sensors")
     assert len(read_history(out)) == 20685
@@ -476,19 +477,19 @@ def test_main_converts(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
 
 def test_main_missing_source(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     missing = tmp_path / "nope"
-    code = cv.main(["appliances", "--source", str(missing), "--out", str(tmp_path / "o.csv")])
+    code = cc.main(["appliances", "--source", str(missing), "--out", str(tmp_path / "o.csv")])
     assert code == 2
     assert str(missing) in one_error_line(capsys)
 
 
 def test_main_malformed_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     (tmp_path / "energydata_complete.csv").write_text("date,T1\n11-01-2016 17:00,20\n")
-    assert cv.main(["appliances", "--source", str(tmp_path), "--out", str(tmp_path / "o.csv")]) == 2
+    assert cc.main(["appliances", "--source", str(tmp_path), "--out", str(tmp_path / "o.csv")]) == 2
     assert "missing column(s) T2" in one_error_line(capsys)
 
 
 def test_main_unknown_dataset(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    assert cv.main(["nope", "--out", str(tmp_path / "o.csv")]) == 2
+    assert cc.main(["nope", "--out", str(tmp_path / "o.csv")]) == 2
     assert "unknown dataset 'nope'" in one_error_line(capsys)
 
 
@@ -499,5 +500,5 @@ def test_main_unknown_dataset(tmp_path: Path, capsys: pytest.CaptureFixture[str]
 def test_main_usage_errors(
     argv: list[str], message: str, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert cv.main(argv) == 2
+    assert cc.main(argv) == 2
     assert message in one_error_line(capsys)

@@ -14,6 +14,7 @@ from pseudotwin.analysis.training import train_twin
 from pseudotwin.cli import main
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.series import write_history
+from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.history.convert import load
 
 
@@ -50,7 +51,8 @@ def test_evaluate_sml2010_writes_tables_and_plots(sml: Path, tmp_path: Path, cap
     printed = capsys.readouterr().out
     assert "| corrgp-triv |" in printed and "| varma |" in printed
     daily = pd.read_csv(out / "daily.csv")
-    assert list(daily.columns) == ["day", "model", "nrmse_pct", "dmax_pct", "pearson_r", "n"]
+    assert list(daily.columns) == ["day", "model", "nrmse_pct", "dmax_pct", "pearson_r", "n",
+                                   "cover1_pct", "cover2_pct", "crps", "mean_std", "rmse"]
     assert set(daily["day"]) == {"2012-03-19", "2012-03-20", "2012-03-21", "2012-03-22"}
     assert {"corrgp-triv", "corrgp-lcm", "triv", "varma", "ref:dining/temp"} <= set(daily["model"])
     assert (daily["nrmse_pct"] > 0).all()
@@ -78,7 +80,7 @@ def test_estimates_are_causal(room_a: Path) -> None:
 
     df = normalize(df)
     hours = OperatingHours(timezone="Europe/Berlin")
-    art = train_twin(df, ["A1/temp", "A3/temp"], "A4/temp", "temperature", hours,
+    art = train_twin(df, TwinSpec(("A1/temp", "A3/temp"), "A4/temp", Quantity.TEMPERATURE, hours),
                      dt.date(2016, 3, 15), 3, ["corrgp-triv", "corrgp-lcm", "triv"])
     start = dt.date.fromisoformat(art.training["end"]) + dt.timedelta(days=1)
     full = replay_estimates(art, df, start)

@@ -8,9 +8,10 @@ import pandas as pd
 import pytest
 
 from fake_cratedb import FakeCrateDB
+from pseudotwin.cli.importer import main
 from pseudotwin.core.series import read_history, write_history
 from pseudotwin.history import convert as cv
-from pseudotwin.history.importer import import_history, main
+from pseudotwin.history.importer import import_history
 from pseudotwin.history.store import open_store
 
 ROOT = cv.shared_data_root()

@@ -10,6 +10,7 @@ import pytest
 
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.series import normalize, split_days
+from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.models.base import TrainingSet
 from pseudotwin.models.triv import TrivModel
 
@@ -29,7 +30,7 @@ def training_set(offset_fn, days=3, refs=("r1", "r2")) -> TrainingSet:
             rows.append(("tgt", ts, base + offset_fn(hours)))
     df = normalize(pd.DataFrame(rows, columns=["sensor", "ts", "value"]))
     ds = split_days(df, [*refs, "tgt"], h)
-    return TrainingSet(tuple(refs), "tgt", h, tuple(ds))
+    return TrainingSet(TwinSpec(tuple(refs), "tgt", Quantity.TEMPERATURE, h), tuple(ds))
 
 
 def test_offsets_are_mean_target_minus_reference_per_slot() -> None:
@@ -57,7 +58,7 @@ def test_live_estimate_is_mean_over_references_of_offset_plus_held_value() -> No
 def test_round_trip() -> None:
     ts = training_set(lambda h: np.sin(h))
     m = TrivModel().fit(ts)
-    m2 = TrivModel.from_dict(m.to_dict(), ts.hours, ts.references, ts.target)
+    m2 = TrivModel.from_dict(m.to_dict(), ts.spec)
     a, b = m.start_day(dt.date(2020, 3, 1)), m2.start_day(dt.date(2020, 3, 1))
     for x in (a, b):
         x.observe("r1", 8.0, 20.0)

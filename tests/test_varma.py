@@ -20,6 +20,7 @@ from statsmodels.tsa.statespace.varmax import VARMAX
 
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.series import DayReadings, split_days
+from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.models.base import TrainingSet
 from pseudotwin.models.varma import VarmaDay, VarmaModel
 
@@ -53,7 +54,8 @@ def frame() -> pd.DataFrame:
 @pytest.fixture(scope="module")
 def training(frame: pd.DataFrame) -> TrainingSet:
     days = [TRAIN_START + dt.timedelta(days=i) for i in range(5)]
-    return TrainingSet((REF,), TARGET, HOURS, tuple(split_days(frame, [REF, TARGET], HOURS, days)))
+    return TrainingSet(TwinSpec((REF,), TARGET, Quantity.TEMPERATURE, HOURS),
+                       tuple(split_days(frame, [REF, TARGET], HOURS, days)))
 
 
 @pytest.fixture(scope="module")
@@ -63,7 +65,7 @@ def test_days(frame: pd.DataFrame) -> dict[dt.date, DayReadings]:
 
 @pytest.fixture(scope="module")
 def varma(training: TrainingSet) -> VarmaModel:
-    """The default model (VARMAX(4, 4), trend ct), fitted once."""
+    """The default model (VARMAX(4, 4), trend n, target_mode shifted), fitted once."""
     return VarmaModel().fit(training)
 
 
@@ -154,8 +156,8 @@ def test_fallback_ols_recovers_known_var(training: TrainingSet) -> None:
             TRAIN_START + dt.timedelta(days=i),
             {"a": (starts, y[:, 0] + 20.0), "b": (starts, y[:, 1] + 21.0)},
         ))
-    ts = TrainingSet(("a",), "b", HOURS, tuple(days))
-    m = VarmaModel(p=1, trend="n", force_fallback=True).fit(ts)
+    ts = TrainingSet(TwinSpec(("a",), "b", Quantity.TEMPERATURE, HOURS), tuple(days))
+    m = VarmaModel(p=1, trend="n", force_fallback=True, target_mode="level").fit(ts)
     got = dict(zip(m.param_names_, m.params_, strict=True))
     est = np.array([[got["L1.y1.y1"], got["L1.y2.y1"]], [got["L1.y1.y2"], got["L1.y2.y2"]]])
     np.testing.assert_allclose(est, a, atol=0.06)
@@ -281,7 +283,7 @@ def _statsmodels_filter(
         )
     res = mod.filter(model.params_, cov_type="none")
     t = len(model.sensors_) - 1
-    mean = res.filtered_state[t] + model.profile_[:, t]
+    mean = res.filtered_state[t] + model.profile_[:, t] + est.shift
     std = np.sqrt(res.filtered_state_cov[t, t])
     return mean, std
 
@@ -298,7 +300,7 @@ def _varma_with_ma(fallback: VarmaModel) -> VarmaModel:
     d["param_names"] = names
     d["order"] = [4, 4]
     d["model_name"] = "varma"
-    return VarmaModel.from_dict(d, HOURS, (REF,), TARGET)
+    return VarmaModel.from_dict(d, TwinSpec((REF,), TARGET, Quantity.TEMPERATURE, HOURS))
 
 
 @pytest.mark.parametrize("which", ["varma", "fallback", "with-ma"])
@@ -321,7 +323,7 @@ def test_incremental_filter_equals_statsmodels(
         np.testing.assert_allclose([e.std for e in got], std, rtol=0, atol=1e-8)
         # The live sample-and-hold equals history's on the same readings.
         if silent_until is None:
-            ref = day.slot_values(REF, HOURS) - model.profile_[:, 0]
+            ref = day.slot_values(REF, HOURS) - model.profile_[:, 0] - est.shift
             np.testing.assert_array_equal(est.observations()[:, 0], ref)
         else:
             assert np.isnan(est.observations()[0, 0])
@@ -336,7 +338,7 @@ def test_round_trip_gives_identical_predictions(
     model = request.getfixturevalue(which)
     d = json.loads(json.dumps(model.to_dict()))
     assert d["model_name"] == model.model_name_ and d["train_day0"] == "2012-03-14"
-    back = VarmaModel.from_dict(d, HOURS, (REF,), TARGET)
+    back = VarmaModel.from_dict(d, TwinSpec((REF,), TARGET, Quantity.TEMPERATURE, HOURS))
     assert back.model_name_ == model.model_name_ and back.converged_ == model.converged_
     day = test_days[TEST_DAYS[3]]
     a, b = feed_all(model, day), feed_all(back, day)
@@ -349,10 +351,10 @@ def test_from_dict_rejects_a_different_slot_grid(fallback: VarmaModel) -> None:
 
     d = fallback.to_dict()
     with pytest.raises(ArtifactError, match="slot grid"):
-        VarmaModel.from_dict(d, OperatingHours(day_start=9.0, timezone="Europe/Madrid"),
-                             (REF,), TARGET)
+        hours9 = OperatingHours(day_start=9.0, timezone="Europe/Madrid")
+        VarmaModel.from_dict(d, TwinSpec((REF,), TARGET, Quantity.TEMPERATURE, hours9))
     with pytest.raises(ArtifactError, match="trained on"):
-        VarmaModel.from_dict(d, HOURS, ("hall/temp",), TARGET)
+        VarmaModel.from_dict(d, TwinSpec(("hall/temp",), TARGET, Quantity.TEMPERATURE, HOURS))
 
 
 # -- fallback ---------------------------------------------------------------------------

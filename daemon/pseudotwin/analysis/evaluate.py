@@ -14,20 +14,26 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from pseudotwin.analysis.training import ALL_MODELS, train_twin
+from pseudotwin.analysis.replay import ESTIMATE, REF_PREFIX, replay_estimates
+from pseudotwin.analysis.training import train_twin
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.series import require_sensors
+from pseudotwin.core.spec import TwinSpec
 from pseudotwin.errors import DataError
+from pseudotwin.live import metrics
 from pseudotwin.live.artifact import Artifact
-from pseudotwin.live.twin import Twin
+from pseudotwin.models.registry import ALL_MODELS
 
 log = logging.getLogger(__name__)
 
-REF_PREFIX = "ref:"
+__all__ = ["ESTIMATE", "REF_PREFIX", "Evaluation", "evaluate", "replay_estimates",
+           "daily_scores", "monthly_scores", "summary_table", "write_outputs"]
+
 
 
 @dataclass(frozen=True)
@@ -41,70 +47,24 @@ class Evaluation:
     seconds: float
 
 
-def replay_estimates(
-    artifact: Artifact,
-    history: pd.DataFrame,
-    start: dt.date,
-    models: Sequence[str] | None = None,
-) -> pd.DataFrame:
-    """Estimates at every true target reading in operating hours of days ≥ ``start``.
-
-    Also emits, as pseudo-models ``ref:<sensor>``, the raw reference value held at that time
-    (its daily Pearson r with the target is the evidence of how much a reference can tell).
-    """
-    hours = artifact.hours
-    twin = Twin(artifact, models=models)
-    refs = list(artifact.references)
-    sub = history[history["sensor"].isin([*refs, artifact.target])]
-    days, hrs = hours.day_and_hours(sub["ts"])
-    is_target = (sub["sensor"] == artifact.target).values
-    score = is_target & (days >= np.datetime64(start)) & hours.in_operating_hours(hrs)
-    # Readings at the same instant: references first, so an estimate at t sees them.
-    order = np.lexsort((is_target, pd.DatetimeIndex(sub["ts"]).asi8))
-    sensors = sub["sensor"].values[order]
-    stamps = pd.DatetimeIndex(sub["ts"]).tz_convert("UTC")[order]
-    values = sub["value"].values[order]
-    scored = score[order]
-    held: dict[str, float] = {}
-    rows: list[tuple] = []
-    for s, ts, v, sc in zip(sensors, stamps, values, scored, strict=True):
-        t = ts.to_pydatetime()
-        if s != artifact.target:
-            twin.observe(s, t, float(v))
-            held[s] = float(v)
-            continue
-        if not sc:
-            continue
-        for kind, e in twin.estimate(t).items():
-            if e.finite:
-                rows.append((t, kind, e.value, e.std, float(v), e.quality))
-        for r in refs:
-            if r in held:
-                rows.append((t, REF_PREFIX + r, held[r], np.nan, float(v), "ok"))
-    return pd.DataFrame(rows, columns=["ts", "model", "value", "std", "truth", "quality"])
+DAILY_COLUMNS = ("day", "model", "nrmse_pct", "dmax_pct", "pearson_r", "n",
+                 "cover1_pct", "cover2_pct", "crps", "mean_std", "rmse")
 
 
 def daily_scores(est: pd.DataFrame, hours: OperatingHours) -> pd.DataFrame:
-    """Per day and model: NRMSE (6.10) and ΔT_max (6.14) in % of the day's mean truth."""
+    """Per day and model: NRMSE (6.10) and ΔT_max (6.14) in % of the day's mean truth, r,
+    and the calibration of ±σ (coverage of ±1σ/±2σ [%], CRPS and RMSE in the quantity's
+    unit, mean σ); see :mod:`pseudotwin.live.metrics`."""
     if est.empty:
-        return pd.DataFrame(columns=["day", "model", "nrmse_pct", "dmax_pct", "pearson_r", "n"])
+        return pd.DataFrame(columns=list(DAILY_COLUMNS))
     days, _ = hours.day_and_hours(est["ts"])
     e = est.assign(day=pd.to_datetime(days).date)
     out = []
     for (day, model), g in e.groupby(["day", "model"], sort=True):
-        err = g["value"].values - g["truth"].values
-        mean_truth = float(np.mean(g["truth"].values))
-        denom = abs(mean_truth) if mean_truth else float("nan")
-        r = np.nan
-        if len(g) > 2 and np.std(g["value"].values) > 0 and np.std(g["truth"].values) > 0:
-            r = float(np.corrcoef(g["value"].values, g["truth"].values)[0, 1])
-        out.append((
-            str(day), model,
-            100.0 * float(np.sqrt(np.mean(err**2))) / denom,
-            100.0 * float(np.max(np.abs(err))) / denom,
-            r, len(g),
-        ))
-    return pd.DataFrame(out, columns=["day", "model", "nrmse_pct", "dmax_pct", "pearson_r", "n"])
+        s = metrics.score(g["truth"].values, g["value"].values, g["std"].values)
+        out.append((str(day), model, s.nrmse_pct, s.dmax_pct, s.pearson_r, s.n,
+                    s.cover1_pct, s.cover2_pct, s.crps, s.mean_std, s.rmse))
+    return pd.DataFrame(out, columns=list(DAILY_COLUMNS))
 
 
 def monthly_scores(daily: pd.DataFrame) -> pd.DataFrame:
@@ -118,22 +78,20 @@ def monthly_scores(daily: pd.DataFrame) -> pd.DataFrame:
 
 def evaluate(
     history: pd.DataFrame,
-    references: Sequence[str],
-    target: str,
-    quantity: str,
-    hours: OperatingHours,
+    spec: TwinSpec,
     train_start: dt.date,
     train_days: int = 5,
     models: Sequence[str] = ALL_MODELS,
     out: Path | None = None,
-    options: dict | None = None,
+    options: dict[str, dict[str, Any]] | None = None,
     plot_day: dt.date | None = None,
+    primary: str | None = None,
 ) -> Evaluation:
+    """Train on ``train_days`` days from ``train_start``, then score every later day."""
     t0 = time.perf_counter()
-    require_sensors(history, [*references, target])
-    artifact = train_twin(
-        history, references, target, quantity, hours, train_start, train_days, models, options
-    )
+    target, hours = spec.target, spec.hours
+    require_sensors(history, list(spec.sensors))
+    artifact = train_twin(history, spec, train_start, train_days, models, options, primary)
     test_start = dt.date.fromisoformat(artifact.training["end"]) + dt.timedelta(days=1)
     est = replay_estimates(artifact, history, test_start, models)
     if est.empty:
@@ -176,20 +134,28 @@ def _median_day(ev: Evaluation) -> dt.date | None:
 
 
 def summary_table(ev: Evaluation) -> str:
-    """Mean daily NRMSE / ΔT_max / r per model, as a Markdown table."""
+    """Mean daily NRMSE / ΔT_max / r, ±2σ coverage and CRPS per model, as a Markdown table."""
     g = ev.daily.groupby("model").agg(
         nrmse_pct=("nrmse_pct", "mean"), dmax_pct=("dmax_pct", "mean"),
-        pearson_r=("pearson_r", "median"), days=("day", "nunique"),
+        pearson_r=("pearson_r", "median"), cover2_pct=("cover2_pct", "mean"),
+        crps=("crps", "mean"), days=("day", "nunique"),
     )
     order = [m for m in (*ALL_MODELS,) if m in g.index] + sorted(
         m for m in g.index if m not in ALL_MODELS
     )
-    lines = ["| model | mean daily NRMSE % | mean ΔT_max % | median daily r | days |",
-             "|---|---:|---:|---:|---:|"]
+    unit = ev.artifact.unit
+    lines = ["| model | mean daily NRMSE % | mean ΔT_max % | median daily r | ±2σ coverage % "
+             f"| mean CRPS [{unit}] | days |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
     for m in order:
         row = g.loc[m]
         lines.append(
-            f"| {m} | {row.nrmse_pct:.2f} | {row.dmax_pct:.2f} | {row.pearson_r:.3f} "
-            f"| {int(row.days)} |"
+            f"| {m} | {_num(row.nrmse_pct)} | {_num(row.dmax_pct)} | {_num(row.pearson_r, 3)} "
+            f"| {_num(row.cover2_pct, 1)} | {_num(row.crps, 3)} | {int(row.days)} |"
         )
     return "\n".join(lines)
+
+
+def _num(x: float, nd: int = 2) -> str:
+    """``x`` to ``nd`` decimals, an em dash when undefined (no σ, no r)."""
+    return f"{x:.{nd}f}" if np.isfinite(x) else "—"

@@ -11,16 +11,20 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from pseudotwin.analysis import validation
+from pseudotwin.analysis.validation import MIN_DAYS
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.series import DayReadings, require_sensors, split_days
+from pseudotwin.core.spec import TwinSpec
 from pseudotwin.errors import DataError
 from pseudotwin.history.store import Store
-from pseudotwin.live.artifact import MODEL_CLASSES, Artifact
-from pseudotwin.models.base import TrainingSet
+from pseudotwin.live.artifact import Artifact
+from pseudotwin.live.calibration import SigmaCalibration
+from pseudotwin.models.base import TrainingSet, TwinModel
+from pseudotwin.models.registry import ALL_MODELS, build, model_class
 
 log = logging.getLogger(__name__)
 
-ALL_MODELS = ("corrgp-triv", "corrgp-lcm", "triv", "varma")
 MIN_READINGS_PER_DAY = 4
 
 
@@ -62,45 +66,58 @@ def pick_training_days(
 
 def train_twin(
     df: pd.DataFrame,
-    references: Sequence[str],
-    target: str,
-    quantity: str,
-    hours: OperatingHours,
+    spec: TwinSpec,
     train_start: dt.date,
     train_days: int = 5,
     models: Sequence[str] = ALL_MODELS,
     options: dict[str, dict[str, Any]] | None = None,
     primary: str | None = None,
+    validate: bool = True,
 ) -> Artifact:
-    """Train the requested models of one twin on the chosen days; returns the artifact."""
-    refs = tuple(references)
-    if not refs:
-        raise DataError("at least one reference sensor is needed")
-    if target in refs:
-        raise DataError(f"target {target!r} is also listed as a reference")
-    unknown = [m for m in models if m not in MODEL_CLASSES]
-    if unknown:
-        raise DataError(
-            f"unknown model(s) {', '.join(unknown)}; choose from {', '.join(ALL_MODELS)}"
-        )
-    require_sensors(df, [*refs, target])
-    days = pick_training_days(df, [*refs, target], hours, train_start, train_days)
-    ts = TrainingSet(refs, target, hours, tuple(days), quantity)
-    fitted: dict[str, Any] = {}
+    """Train the requested models of one twin on the chosen days; returns the artifact.
+
+    options: kind → settings of that model (see each model's ``options``). validate: hold
+    out each training day to choose the primary (unless ``primary`` pins it) and calibrate
+    every model's σ (:mod:`pseudotwin.analysis.validation`); without it, or with fewer than
+    three days, the primary is ``primary`` or the first candidate and σ is each model's own.
+    """
+    for kind in models:
+        model_class(kind)  # an unknown kind fails before any training
+    sensors = list(spec.sensors)
+    require_sensors(df, sensors)
+    days = pick_training_days(df, sensors, spec.hours, train_start, train_days)
+    ts = TrainingSet(spec, tuple(days))
+    fitted: dict[str, TwinModel] = {}
     opts = options or {}
     for kind in models:
         t0 = time.perf_counter()
-        fitted[kind] = MODEL_CLASSES[kind](**opts.get(kind, {})).fit(ts)
+        fitted[kind] = build(kind, opts.get(kind)).fit(ts)
         log.info("trained %s in %.1f s", kind, time.perf_counter() - t0)
-    if primary is None:
-        primary = next(m for m in ("corrgp-triv", "corrgp-lcm", "triv", "varma") if m in fitted)
+    if primary is not None and primary not in fitted:
+        raise DataError(f"primary {primary!r} is not among the trained models")
+    calibration: dict[str, SigmaCalibration] = {}
+    checked: dict[str, Any] = {}
+    if validate and len(days) >= MIN_DAYS:
+        v = validation.validate(df, spec, days, list(fitted), opts, primary)
+        primary, calibration, checked = v.primary, v.calibration, v.to_dict()
+        log.info("validated on the training days in %.1f s; primary %s", v.seconds, v.reason)
+    elif primary is None:
+        primary = next((k for k, m in fitted.items() if m.candidate), next(iter(fitted)))
+    withheld = dict(checked.get("withheld", {}))
+    for kind, m in fitted.items():
+        if (problem := m.publish_problem()) and kind != primary:
+            withheld[kind] = problem
+    for kind, why in withheld.items():
+        log.warning("%s is not published live: %s", kind, why)
+    if checked or withheld:
+        checked = {**checked, "withheld": withheld}
     return Artifact(
-        refs, target, quantity, hours, fitted, primary,
+        spec, fitted, primary, calibration=calibration, validation=checked,
         training={
             "start": str(days[0].day),
             "end": str(days[-1].day),
             "days": [str(d.day) for d in days],
-            "sensors": [*refs, target],
+            "sensors": sensors,
         },
     )
 
@@ -130,7 +147,7 @@ def history_from_store(
     prev: pd.DataFrame | None = None
     for day, frame in store.iter_days(list(sensors), first, last, hours.timezone):
         both = frame if prev is None else pd.concat([prev, frame], ignore_index=True)
-        if not frame.empty and day_is_usable(split_days(both, sensors, hours, [day])[0],
+        if not frame.empty and day_is_usable(split_days(both, list(sensors), hours, [day])[0],
                                              sensors, hours):
             kept.append(both)
             chosen.append(day)

@@ -8,13 +8,25 @@ import logging
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from pseudotwin import __version__
+from pseudotwin.cli.util import EX_CONFIG
+from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.errors import PseudotwinError
+from pseudotwin.gp.kernels import KERNEL_REGISTRY
+from pseudotwin.models.registry import ALL_MODELS, MODELS
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+    from pseudotwin.config import ServiceConfig, TwinConfig
+    from pseudotwin.core.horizon import OperatingHours
+    from pseudotwin.edge.recorder import Recorder
+    from pseudotwin.edge.service import Service
 
 log = logging.getLogger("pseudotwin")
 
-MODELS_HELP = "comma-separated models: corrgp-triv, corrgp-lcm, triv, varma"
 
 
 def setup_logging(level: str = "INFO") -> None:
@@ -64,8 +76,11 @@ def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
     p.add_argument("--train-days", type=int, default=5,
                    help="training days: the first N days from --train-start on which every "
                         "sensor reports (default 5)")
-    p.add_argument("--models", type=_csv, default=["corrgp-triv", "corrgp-lcm", "triv", "varma"],
-                   help=MODELS_HELP + " (default: all)")
+    p.add_argument("--primary", choices=ALL_MODELS,
+                   help="pin the model published as the twin's estimate (default: the candidate "
+                        "that scores best with each training day held out in turn)")
+    p.add_argument("--models", type=_csv, default=list(ALL_MODELS),
+                   help=f"comma-separated models: {', '.join(ALL_MODELS)} (default: all)")
     p.add_argument("--timezone", default="UTC",
                    help="IANA time zone of the building; operating hours are local (default UTC)")
     p.add_argument("--day-start", default="08:00", help="start of operating hours (default 08:00)")
@@ -74,14 +89,14 @@ def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
                    help="init phase before day start, collected but not published (default 30)")
     p.add_argument("--slot-minutes", type=float, default=15.0,
                    help="time-of-day grid of TRIV, VARMA and GP training (default 15)")
-    p.add_argument("--kernel", choices=("rq", "matern52", "matern32", "rbf"),
+    p.add_argument("--kernel", choices=tuple(KERNEL_REGISTRY),
                    help="override the Corr-GP kernel")
     p.add_argument("--ref-mean", choices=("shifted", "profile"), default="shifted",
                    help="corrgp-triv reference prior mean: training profile shifted to today's "
                         "level in the init phase (default), or the unshifted profile")
 
 
-def _hours(a: argparse.Namespace):
+def _hours(a: argparse.Namespace) -> OperatingHours:
     from pseudotwin.core.horizon import OperatingHours
 
     return OperatingHours.from_strings(
@@ -89,12 +104,19 @@ def _hours(a: argparse.Namespace):
     )
 
 
-def _options(a: argparse.Namespace) -> dict:
-    gp = {"kernel": a.kernel} if a.kernel else {}
-    return {"corrgp-triv": {**gp, "ref_mean": a.ref_mean}, "corrgp-lcm": dict(gp)}
+def _options(a: argparse.Namespace) -> dict[str, dict[str, Any]]:
+    """Each model's settings from the command line: those of its ``options`` that were given."""
+    given = {k: v for k, v in (("kernel", a.kernel), ("ref_mean", a.ref_mean)) if v is not None}
+    return {kind: {k: v for k, v in given.items() if k in cls.options}
+            for kind, cls in MODELS.items()}
 
 
-def _training_history(a: argparse.Namespace, hours) -> tuple:
+def _spec(a: argparse.Namespace) -> TwinSpec:
+    return TwinSpec(tuple(a.references), a.target, Quantity.parse(a.quantity), _hours(a))
+
+
+def _training_history(a: argparse.Namespace,
+                      hours: OperatingHours) -> tuple[pd.DataFrame, dt.date]:
     """The history to train on and the first candidate day, from a file or the store."""
     from pseudotwin.core.series import read_history
 
@@ -123,18 +145,22 @@ def _training_history(a: argparse.Namespace, hours) -> tuple:
 def cmd_train(a: argparse.Namespace) -> int:
     from pseudotwin.analysis.training import train_twin
 
-    hours = _hours(a)
-    df, start = _training_history(a, hours)
-    art = train_twin(df, a.references, a.target, a.quantity, hours, start,
-                     a.train_days, a.models, _options(a))
+    spec = _spec(a)
+    df, start = _training_history(a, spec.hours)
+    art = train_twin(df, spec, start, a.train_days, a.models, _options(a), a.primary)
     path = art.save(a.out)
     days = ", ".join(art.training["days"])
     print(f"trained {', '.join(art.models)} on {days}; artifact written to {path}")
     for kind, m in art.models.items():
-        rep = getattr(m, "report_", None)
-        if rep is not None:
-            print(f"  {kind}: NLML {rep.nlml:.2f}, {rep.seconds:.1f} s, "
-                  f"max jitter {rep.jitter_max:.1e}, max condition {rep.condition_max:.2e}")
+        if summary := m.fit_summary():
+            print(f"  {kind}: {summary}")
+    if art.validation.get("scores"):
+        from pseudotwin.analysis.validation import validation_table
+
+        print("validation on the training days (each held out in turn):")
+        print(validation_table(art.validation, art.unit))
+    else:
+        print(f"primary: {art.primary} (not validated)")
     return 0
 
 
@@ -142,18 +168,14 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     from pseudotwin.analysis.evaluate import evaluate, summary_table
     from pseudotwin.core.series import read_history
 
-    hours = _hours(a)
     df = read_history(a.history)
-    ev = evaluate(df, a.references, a.target, a.quantity, hours, a.train_start, a.train_days,
-                  a.models, a.out, _options(a), a.plot_day)
+    ev = evaluate(df, _spec(a), a.train_start, a.train_days, a.models, a.out, _options(a),
+                  a.plot_day, a.primary)
     print(f"trained on {', '.join(ev.artifact.training['days'])}; "
           f"scored {ev.daily['day'].nunique()} day(s) in {ev.seconds:.1f} s")
     print(summary_table(ev))
     print(f"written: {a.out}/daily.csv, monthly.csv, estimates.csv, artifact.json, plots")
     return 0
-
-
-EX_CONFIG = 78  # sysexits: systemd's RestartPreventExitStatus keys on it
 
 
 def _aware(text: str) -> dt.datetime:
@@ -166,19 +188,19 @@ def _aware(text: str) -> dt.datetime:
     return t
 
 
-def _artifact_check(twin, hours) -> list[str]:
+def _artifact_check(twin: TwinConfig, hours: OperatingHours | None) -> list[str]:
     from pseudotwin.edge.service import check_artifact
 
     return check_artifact(twin, hours=hours)
 
 
-def _load_service_config(path: Path):
+def _load_service_config(path: Path) -> ServiceConfig:
     from pseudotwin.config import check_config
 
     return check_config(path, artifact_check=_artifact_check)
 
 
-def _serve(process) -> int:
+def _serve(process: Service | Recorder) -> int:
     """Start a long-running process (daemon, recorder) and stop it on SIGTERM/SIGINT."""
     import signal
     import threading
@@ -191,14 +213,25 @@ def _serve(process) -> int:
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
-    process.start()
-    while not done.wait(1.0):
-        pass
+    process.start(wait_connected=None)  # never blocks: a signal is honoured at once
+    while not done.wait(0.2):
+        if process.fatal is not None:  # e.g. a wrong password: retrying will not help
+            log.error("%s; exiting with status %d", process.fatal[1], process.fatal[0])
+            break
     process.stop()
-    return 0
+    return process.fatal[0] if process.fatal is not None else 0
+
+
+def _private_files() -> None:
+    """Journal, spool and SQLite files 0600, directories 0700, whatever the launcher
+    (systemd's UMask=0077 does the same; Docker and a shell do not)."""
+    import os
+
+    os.umask(0o077)
 
 
 def cmd_run(a: argparse.Namespace) -> int:
+    _private_files()
     from pseudotwin.edge.clock import ReplayClock, SystemClock
     from pseudotwin.edge.service import Service
     from pseudotwin.errors import ConfigError
@@ -229,6 +262,7 @@ def cmd_replay(a: argparse.Namespace) -> int:
 
 
 def cmd_record(a: argparse.Namespace) -> int:
+    _private_files()
     from pseudotwin.config import check_config
     from pseudotwin.edge.recorder import Recorder
     from pseudotwin.errors import ConfigError
@@ -258,25 +292,25 @@ def cmd_backfill(a: argparse.Namespace) -> int:
 
 
 def cmd_convert(argv: list[str]) -> int:
-    from pseudotwin.history.convert import main as convert_main
+    from pseudotwin.cli.convert import main as convert_main
 
     return convert_main(argv)
 
 
 def cmd_import(argv: list[str]) -> int:
-    from pseudotwin.history.importer import main as import_main
+    from pseudotwin.cli.importer import main as import_main
 
     return import_main(argv)
 
 
 def cmd_bridge(argv: list[str]) -> int:
-    from pseudotwin.edge.bridge import main as bridge_main
+    from pseudotwin.cli.bridge import main as bridge_main
 
     return bridge_main(argv)
 
 
 def cmd_check_config(argv: list[str]) -> int:
-    from pseudotwin.config import check_config_main
+    from pseudotwin.cli.check_config import main as check_config_main
 
     return check_config_main(argv, artifact_check=_artifact_check)
 

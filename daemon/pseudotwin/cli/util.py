@@ -9,6 +9,8 @@ from typing import NoReturn
 
 from pseudotwin.errors import PseudotwinError
 
+EX_CONFIG = 78  # sysexits: systemd's RestartPreventExitStatus keys on it
+
 
 class UsageError(Exception):
     """Bad command-line arguments, reported by the subcommand as one error line."""

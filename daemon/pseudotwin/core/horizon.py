@@ -8,6 +8,7 @@ calendar days.
 from __future__ import annotations
 
 import datetime as dt
+import re
 from dataclasses import dataclass
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
@@ -16,16 +17,22 @@ import pandas as pd
 
 from pseudotwin.errors import ConfigError
 
+_HHMM = re.compile(r"(\d{1,2}):(\d{2})")
 
-def _parse_hhmm(text: str, what: str) -> float:
-    try:
-        hh, mm = text.split(":")
-        h, m = int(hh), int(mm)
-    except ValueError:
-        raise ConfigError(f"{what}: expected HH:MM, got {text!r}") from None
-    if not (0 <= h <= 24 and 0 <= m < 60) or (h == 24 and m):
+
+def parse_hhmm(text: str, what: str = "time of day") -> float:
+    """Wall-clock hours [h] of ``"HH:MM"`` (``"08:30"`` → 8.5), 00:00..24:00.
+
+    The one HH:MM parser (operating hours, the configuration); raises ConfigError naming
+    ``what``.
+    """
+    m = _HHMM.fullmatch(text)
+    if not m:
+        raise ConfigError(f"{what}: expected HH:MM, got {text!r}")
+    h, mi = int(m[1]), int(m[2])
+    if h > 24 or mi >= 60 or (h == 24 and mi):
         raise ConfigError(f"{what}: {text!r} is not a time of day")
-    return h + m / 60.0
+    return h + mi / 60.0
 
 
 @dataclass(frozen=True)
@@ -73,8 +80,8 @@ class OperatingHours:
         timezone: str = "UTC",
     ) -> OperatingHours:
         return cls(
-            _parse_hhmm(day_start, "day_start"),
-            _parse_hhmm(day_end, "day_end"),
+            parse_hhmm(day_start, "day_start"),
+            parse_hhmm(day_end, "day_end"),
             float(init_minutes),
             float(slot_minutes),
             timezone,
@@ -165,6 +172,16 @@ class OperatingHours:
     def in_window(self, hours: np.ndarray | float) -> np.ndarray:
         h = np.asarray(hours, dtype=float)
         return (h >= self.init_start) & (h <= self.day_end)
+
+    def describe(self) -> str:
+        """One readable line: ``08:00–19:00 Europe/Madrid, init 30 min, slots 15 min``."""
+
+        def hhmm(h: float) -> str:
+            m = int(round(h * 60))
+            return f"{m // 60:02d}:{m % 60:02d}"
+
+        return (f"{hhmm(self.day_start)}–{hhmm(self.day_end)} {self.timezone}, "
+                f"init {self.init_minutes:g} min, slots {self.slot_minutes:g} min")
 
     def to_dict(self) -> dict:
         return {

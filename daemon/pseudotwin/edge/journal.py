@@ -10,11 +10,13 @@ nothing: what was not journaled was not acknowledged, and the broker delivers it
 from __future__ import annotations
 
 import datetime as dt
+import errno
 import json
 import logging
 import os
 from collections.abc import Iterator
 from pathlib import Path
+from typing import BinaryIO
 
 from pseudotwin.live.readings import Reading
 
@@ -29,19 +31,57 @@ class Journal:
         self.folder.mkdir(parents=True, exist_ok=True)
         self.keep_days = keep_days
         self._day: dt.date | None = None
-        self._fh = None
+        self._fh: BinaryIO | None = None
+        # The lines of the current file and of the one before (yesterday's carry-over), to
+        # rebuild them if the state dir is deleted under us.
+        self._lines: list[bytes] = []
+        self._lines_day: dt.date | None = None
+        self._prev: tuple[dt.date, list[bytes]] | None = None
+        self.recreated = 0  # times the journal file vanished and was rebuilt from memory
 
     def _path(self, day: dt.date) -> Path:
         return self.folder / f"{day.isoformat()}.jsonl"
 
     def append(self, r: Reading) -> None:
+        """Write one line, or raise OSError (nothing is then owed: the caller must not ack).
+
+        Unbuffered: the line is in the kernel before the ack and survives SIGKILL (not power
+        loss; see fsync()). After a failure the file is reopened on the next call, so a
+        transient fault (full disk, a directory briefly unwritable) ends when it clears."""
         day = r.ts.astimezone(dt.UTC).date()
-        if day != self._day:
+        if day != self._day or self._fh is None:
             self._rotate(day)
-        line = json.dumps({"sensor": r.sensor, "ts": r.ts.isoformat(), "value": r.value})
-        self._fh.write(line + "\n")
-        # Into the kernel before the ack: survives SIGKILL (not power loss; see fsync()).
-        self._fh.flush()
+        elif self._vanished():
+            self._abandon()
+            self._rotate(day)  # rebuilds the file from memory
+        assert self._fh is not None
+        line = (json.dumps({"sensor": r.sensor, "ts": r.ts.isoformat(), "value": r.value})
+                + "\n").encode()
+        try:
+            if self._fh.write(line) != len(line):
+                raise OSError(errno.ENOSPC, "short write to the journal")
+        except OSError:
+            self._abandon()  # the next append reopens (and ends a torn line first)
+            raise
+        self._lines.append(line)
+
+    def _vanished(self) -> bool:
+        """True when the open file is no longer the one at its path (deleted, replaced)."""
+        assert self._fh is not None and self._day is not None
+        try:
+            st = os.stat(self._path(self._day))
+        except FileNotFoundError:
+            return True
+        own = os.fstat(self._fh.fileno())
+        return (st.st_dev, st.st_ino) != (own.st_dev, own.st_ino)
+
+    def _abandon(self) -> None:
+        if self._fh is not None:
+            try:
+                self._fh.close()
+            except OSError:
+                pass
+        self._fh, self._day = None, None
 
     def fsync(self) -> None:
         if self._fh is not None:
@@ -50,12 +90,38 @@ class Journal:
 
     def _rotate(self, day: dt.date) -> None:
         self.close()
-        self._day = day
         path = self._path(day)
-        torn = path.exists() and path.stat().st_size and not path.read_bytes().endswith(b"\n")
-        self._fh = open(path, "a", encoding="utf-8")  # noqa: SIM115
-        if torn:  # a crash cut the last line short: never glue the next one onto it
-            self._fh.write("\n")
+        self.folder.mkdir(parents=True, exist_ok=True)  # recreated if it was deleted
+        old = path.read_bytes() if path.exists() else b""
+        if self._lines_day is not None and self._lines_day != day:
+            self._prev = (self._lines_day, self._lines)  # the file before stays rebuildable
+            self._lines, self._lines_day = [], None
+        if not old and self._lines_day == day and self._lines:
+            # The file (or the whole state dir) was deleted while running: writing on into
+            # the unlinked file would lose everything at the next restart. Rebuild it, and
+            # the file before it, from the lines held in memory; older ones are gone.
+            restored = [(day, self._lines), *([self._prev] if self._prev else [])]
+            for d, lines in restored:
+                if not self._path(d).exists():
+                    with open(self._path(d), "wb") as fresh:
+                        fresh.write(b"".join(lines))
+            log.error("journal file %s was deleted while running (state dir removed?); "
+                      "recreated it from the %d readings held in memory (%s); older days' "
+                      "journals are lost", path, sum(len(x) for _, x in restored),
+                      ", ".join(str(d) for d, _ in restored))
+            old = b"".join(self._lines)
+            self.recreated += 1
+        fh = open(path, "ab", buffering=0)  # noqa: SIM115
+        if old and not old.endswith(b"\n"):  # a crash cut the last line short: never glue
+            try:                               # the next one onto it
+                fh.write(b"\n")
+            except OSError:
+                fh.close()
+                raise
+            old += b"\n"
+        # Only once the file is open: a failed open leaves the journal closed, not broken.
+        self._fh, self._day, self._lines_day = fh, day, day
+        self._lines = old.splitlines(keepends=True)
         self.prune(day)
 
     def prune(self, today: dt.date) -> None:
@@ -69,9 +135,11 @@ class Journal:
 
     def close(self) -> None:
         if self._fh is not None:
-            self.fsync()
-            self._fh.close()
-            self._fh = None
+            try:
+                self.fsync()
+            finally:
+                self._fh.close()
+                self._fh = None
         self._day = None
 
     def replay(self, since: dt.datetime) -> Iterator[Reading]:
@@ -84,12 +152,12 @@ class Journal:
                 continue
             if d < first:
                 continue
-            with open(p, encoding="utf-8") as fh:
+            with open(p, "rb") as fh:  # bytes: invalid UTF-8 is one bad line, not a crash
                 for n, line in enumerate(fh, 1):
                     try:
                         o = json.loads(line)
                         yield Reading(o["sensor"], dt.datetime.fromisoformat(o["ts"]),
                                       float(o["value"]))
-                    except (ValueError, KeyError, TypeError):
+                    except (ValueError, KeyError, TypeError):  # UnicodeDecodeError included
                         # A line cut short by a crash mid-write: everything before it counts.
                         log.warning("journal %s line %d unreadable, skipped", p.name, n)

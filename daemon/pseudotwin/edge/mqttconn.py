@@ -4,10 +4,47 @@ under a stable client id, a retained last will on the process's status topic."""
 
 from __future__ import annotations
 
+import logging
+import sys
+import time
+from typing import Any
+
 import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 
 from pseudotwin.config import BrokerConfig
+
+log = logging.getLogger(__name__)
+
+EX_NOPERM = 77  # sysexits: the broker refused our credentials; a restart will not help
+
+
+def refused_fatally(reason_code: Any) -> tuple[int, str] | None:
+    """(exit status, why) when a refused CONNACK will not change by retrying: bad user name
+    or password, not authorized. None for refusals worth retrying (server unavailable)."""
+    value = getattr(reason_code, "value", reason_code)
+    if value in (4, 5, 134, 135):  # MQTT 3.1.1 CONNACK 4/5; MQTT 5 reason codes 0x86/0x87
+        return EX_NOPERM, f"the broker refused the credentials ({reason_code})"
+    return None
+
+
+def _log_connect_failures(broker: BrokerConfig) -> Any:
+    """An ``on_connect_fail`` that logs every failed connection attempt with its reason
+    (paho calls it inside its ``except OSError``, so the error is ``sys.exc_info()``'s),
+    from the first one on; repeats of the same reason are logged once a minute."""
+    last: dict[str, Any] = {"why": None, "at": 0.0, "n": 0}
+
+    def on_connect_fail(client: mqtt.Client, userdata: Any) -> None:
+        exc = sys.exc_info()[1]
+        why = f"{type(exc).__name__}: {exc}" if exc is not None else "unknown reason"
+        last["n"] += 1
+        now = time.monotonic()
+        if why != last["why"] or now - last["at"] >= 60:
+            log.warning("cannot connect to the broker at %s:%d (%s); attempt %d, retrying "
+                        "with backoff", broker.host, broker.port, why, last["n"])
+            last["why"], last["at"] = why, now
+
+    return on_connect_fail
 
 
 def make_client(broker: BrokerConfig, client_id: str, status_topic: str,
@@ -21,4 +58,5 @@ def make_client(broker: BrokerConfig, client_id: str, status_topic: str,
     if broker.tls:
         c.tls_set(ca_certs=str(broker.ca_file) if broker.ca_file else None)
     c.reconnect_delay_set(1, 30)
+    c.on_connect_fail = _log_connect_failures(broker)
     return c

@@ -13,6 +13,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import logging
+import os
 import queue
 import threading
 import time
@@ -23,13 +24,23 @@ import paho.mqtt.client as mqtt
 
 from pseudotwin.config import SensorConfig, ServiceConfig
 from pseudotwin.edge.clock import Clock, SystemClock
-from pseudotwin.edge.mqttconn import make_client
+from pseudotwin.edge.mqttconn import make_client, refused_fatally
 from pseudotwin.edge.sdnotify import notify
 from pseudotwin.errors import ConfigError, PseudotwinError
 from pseudotwin.history.store import Store, open_store
-from pseudotwin.live.readings import Reading, Rejected, RejectionCounter, parse_payload
+from pseudotwin.live.readings import (
+    UNPROCESSABLE,
+    Reading,
+    Rejected,
+    RejectionCounter,
+    parse_payload,
+)
 
 log = logging.getLogger(__name__)
+
+#: The oldest reading the recorder stores: older timestamps are nonsense for live data (and
+#: year-1 times would not survive the store's pandas round trip).
+OLDEST = dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
 
 
 class Spool:
@@ -50,7 +61,7 @@ class Spool:
         if not self.path.exists():
             return []
         out = []
-        with open(self.path, encoding="utf-8") as fh:
+        with open(self.path, "rb") as fh:  # bytes: invalid UTF-8 is one bad line
             for line in fh:
                 try:
                     o = json.loads(line)
@@ -91,6 +102,9 @@ class Recorder:
         self.connected = threading.Event()
         self.written = 0
         self.spooled = 0
+        self.fatal: tuple[int, str] | None = None  # (exit status, why): the process must end
+        self._store_ident: tuple[int, int] | None = None
+        self._ready = False
         self._gen = 0
         self._next_retry = 0.0
         self.status_topic = f"{cfg.base_topic}/recorder/status"
@@ -102,17 +116,23 @@ class Recorder:
         self._worker = threading.Thread(target=self._run, name="recorder", daemon=True)
 
     # -- MQTT (network thread) --------------------------------------------------------------
-    def _on_connect(self, client, userdata, flags, reason_code, properties) -> None:
+    def _on_connect(self, client: mqtt.Client, userdata: Any, flags: mqtt.ConnectFlags,
+                    reason_code: Any, properties: Any) -> None:
         if reason_code.is_failure:
-            log.error("broker refused the connection: %s", reason_code)
+            self.fatal = refused_fatally(reason_code)
+            log.error("broker refused the connection: %s%s", reason_code,
+                      "; giving up (fix the credentials)" if self.fatal else "; retrying")
             return
+        if not self._ready:
+            self._ready = True
+            notify("READY=1")  # only once connected
         self._gen += 1
         client.subscribe([(s.topic, 1) for s in self.cfg.sensors.values()])
         client.publish(self.status_topic, "online", qos=1, retain=True)
         log.info("recorder connected; recording %d sensor topics", len(self.cfg.sensors))
         self.connected.set()
 
-    def _on_message(self, client, userdata, msg: mqtt.MQTTMessage) -> None:
+    def _on_message(self, client: mqtt.Client, userdata: Any, msg: mqtt.MQTTMessage) -> None:
         item = (self.cfg.sensor_for_topic(msg.topic), msg.payload, self.clock.now(),
                 (self._gen, msg.mid, msg.qos))
         while not self.stop_event.is_set():
@@ -134,16 +154,34 @@ class Recorder:
             return None
         try:
             return parse_payload(sensor, payload, arrival, max_skew=self.cfg.max_skew,
-                                 not_before=None)  # history keeps late readings too
+                                 not_before=OLDEST)  # history keeps late readings too
         except Rejected as rej:
             self.rejections.add(sensor.id, rej, self.cfg.hours.day_of(arrival))
             return None
+        except Exception as exc:  # noqa: BLE001 — a parser bug must not kill the recorder
+            log.exception("payload of %s could not be processed", sensor.id)
+            self.rejections.add_reason(sensor.id, UNPROCESSABLE, repr(exc)[:200],
+                                       self.cfg.hours.day_of(arrival))
+            return None
 
     def _store(self) -> Store:
+        if self.store is not None and self._store_vanished():
+            log.error("history store file %s was deleted or replaced while recording; "
+                      "reopening it (a new, empty database: what was stored before is gone "
+                      "unless restored from a backup)", getattr(self.store, "path", "?"))
+            self._drop_store()
         if self.store is None:
             assert self.store_url is not None
             self.store = open_store(self.store_url)
+            self._store_ident = _file_ident(self.store)
         return self.store
+
+    def _store_vanished(self) -> bool:
+        """A SQLite file deleted under an open connection takes every later write into the
+        void: check it is still the file we opened before each batch (one stat)."""
+        if self._store_ident is None or self.store_url is None or self.store is None:
+            return False
+        return _file_ident(self.store) != self._store_ident
 
     def _write(self, readings: list[Reading]) -> bool:
         try:
@@ -171,7 +209,12 @@ class Recorder:
     def _retry_spool(self) -> None:
         if time.monotonic() < self._next_retry or not self.spool.path.exists():
             return
-        pending = self.spool.load()
+        try:
+            pending = self.spool.load()
+        except OSError as exc:
+            log.error("cannot read the spool %s (%s); retrying", self.spool.path, exc)
+            self._next_retry = time.monotonic() + self.retry_seconds
+            return
         if pending and self._write(pending):
             log.info("wrote %d spooled readings to the history store", len(pending))
             self.spool.clear()
@@ -180,15 +223,24 @@ class Recorder:
         else:
             self._next_retry = time.monotonic() + self.retry_seconds
 
-    def _flush(self, batch: list[Reading], tokens: list[tuple[int, int, int]]) -> None:
+    def _flush(self, batch: list[Reading], tokens: list[tuple[int, int, int]]) -> bool:
+        """Store or spool ``batch`` and acknowledge it; False (nothing acknowledged, keep
+        the batch and call again) when neither the store nor the spool can take it."""
         self._retry_spool()  # older readings first
         if batch and (self.spool.path.exists() or not self._write(batch)):
-            self.spool.add(batch)
+            try:
+                self.spool.add(batch)
+            except OSError as exc:
+                log.error("cannot spool %d readings either (%s): NOT acknowledged (the broker "
+                          "keeps them); retrying", len(batch), exc)
+                self._next_retry = time.monotonic() + self.retry_seconds
+                return False
             self.spooled += len(batch)
             self._next_retry = min(self._next_retry or time.monotonic(),
                                    time.monotonic() + self.retry_seconds)
         for t in tokens:  # in the store or in the spool: safe to acknowledge
             self._ack(t)
+        return True
 
     def _run(self) -> None:
         batch: list[Reading] = []
@@ -201,7 +253,7 @@ class Recorder:
             except queue.Empty:
                 item = None
             if item is not None and item[0] == "stop":
-                self._flush(batch, tokens)
+                self._guarded_flush(batch, tokens)
                 return
             if item is not None:
                 sensor, payload, arrival, token = item
@@ -212,9 +264,17 @@ class Recorder:
                 else:
                     self._ack(token)
             if time.monotonic() >= deadline or len(batch) >= self.batch_max:
-                self._flush(batch, tokens)
-                batch, tokens = [], []
+                if self._guarded_flush(batch, tokens):
+                    batch, tokens = [], []
                 deadline = time.monotonic() + self.flush_seconds
+
+    def _guarded_flush(self, batch: list[Reading], tokens: list[tuple[int, int, int]]) -> bool:
+        try:
+            return self._flush(batch, tokens)
+        except Exception:  # the worker must outlive anything; nothing was acknowledged
+            log.exception("unexpected error while storing %d readings; retrying", len(batch))
+            self._drop_store()
+            return False
 
     # -- life cycle -----------------------------------------------------------------------
     def start(self, wait_connected: float | None = 30.0) -> None:
@@ -222,9 +282,9 @@ class Recorder:
         b = self.cfg.broker
         self.client.connect_async(b.host, b.port, keepalive=b.keepalive)
         self.client.loop_start()
+        # READY=1 comes from _on_connect.
         if wait_connected is not None and not self.connected.wait(wait_connected):
             log.warning("recorder not connected to %s:%d yet; still trying", b.host, b.port)
-        notify("READY=1")
 
     def stop(self) -> None:
         notify("STOPPING=1")
@@ -240,3 +300,16 @@ class Recorder:
             self.store.close()
         log.info("recorder stopped: %d readings written, %d spooled, %d rejected",
                  self.written, self.spooled, self.rejections.total())
+
+
+def _file_ident(store: Store) -> tuple[int, int] | None:
+    """(device, inode) of a file-backed store's database file; None when not file-backed
+    (CrateDB, :memory:) or when the file is missing."""
+    path = getattr(store, "path", None)
+    if not isinstance(path, str) or path == ":memory:":
+        return None
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino

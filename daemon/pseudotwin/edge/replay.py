@@ -25,7 +25,7 @@ log = logging.getLogger(__name__)
 def payload_for(fmt: str, ts_key: str, value_key: str, ts: dt.datetime, value: float) -> bytes:
     if fmt == "number":
         return repr(float(value)).encode()
-    body = {value_key: value}
+    body: dict[str, float | str] = {value_key: value}
     if ts_key:
         body[ts_key] = ts.isoformat()
     return json.dumps(body).encode()

@@ -20,48 +20,50 @@ import queue
 import threading
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import paho.mqtt.client as mqtt
 
 from pseudotwin.config import SensorConfig, ServiceConfig, TwinConfig
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.edge.clock import Clock, SystemClock
+from pseudotwin.edge.health import Health
 from pseudotwin.edge.journal import Journal
-from pseudotwin.edge.mqttconn import make_client
+from pseudotwin.edge.mqttconn import make_client, refused_fatally
 from pseudotwin.edge.outputs import estimate_payload, monitor_payload
 from pseudotwin.edge.sdnotify import notify, watchdog_interval
 from pseudotwin.errors import ConfigError
 from pseudotwin.live.artifact import Artifact, artifact_hash
-from pseudotwin.live.readings import Reading, Rejected, RejectionCounter, parse_payload
+from pseudotwin.live.monitor import TwinMonitor
+from pseudotwin.live.readings import (
+    UNPROCESSABLE,
+    Reading,
+    Rejected,
+    RejectionCounter,
+    parse_payload,
+)
 from pseudotwin.live.twin import Twin, TwinEstimate
 
 log = logging.getLogger(__name__)
 
 LOG_REJECTIONS_PER_KEY = 10  # per sensor, reason and day; the rest are only counted
+JOURNAL_RETRY_SECONDS = 2.0  # how often a failing journal is tried again
+STOP_JOIN_SECONDS = 5.0  # the worker finishes its current item within this on stop
 
 
-def check_artifact(twin: TwinConfig, art: Artifact | None = None, hours=None) -> list[str]:
-    """Problems between a twin's configuration and its artifact (empty when they fit)."""
+def check_artifact(
+    twin: TwinConfig, art: Artifact | None = None, hours: OperatingHours | None = None
+) -> list[str]:
+    """Problems between a twin's configuration and its artifact (empty when they fit);
+    without ``hours`` the artifact's are taken, and a config without a target takes the
+    artifact's."""
     art = art or Artifact.load(twin.artifact)
-    problems = []
-    if set(twin.references) != set(art.references):
-        problems.append(
-            f"references {sorted(twin.references)} differ from the artifact's "
-            f"{sorted(art.references)}"
-        )
-    if twin.target is not None and twin.target != art.target:
-        problems.append(f"target {twin.target!r} differs from the artifact's {art.target!r}")
-    if twin.quantity != art.quantity:
-        problems.append(f"quantity {twin.quantity!r} differs from the artifact's {art.quantity!r}")
-    if hours is not None and hours != art.hours:
-        problems.append(
-            f"operating hours / slot grid / time zone {hours.to_dict()} differ from those the "
-            f"artifact was trained with {art.hours.to_dict()}"
-        )
-    return problems
+    expected = TwinSpec(tuple(twin.references), twin.target or art.target,
+                        Quantity.parse(twin.quantity), hours or art.hours)
+    return expected.differences(art.spec, "the artifact's")
 
 
 @dataclass
@@ -70,14 +72,7 @@ class TwinRuntime:
 
     cfg: TwinConfig
     twin: Twin
-    artifact_hash: str
-    day: dt.date | None = None
-    stds: list[float] = field(default_factory=list)
-    pairs: list[tuple[float, float]] = field(default_factory=list)  # (truth, estimate)
-
-    def roll(self, day: dt.date) -> None:
-        if day != self.day:
-            self.day, self.stds, self.pairs = day, [], []
+    monitor: TwinMonitor
 
 
 class Service:
@@ -95,7 +90,10 @@ class Service:
             for p in check_artifact(tc, art, cfg.hours):
                 problems.append(f"twins.{tid}: {p}")
             twin = Twin(art, stale_after=cfg.stale_after)
-            rt = TwinRuntime(tc, twin, artifact_hash(tc.artifact))
+            for kind, why in art.withheld.items():
+                log.info("twin %s: %s is not published (%s)", tid, kind, why)
+            monitor = TwinMonitor(tid, twin, artifact_hash(tc.artifact), cfg.hours, tc.sensors)
+            rt = TwinRuntime(tc, twin, monitor)
             self.twins[tid] = rt
             for s in {*tc.references, *([tc.target] if tc.target else [])}:
                 self.by_sensor[s].append(rt)
@@ -106,6 +104,14 @@ class Service:
         self.connected = threading.Event()
         self.journal = Journal(Path(cfg.state_dir) / "journal")
         self.rejections = RejectionCounter(log, LOG_REJECTIONS_PER_KEY)
+        self.health = Health(self._set_status, cfg.queue_size)
+        # Readings the journal could not take, in order, not acknowledged: retried every
+        # JOURNAL_RETRY_SECONDS (bounded by the broker's in-flight window; see _hold).
+        self._held: list[tuple[Reading, tuple[int, int, int]]] = []
+        self._journal_retry_at = 0.0
+        self._journal_recreated = 0
+        self._ready = False
+        self.fatal: tuple[int, str] | None = None  # (exit status, why): the process must end
         self.accepted = 0
         self.published = 0
         self.heartbeat = time.monotonic()
@@ -124,25 +130,38 @@ class Service:
         c.on_message = self._on_message
         return c
 
-    def _on_connect(self, client, userdata, flags, reason_code, properties) -> None:
+    def _on_connect(self, client: mqtt.Client, userdata: Any, flags: mqtt.ConnectFlags,
+                    reason_code: Any, properties: Any) -> None:
         if reason_code.is_failure:
-            log.error("broker refused the connection: %s", reason_code)
+            self.fatal = refused_fatally(reason_code)
+            log.error("broker refused the connection: %s%s", reason_code,
+                      "; giving up (fix the credentials)" if self.fatal else "; retrying")
             return
         with self._lock:
             self._gen += 1
         topics = [(s.topic, 1) for s in self.cfg.sensors.values()]
         client.subscribe(topics)
-        client.publish(self.status_topic, "online", qos=1, retain=True)
+        client.publish(self.status_topic, self.health.status, qos=1, retain=True)
         log.info("connected to %s:%d (session present: %s); subscribed to %d sensor topics",
                  self.cfg.broker.host, self.cfg.broker.port, flags.session_present, len(topics))
+        if not self.connected.is_set() and not self._ready:
+            self._ready = True
+            notify("READY=1")  # only once connected: before, the daemon serves nobody
         self.connected.set()
 
-    def _on_disconnect(self, client, userdata, flags, reason_code, properties) -> None:
+    def _set_status(self, status: str) -> None:
+        """``<base>/status``: online | degraded (the journal fails) | offline (last will)."""
+        if self.client.is_connected():
+            self.client.publish(self.status_topic, status, qos=1, retain=True)
+
+    def _on_disconnect(self, client: mqtt.Client, userdata: Any, flags: Any,
+                       reason_code: Any, properties: Any) -> None:
         self.connected.clear()
         if not self.stop_event.is_set():
             log.warning("disconnected from the broker (%s); reconnecting", reason_code)
 
-    def _on_message(self, client, userdata, msg: mqtt.MQTTMessage) -> None:
+    def _on_message(self, client: mqtt.Client, userdata: Any, msg: mqtt.MQTTMessage) -> None:
+        self.health.received += 1
         sensor = self.cfg.sensor_for_topic(msg.topic)
         item = ("msg", sensor, msg.topic, msg.payload, self.clock.now(),
                 (self._gen, msg.mid, msg.qos))
@@ -172,11 +191,16 @@ class Service:
 
     # -- the worker -----------------------------------------------------------------------
     def _worker(self) -> None:
-        while True:
+        # Stops at the next item once stop_event is set, whatever the queue still holds:
+        # those messages are not acknowledged, so the broker delivers them again.
+        while not self.stop_event.is_set():
+            if self._held and time.monotonic() >= self._journal_retry_at:
+                self._retry_held()
             try:
-                item = self.queue.get(timeout=1.0)
+                item = self.queue.get(timeout=JOURNAL_RETRY_SECONDS if self._held else 1.0)
             except queue.Empty:
                 self.heartbeat = time.monotonic()
+                self.health.idle()
                 continue
             self.heartbeat = time.monotonic()
             kind = item[0]
@@ -188,8 +212,40 @@ class Service:
                 elif kind == "tick":
                     self._handle_tick(item[1])
             except Exception:  # the daemon must outlive any one bad event
-                # Not acknowledged: what failed before the journal is delivered again.
                 log.exception("unexpected error while handling a %s event", kind)
+                if kind == "msg":  # rejected, counted and acknowledged: it must not come back
+                    self._ack(item[-1])
+
+    def _retry_held(self) -> None:
+        """Journal the held readings again, oldest first; on success apply and ack them."""
+        done = 0
+        try:
+            while self._held:
+                r, token = self._held[0]
+                self.journal.append(r)
+                self._held.pop(0)
+                self._accept(r, token)
+                done += 1
+        except OSError as exc:
+            self.health.journal_failed(exc, len(self._held))
+            self._journal_retry_at = time.monotonic() + JOURNAL_RETRY_SECONDS
+            return
+        self.health.journal_ok(done)
+
+    def _hold(self, r: Reading, token: tuple[int, int, int]) -> None:
+        """Keep an unjournaled reading for the retry. The broker sends no more than its
+        in-flight window of unacknowledged messages, so this stays small; past the queue
+        bound the oldest is let go unacknowledged (the broker redelivers it on reconnect)."""
+        self._held.append((r, token))
+        if len(self._held) > self.queue.maxsize:
+            self._held.pop(0)
+
+    def _accept(self, r: Reading, token: tuple[int, int, int]) -> None:
+        self.accepted += 1
+        try:
+            self._apply(r, publish=True)
+        finally:
+            self._ack(token)  # journaled: a restart replays it, whatever happened here
 
     def _not_before(self, now: dt.datetime) -> dt.datetime:
         # Yesterday's window start: readings redelivered after a night's outage still give
@@ -210,17 +266,29 @@ class Service:
             self.rejections.add(sensor.id, rej, self.hours.day_of(arrival))
             self._ack(token)
             return
+        except Exception as exc:  # noqa: BLE001 — a parser bug must not stall the pipeline
+            log.exception("payload on %s could not be processed", topic)
+            self.rejections.add_reason(sensor.id, UNPROCESSABLE, repr(exc)[:200],
+                                       self.hours.day_of(arrival))
+            self._ack(token)
+            return
+        self.health.processed_one((arrival - r.ts).total_seconds(), self.queue.qsize())
+        if self._held:  # degraded: keep the order, retry on the worker's schedule
+            self._hold(r, token)
+            return
         try:
             self.journal.append(r)
         except OSError as exc:
-            # Not acknowledged: the broker keeps it and delivers it again after a reconnect.
-            log.error("journal write failed (%s); reading of %s not acknowledged", exc, r.sensor)
+            # Not acknowledged: held and retried; the broker keeps it meanwhile and
+            # redelivers it should the daemon stop first.
+            self._hold(r, token)
+            self.health.journal_failed(exc, len(self._held))
+            self._journal_retry_at = time.monotonic() + JOURNAL_RETRY_SECONDS
             return
-        self.accepted += 1
-        try:
-            self._apply(r, publish=True)
-        finally:
-            self._ack(token)  # journaled: a restart replays it, whatever happened here
+        if self.journal.recreated > self._journal_recreated:
+            self._journal_recreated = self.journal.recreated
+            self.health.journal_rebuilt(self.journal.recreated)
+        self._accept(r, token)
 
     def _apply(self, r: Reading, publish: bool) -> None:
         for rt in self.by_sensor.get(r.sensor, ()):
@@ -239,8 +307,8 @@ class Service:
             return
         est = rt.twin.estimate(r.ts).get(rt.twin.artifact.primary)
         if est is not None and est.finite:
-            rt.roll(self.hours.day_of(r.ts))
-            rt.pairs.append((r.value, est.value))
+            rt.monitor.roll(self.hours.day_of(r.ts))
+            rt.monitor.record_truth(r.value, est.value)
 
     def _publish_estimates(self, rt: TwinRuntime, ests: dict[str, TwinEstimate]) -> None:
         primary = rt.twin.artifact.primary
@@ -250,8 +318,8 @@ class Service:
                 continue
             if kind == primary:
                 topic = self.cfg.twin_topic(rt.cfg.id, "estimate")
-                rt.roll(self.hours.day_of(e.ts))
-                rt.stds.append(e.std)
+                rt.monitor.roll(self.hours.day_of(e.ts))
+                rt.monitor.record_estimate(e.std)
             else:
                 topic = self.cfg.twin_topic(rt.cfg.id, "baseline", kind)
             self._publish(topic, estimate_payload(e, unit))
@@ -260,32 +328,9 @@ class Service:
         for rt in self.twins.values():
             self._publish_estimates(rt, rt.twin.estimate(instant))
             self._publish(self.cfg.twin_topic(rt.cfg.id, "monitor"),
-                          monitor_payload(self._monitor(rt, instant)), retain=False)
-
-    def _monitor(self, rt: TwinRuntime, now: dt.datetime) -> dict[str, Any]:
-        tw = rt.twin
-        out: dict[str, Any] = {
-            "ts": now, "day": str(self.hours.day_of(now)), "twin": rt.cfg.id,
-            "artifact": rt.artifact_hash[:16],
-            "window_readings": len(tw.window),
-            "mean_std": float(np.mean(rt.stds)) if rt.stds else None,
-            "fallbacks": tw.fallbacks,
-            "rejected": {f"{s}:{why}": n for (s, why), n in self.rejections.counts.items()
-                         if s in rt.cfg.sensors},
-            "refs_pearson_r": _ref_correlations(tw),
-        }
-        out.update(tw.numerics())
-        if rt.pairs:
-            truth = np.array([p[0] for p in rt.pairs])
-            est = np.array([p[1] for p in rt.pairs])
-            mean = float(np.mean(truth)) or float("nan")
-            out["target"] = {
-                "n": len(truth),
-                "nrmse_pct": 100 * float(np.sqrt(np.mean((est - truth) ** 2))) / abs(mean),
-                "dmax_pct": 100 * float(np.max(np.abs(est - truth))) / abs(mean),
-                "pearson_r": _corr(truth, est),
-            }
-        return out
+                          monitor_payload({**rt.monitor.snapshot(instant, self.rejections.counts),
+                                           "health": self.health.snapshot()}),
+                          retain=False)
 
     # -- timers ---------------------------------------------------------------------------
     def _next_grid(self, after: dt.datetime) -> dt.datetime:
@@ -303,7 +348,12 @@ class Service:
             t = self._next_grid(t)
             if not self.clock.wait_until(t, self.stop_event):
                 return
-            self.queue.put(("tick", t))
+            while not self.stop_event.is_set():  # never block a stop on a full queue
+                try:
+                    self.queue.put(("tick", t), timeout=1.0)
+                    break
+                except queue.Full:
+                    continue
 
     def _watchdog(self, interval: float) -> None:
         while not self.stop_event.wait(interval):
@@ -320,9 +370,30 @@ class Service:
         n = 0
         now = self.clock.now()
         since = self._not_before(now) - dt.timedelta(days=1)
+        horizon = now + self.cfg.max_skew
+        today = self.hours.day_of(now)
+        later_days: list[Reading] = []
+        ahead = 0
         for r in self.journal.replay(since):
+            if self.hours.day_of(r.ts) > today:
+                # Journaled by a run whose clock was a day or more ahead (the clock jumped
+                # back, or state copied from elsewhere): fed to the twins it would move their
+                # window to a day to come and silence today's. Kept on disk, not replayed.
+                later_days.append(r)
+                continue
+            ahead += r.ts > horizon  # later today: harmless to today's window, but say so
             self._apply(r, publish=False)  # guarded per twin, as live
             n += 1
+        if later_days:
+            log.warning("journal holds %d readings of days after today by the daemon's clock "
+                        "(%s .. %s, clock %s): did the clock jump back? They are not replayed; "
+                        "today's window starts from the rest", len(later_days),
+                        min(r.ts for r in later_days).isoformat(),
+                        max(r.ts for r in later_days).isoformat(), now.isoformat())
+        if ahead:
+            log.warning("journal holds %d readings of today after the daemon's clock %s "
+                        "(more than max_skew ahead); replayed into today's window", ahead,
+                        now.isoformat())
         if n:
             log.info("restored state from %d journaled readings", n)
         elif self.cfg.store:
@@ -333,6 +404,7 @@ class Service:
         from pseudotwin.history.store import open_store
 
         sensors = sorted(self.by_sensor)
+        assert self.cfg.store is not None
         try:
             with open_store(self.cfg.store) as store:
                 frame = store.read_readings(sensors, since, now + dt.timedelta(seconds=1))
@@ -359,51 +431,45 @@ class Service:
             th = threading.Thread(target=self._watchdog, args=(interval,), daemon=True,
                                   name="watchdog")
             th.start()
+        # READY=1 is sent from _on_connect: systemd's start waits for the broker (bounded by
+        # TimeoutStartSec). Connection failures are logged as they happen (mqttconn.py).
         if wait_connected is not None and not self.connected.wait(wait_connected):
             log.warning("not connected to %s:%d yet; still trying", b.host, b.port)
-        notify("READY=1")
-        log.info("pseudotwin running: %d twin(s), %d sensor(s)", len(self.twins),
-                 len(self.cfg.sensors))
+        log.info("pseudotwin started: %d twin(s), %d sensor(s)%s", len(self.twins),
+                 len(self.cfg.sensors), "" if self.connected.is_set()
+                 else f"; connecting to {b.host}:{b.port}")
 
     def stop(self) -> None:
-        """Stop cleanly: drain the queue, close the journal, publish status offline."""
+        """Stop within seconds: the worker finishes the item in hand and leaves the rest of
+        the queue unacknowledged (the broker redelivers it); close the journal, publish
+        status offline."""
         notify("STOPPING=1")
         self.stop_event.set()
-        self.queue.put(("stop",))
+        try:
+            self.queue.put_nowait(("stop",))
+        except queue.Full:
+            pass  # the worker sees stop_event after its current item
         for th in self._threads:
-            # The worker drains the queue first; the journal must outlive it (systemd's
-            # TimeoutStopSec bounds a stuck drain).
-            th.join()
-        self.journal.close()
+            th.join(STOP_JOIN_SECONDS)  # the journal must outlive the worker
+            if th.is_alive():
+                log.error("%s thread still busy after %.0f s; stopping anyway", th.name,
+                          STOP_JOIN_SECONDS)
+        left = self.queue.qsize() + len(self._held)
+        if left:
+            log.info("%d received messages left unacknowledged; the broker delivers them "
+                     "again on the next start", left)
+        try:
+            self.journal.close()
+        except OSError as exc:
+            log.error("closing the journal failed (%s)", exc)
         if self.client.is_connected():
             info = self.client.publish(self.status_topic, "offline", qos=1, retain=True)
             try:
-                info.wait_for_publish(timeout=5)
+                info.wait_for_publish(timeout=2)  # behind queued estimates: bounded
             except (RuntimeError, ValueError):
                 pass
         self.client.disconnect()
         self.client.loop_stop()
         log.info("stopped: %d readings accepted, %d messages published, %d rejected",
                  self.accepted, self.published, self.rejections.total())
-
-
-def _corr(a: np.ndarray, b: np.ndarray) -> float | None:
-    if len(a) < 3 or np.std(a) == 0 or np.std(b) == 0:
-        return None
-    return float(np.corrcoef(a, b)[0, 1])
-
-
-def _ref_correlations(tw: Twin) -> dict[str, float | None]:
-    """Daily Pearson r between the references on today's slot grid (sample-and-hold)."""
-    refs = tw.references
-    if len(refs) < 2 or not tw.window:
-        return {}
-    grid = tw.slot_values()
-    out = {}
-    for i in range(len(refs)):
-        for j in range(i + 1, len(refs)):
-            a, b = grid[refs[i]], grid[refs[j]]
-            ok = np.isfinite(a) & np.isfinite(b)
-            out[f"{refs[i]}|{refs[j]}"] = _corr(a[ok], b[ok])
-    return out
 

@@ -14,29 +14,96 @@ B_k = W_k W_kᵀ + diag(κ_k).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-KERNELS = ("rq", "matern52", "matern32", "rbf")
-DEFAULT_KERNEL = {"temperature": "rq", "co2": "matern52"}
-
 _SQRT3 = np.sqrt(3.0)
 _SQRT5 = np.sqrt(5.0)
+
+#: numpy kernel of the scaled distance r = |Δt|/ℓ: (r, variance, power) → k (r's shape).
+KernelFn = Callable[[np.ndarray, float, float], np.ndarray]
+#: GPy factory: (lengthscale, power) → a 1-D GPy kernel of variance 1 (GPy is imported lazily:
+#: the live daemon never needs it).
+GpyFactory = Callable[[float, float], Any]
+
+
+def _rq(r: np.ndarray, variance: float, power: float) -> np.ndarray:
+    return variance * np.exp(-power * np.log1p(0.5 * r * r))
+
+
+def _matern52(r: np.ndarray, variance: float, power: float) -> np.ndarray:
+    return variance * (1.0 + _SQRT5 * r + (5.0 / 3.0) * r * r) * np.exp(-_SQRT5 * r)
+
+
+def _matern32(r: np.ndarray, variance: float, power: float) -> np.ndarray:
+    return variance * (1.0 + _SQRT3 * r) * np.exp(-_SQRT3 * r)
+
+
+def _rbf(r: np.ndarray, variance: float, power: float) -> np.ndarray:
+    return variance * np.exp(-0.5 * r * r)
+
+
+def _gpy(cls_name: str, with_power: bool) -> GpyFactory:
+    def make(lengthscale: float = 1.0, power: float = 1.0) -> Any:
+        import GPy  # training only
+
+        cls = getattr(GPy.kern, cls_name)
+        extra = {"power": power} if with_power else {}
+        return cls(1, variance=1.0, lengthscale=lengthscale, **extra)
+
+    return make
+
+
+@dataclass(frozen=True)
+class KernelSpec:
+    """One stationary kernel, the same in numpy (live) and GPy (training).
+
+    params: its hyper-parameters under GPy's names (``power`` only where the kernel has one;
+    kernels without it keep power 1.0, unused).
+    """
+
+    name: str
+    value: KernelFn
+    gpy: GpyFactory
+    params: tuple[str, ...]
+
+    @property
+    def has_power(self) -> bool:
+        return "power" in self.params
+
+
+_BASE = ("variance", "lengthscale")
+#: The one kernel registry: name → numpy function, GPy factory, parameter names. The CLI's
+#: ``--kernel`` choices, the Corr-GP models, training and live conditioning all read it.
+KERNEL_REGISTRY: dict[str, KernelSpec] = {
+    spec.name: spec
+    for spec in (
+        KernelSpec("rq", _rq, _gpy("RatQuad", True), (*_BASE, "power")),
+        KernelSpec("matern52", _matern52, _gpy("Matern52", False), _BASE),
+        KernelSpec("matern32", _matern32, _gpy("Matern32", False), _BASE),
+        KernelSpec("rbf", _rbf, _gpy("RBF", False), _BASE),
+    )
+}
+KERNELS = tuple(KERNEL_REGISTRY)
+DEFAULT_KERNEL = {"temperature": "rq", "co2": "matern52"}
+
+
+def kernel_spec(name: str) -> KernelSpec:
+    """The registry entry of ``name`` (ValueError naming the choices if there is none)."""
+    try:
+        return KERNEL_REGISTRY[name]
+    except KeyError:
+        raise ValueError(
+            f"unknown kernel {name!r}; choose one of {', '.join(KERNELS)}"
+        ) from None
 
 
 def stationary(name: str, r: np.ndarray, variance: float, power: float) -> np.ndarray:
     """Kernel value for scaled distance r = |Δt|/ℓ (any shape)."""
-    if name == "rq":
-        return variance * np.exp(-power * np.log1p(0.5 * r * r))
-    if name == "matern52":
-        return variance * (1.0 + _SQRT5 * r + (5.0 / 3.0) * r * r) * np.exp(-_SQRT5 * r)
-    if name == "matern32":
-        return variance * (1.0 + _SQRT3 * r) * np.exp(-_SQRT3 * r)
-    if name == "rbf":
-        return variance * np.exp(-0.5 * r * r)
-    raise ValueError(f"unknown kernel {name!r}; choose one of {', '.join(KERNELS)}")
+    return kernel_spec(name).value(r, variance, power)
 
 
 @dataclass(frozen=True)

@@ -27,29 +27,37 @@ class IncrementalPosterior:
     normalized units). State: t, o, r, d: [n]; L: [n, n] lower; a = L⁻¹ D⁻¹ r: [n].
     """
 
+    # Buffers of ``capacity`` rows; the first n are in use.
+    _t: np.ndarray  # [cap] float: times [h]
+    _o: np.ndarray  # [cap] int: output indices
+    _r: np.ndarray  # [cap] float: residuals
+    _d: np.ndarray  # [cap] float: two-sided scaling
+    _a: np.ndarray  # [cap] float: L⁻¹ D⁻¹ r
+    _L: np.ndarray  # [cap, cap] lower-triangular factor of the scaled kernel matrix
+
     def __init__(self, params: LcmParams, capacity: int = 256) -> None:
         self.params = params
         self.n = 0
         self.jitter = 0.0
         self.refactorizations = 0
-        self._alloc(max(8, capacity))
+        cap = max(8, capacity)
+        self._t, self._o, self._r, self._d, self._a = self._vectors(cap)
+        self._L = np.zeros((cap, cap))
+
+    def _vectors(self, cap: int) -> tuple[np.ndarray, ...]:
+        """Fresh (t, o, r, d, a) buffers of ``cap`` rows."""
+        return (np.zeros(cap), np.zeros(cap, dtype=int), np.zeros(cap), np.zeros(cap),
+                np.zeros(cap))
 
     def _alloc(self, cap: int) -> None:
+        """Grow the buffers to ``cap`` rows, keeping the first n."""
         n = self.n
-        old = getattr(self, "_L", None)
+        t, o, r, d, a = self._vectors(cap)
+        for new, old in ((t, self._t), (o, self._o), (r, self._r), (d, self._d), (a, self._a)):
+            new[:n] = old[:n]
         L = np.zeros((cap, cap))
-        vecs = {}
-        fields = (("_t", float), ("_o", int), ("_r", float), ("_d", float), ("_a", float))
-        for name, dtype in fields:
-            arr = np.zeros(cap, dtype=dtype)
-            if old is not None:
-                arr[:n] = getattr(self, name)[:n]
-            vecs[name] = arr
-        if old is not None:
-            L[:n, :n] = old[:n, :n]
-        self._L = L
-        for name, arr in vecs.items():
-            setattr(self, name, arr)
+        L[:n, :n] = self._L[:n, :n]
+        self._t, self._o, self._r, self._d, self._a, self._L = t, o, r, d, a, L
 
     # -- views ------------------------------------------------------------------------
     @property

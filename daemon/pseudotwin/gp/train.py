@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -29,7 +30,7 @@ from GPy.inference.latent_function_inference.posterior import PosteriorExact
 from scipy.optimize import minimize
 
 from pseudotwin.errors import FitError, NumericalError
-from pseudotwin.gp.kernels import LcmParams, Term
+from pseudotwin.gp.kernels import LcmParams, Term, kernel_spec
 from pseudotwin.gp.stable import COND_WARN, scaled_cholesky
 
 log = logging.getLogger(__name__)
@@ -96,7 +97,7 @@ class BlockStableInference(ExactGaussianInference):
         self.artificial_noise = artificial_noise
         self.last_jitter = 0.0
 
-    def inference(  # type: ignore[override]
+    def inference(
         self, kern, X, likelihood, Y, mean_function=None, Y_metadata=None, K=None,
         variance=None, Z_tilde=None,
     ):
@@ -152,15 +153,8 @@ class BlockGP(GPy.core.GP):
 
 # -- GPy model construction --------------------------------------------------------------
 def gpy_stationary(kernel: str, lengthscale: float = 1.0, power: float = 1.0) -> GPy.kern.Kern:
-    if kernel == "rq":
-        return GPy.kern.RatQuad(1, variance=1.0, lengthscale=lengthscale, power=power)
-    if kernel == "matern52":
-        return GPy.kern.Matern52(1, variance=1.0, lengthscale=lengthscale)
-    if kernel == "matern32":
-        return GPy.kern.Matern32(1, variance=1.0, lengthscale=lengthscale)
-    if kernel == "rbf":
-        return GPy.kern.RBF(1, variance=1.0, lengthscale=lengthscale)
-    raise ValueError(f"unknown kernel {kernel!r}")
+    """The GPy twin of :func:`~pseudotwin.gp.kernels.stationary` (from the kernel registry)."""
+    return kernel_spec(kernel).gpy(lengthscale, power)
 
 
 def gpy_model(
@@ -213,10 +207,11 @@ def params_from_gpy(model: GPy.core.GP, kernel: str) -> LcmParams:
     """Read hyper-parameters back from a GPy model built by :func:`gpy_model`."""
     kern = model.kern
     prods = kern.parts if isinstance(kern, GPy.kern.Add) else [kern]
+    spec = kernel_spec(kernel)
     terms = []
     for prod in prods:
         st, co = prod.parts
-        power = float(st.power.values[0]) if kernel == "rq" else 1.0
+        power = float(st.power.values[0]) if spec.has_power else 1.0
         terms.append(
             Term(
                 lengthscale=float(st.lengthscale.values[0]),
@@ -231,7 +226,7 @@ def params_from_gpy(model: GPy.core.GP, kernel: str) -> LcmParams:
 
 
 # -- objective --------------------------------------------------------------------------
-def _objective(model: GPy.core.GP):
+def _objective(model: GPy.core.GP) -> Callable[[np.ndarray], tuple[float, np.ndarray]]:
     def f(x: np.ndarray) -> tuple[float, np.ndarray]:
         try:
             val, grad = model._objective_grads(x)

@@ -17,6 +17,7 @@ import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from typing import TextIO
 
 import pandas as pd
 
@@ -79,7 +80,7 @@ def _publishable(ests: dict[str, TwinEstimate]) -> Iterator[tuple[str, TwinEstim
 class Progress:
     """A progress bar on a terminal, plain lines otherwise (logs, CI, systemd)."""
 
-    def __init__(self, total: int, stream=sys.stderr) -> None:
+    def __init__(self, total: int, stream: TextIO = sys.stderr) -> None:
         self.total = max(total, 1)
         self.stream = stream
         self.tty = hasattr(stream, "isatty") and stream.isatty()
@@ -177,7 +178,7 @@ def _iter_todo(store: Store, sensors: list[str], days: list[dt.date],
     if not days:
         return
     run = [days[0]]
-    for d in days[1:] + [None]:  # type: ignore[list-item]
+    for d in [*days[1:], None]:
         if d is not None and d == run[-1] + dt.timedelta(days=1):
             run.append(d)
             continue

@@ -44,11 +44,8 @@ floor of AbsT to the minute, ts = bucket start; only minutes with at least one s
 
 from __future__ import annotations
 
-import argparse
 import os
 import re
-import sys
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
@@ -57,7 +54,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pseudotwin.cli.util import Parser, UsageError, run_reporting
 from pseudotwin.core.series import COLUMNS, write_history
 from pseudotwin.errors import ConfigError, DataError
 
@@ -383,7 +379,8 @@ DATASETS: dict[str, Dataset] = {
 }
 
 
-def _dataset(name: str) -> Dataset:
+def find_dataset(name: str) -> Dataset:
+    """The registered dataset ``name``; ConfigError naming the choices otherwise."""
     try:
         return DATASETS[name]
     except KeyError:
@@ -393,12 +390,12 @@ def _dataset(name: str) -> Dataset:
 
 
 def default_source(dataset: str) -> Path:
-    return shared_data_root() / _dataset(dataset).folder
+    return shared_data_root() / find_dataset(dataset).folder
 
 
 def load(dataset: str, source: Path | None = None) -> pd.DataFrame:
     """Convert ``dataset`` into a canonical frame without writing it."""
-    spec = _dataset(dataset)
+    spec = find_dataset(dataset)
     src = Path(source) if source is not None else shared_data_root() / spec.folder
     if not src.exists():
         raise DataError(f"{src}: no such file or directory")
@@ -422,45 +419,3 @@ def convert(dataset: str, source: Path | None, out: Path) -> ConvertSummary:
         last=df["ts"].iloc[-1],
         out=out,
     )
-
-
-# ---------------------------------------------------------------------------- CLI
-
-PROG = "pseudotwin convert"
-
-
-def _parser() -> argparse.ArgumentParser:
-    p = Parser(
-        prog=PROG,
-        description="Convert a shared dataset into canonical history CSV (sensor,ts,value).",
-    )
-    p.add_argument("dataset", nargs="?", help="dataset name (see --list)")
-    p.add_argument("--source", type=Path, help="dataset folder or file (default: shared data)")
-    p.add_argument("--out", type=Path, help="output CSV file")
-    p.add_argument("--list", action="store_true", help="list the datasets and exit")
-    return p
-
-
-def main(argv: list[str] | None = None) -> int:
-    def body() -> int:
-        args = _parser().parse_args(argv)
-        if args.list:
-            width = max(map(len, DATASETS))
-            for name, spec in DATASETS.items():
-                print(f"{name:<{width}}  {spec.description}")
-            return 0
-        if args.dataset is None:
-            raise UsageError("a dataset name is required (see --list)")
-        _dataset(args.dataset)
-        if args.out is None:
-            raise UsageError("--out FILE.csv is required")
-        t0 = time.perf_counter()
-        summary = convert(args.dataset, args.source, args.out)
-        print(f"{summary.line()} ({time.perf_counter() - t0:.1f} s)")
-        return 0
-
-    return run_reporting(PROG, body)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

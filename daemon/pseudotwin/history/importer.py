@@ -1,4 +1,4 @@
-"""``pseudotwin import FILE``: load a canonical history file into the history store.
+"""Loading a canonical history file into the history store (``pseudotwin import``).
 
 The file is read and validated by :func:`pseudotwin.core.series.read_history` (CSV, or Parquet
 when pyarrow is installed) and written in chunks. Importing is idempotent: readings are
@@ -8,20 +8,14 @@ adds nothing the second time and an interrupted import can simply be re-run.
 
 from __future__ import annotations
 
-import argparse
-import sys
-import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
 
-from pseudotwin.cli.util import Parser, run_reporting
 from pseudotwin.core.series import read_history
-from pseudotwin.history.store import Store, open_store
-
-PROG = "pseudotwin import"
+from pseudotwin.history.store import Store
 
 #: Readings per write_readings call: one SQLite transaction / a few CrateDB bulk requests.
 #: Bounds the work lost when an import is interrupted (it is re-runnable anyway).
@@ -91,34 +85,3 @@ def import_frame(
         first=df["ts"].iloc[0],
         last=df["ts"].iloc[-1],
     )
-
-
-def _parser() -> argparse.ArgumentParser:
-    p = Parser(
-        prog=PROG,
-        description="Load a canonical history file (CSV or Parquet with columns "
-                    "sensor,ts,value; ts ISO 8601 with offset or epoch s/ms) into the "
-                    "history store. Idempotent: readings already stored are skipped, so "
-                    "importing a file twice adds nothing.",
-    )
-    p.add_argument("file", type=Path, metavar="FILE", help="canonical history CSV or Parquet")
-    p.add_argument("--store", required=True, metavar="URL",
-                   help="history store: a SQLite file path, sqlite:///path, or "
-                        "crate://host:4200 (credentials from PSEUDOTWIN_CRATE_USER / "
-                        "PSEUDOTWIN_CRATE_PASSWORD)")
-    return p
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``pseudotwin import``; returns the exit status (0 ok, 2 error)."""
-    def body() -> int:
-        args = _parser().parse_args(list(sys.argv[1:] if argv is None else argv))
-        t0 = time.perf_counter()
-        # Validate the file first: a bad file must not create or touch the store.
-        df = read_history(args.file)
-        with open_store(args.store) as store:
-            summary = import_frame(store, df, args.file)
-            print(f"{summary.line()} ({time.perf_counter() - t0:.1f} s, into {store.url})")
-        return 0
-
-    return run_reporting(PROG, body)

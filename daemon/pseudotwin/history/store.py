@@ -496,7 +496,8 @@ class Store(abc.ABC):
         Columns :data:`ESTIMATE_COLUMNS`; ts and written_at datetime64[ns, UTC]; value and
         std float (NaN where not finite); sorted by ts, then model.
         """
-        where, args = "twin = ?", [twin]
+        where = "twin = ?"
+        args: list[Any] = [twin]
         if model is not None:
             where, args = where + " AND model = ?", [*args, model]
         if start is not None:
@@ -642,7 +643,10 @@ class SQLiteStore(Store):
                     n += max(cur.rowcount, 0)  # INSERT OR IGNORE: ignored rows count 0
                 self._conn.execute("COMMIT")
             except BaseException:
-                self._conn.execute("ROLLBACK")
+                # SQLite may have rolled back already (SQLITE_FULL, SQLITE_IOERR): a second
+                # ROLLBACK would replace the real error with "no transaction is active".
+                if self._conn.in_transaction:
+                    self._conn.execute("ROLLBACK")
                 raise
         except sqlite3.Error as exc:
             raise StoreError(f"{self.url}: writing {table} failed ({exc})") from None

@@ -16,20 +16,14 @@ from typing import Any
 
 from pseudotwin import __version__
 from pseudotwin.core.horizon import OperatingHours
-from pseudotwin.errors import ArtifactError
-from pseudotwin.models.corrgp import CorrGpLcm, CorrGpTriv
-from pseudotwin.models.triv import TrivModel
-from pseudotwin.models.varma import VarmaModel
+from pseudotwin.core.spec import Quantity, TwinSpec
+from pseudotwin.errors import ArtifactError, ConfigError
+from pseudotwin.live.calibration import SigmaCalibration
+from pseudotwin.models.base import TwinModel
+from pseudotwin.models.registry import MODELS
 
 FORMAT = "pseudotwin-artifact"
 VERSION = 1
-MODEL_CLASSES: dict[str, Any] = {
-    "corrgp-triv": CorrGpTriv,
-    "corrgp-lcm": CorrGpLcm,
-    "triv": TrivModel,
-    "varma": VarmaModel,
-}
-UNITS = {"temperature": "°C", "co2": "ppm"}
 
 
 @dataclass(frozen=True)
@@ -38,32 +32,57 @@ class Artifact:
 
     models: kind → fitted model; primary: the kind published as the twin's ``estimate``.
     training: period, days used and sensors, as written by ``train``.
+    calibration: kind → the σ of its estimates, from the training days (older artifacts
+    have none: their models' own spread is published).
+    validation: the candidates' leave-one-day-out scores and why the primary won.
     """
 
-    references: tuple[str, ...]
-    target: str
-    quantity: str
-    hours: OperatingHours
-    models: dict[str, Any]
+    spec: TwinSpec
+    models: dict[str, TwinModel]
     primary: str
     training: dict[str, Any] = field(default_factory=dict)
     created: str = ""
+    calibration: dict[str, SigmaCalibration] = field(default_factory=dict)
+    validation: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        if self.quantity not in UNITS:
-            raise ArtifactError(f"unknown quantity {self.quantity!r} (temperature or co2)")
         if self.primary not in self.models:
             raise ArtifactError(f"primary model {self.primary!r} is not in the artifact")
-        if self.target in self.references:
-            raise ArtifactError("the target cannot also be a reference")
+
+    @property
+    def references(self) -> tuple[str, ...]:
+        return self.spec.references
+
+    @property
+    def target(self) -> str:
+        return self.spec.target
+
+    @property
+    def quantity(self) -> Quantity:
+        return self.spec.quantity
+
+    @property
+    def hours(self) -> OperatingHours:
+        return self.spec.hours
+
+    @property
+    def withheld(self) -> dict[str, str]:
+        """Models trained but not published live: kind → why (from validation)."""
+        return dict(self.validation.get("withheld", {}))
+
+    @property
+    def published(self) -> list[str]:
+        """The models the daemon runs and publishes: the primary and the baselines that
+        validation did not withhold."""
+        return [k for k in self.models if k == self.primary or k not in self.withheld]
 
     @property
     def unit(self) -> str:
-        return UNITS[self.quantity]
+        return self.spec.unit
 
     @property
     def sensors(self) -> tuple[str, ...]:
-        return (*self.references, self.target)
+        return self.spec.sensors
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -71,16 +90,12 @@ class Artifact:
             "version": VERSION,
             "created": self.created or dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
             "pseudotwin": __version__,
-            "twin": {
-                "references": list(self.references),
-                "target": self.target,
-                "quantity": self.quantity,
-                "unit": self.unit,
-                "primary": self.primary,
-            },
+            "twin": {**self.spec.to_dict(), "primary": self.primary},
             "hours": self.hours.to_dict(),
             "training": self.training,
             "models": {kind: m.to_dict() for kind, m in self.models.items()},
+            "calibration": {kind: c.to_dict() for kind, c in self.calibration.items()},
+            "validation": self.validation,
         }
 
     def save(self, path: str | Path) -> Path:
@@ -104,22 +119,28 @@ class Artifact:
                 f"{where}: artifact format version {version} is newer than this pseudotwin "
                 f"{__version__} supports (≤ {VERSION}); upgrade pseudotwin or retrain"
             )
+        _check_finite(d, where)
         try:
             twin = d["twin"]
-            hours = OperatingHours.from_dict(d["hours"])
-            refs = tuple(twin["references"])
-            target = str(twin["target"])
-            models = {}
-            for kind, md in d["models"].items():
-                if kind not in MODEL_CLASSES:
-                    raise ArtifactError(f"{where}: unknown model kind {kind!r}")
-                models[kind] = MODEL_CLASSES[kind].from_dict(md, hours, refs, target)
-            return cls(
-                refs, target, str(twin["quantity"]), hours, models, str(twin["primary"]),
-                d.get("training", {}), d.get("created", ""),
+            spec = TwinSpec(
+                tuple(twin["references"]), str(twin["target"]), Quantity.parse(twin["quantity"]),
+                OperatingHours.from_dict(d["hours"]),
             )
+            models: dict[str, TwinModel] = {}
+            for kind, md in d["models"].items():
+                if kind not in MODELS:
+                    raise ArtifactError(f"{where}: unknown model kind {kind!r}")
+                models[kind] = MODELS[kind].from_dict(md, spec)
+            calibration = {
+                str(kind): SigmaCalibration.from_dict(c)
+                for kind, c in d.get("calibration", {}).items() if kind in models
+            }
+            return cls(spec, models, str(twin["primary"]), d.get("training", {}),
+                       d.get("created", ""), calibration, d.get("validation", {}))
         except ArtifactError:
             raise
+        except ConfigError as exc:
+            raise ArtifactError(f"{where}: {exc}") from None
         except (KeyError, TypeError, ValueError, IndexError) as exc:
             raise ArtifactError(f"{where}: artifact is incomplete or corrupt ({exc!r})") from None
 
@@ -138,6 +159,20 @@ class Artifact:
 def artifact_hash(path: str | Path) -> str:
     """sha256 of the artifact file, recorded next to every estimate it produced."""
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _check_finite(obj: Any, where: str, path: str = "$") -> None:
+    """ArtifactError naming the JSON path of the first number that is not finite (the JSON
+    parser turns ``Infinity``/``NaN`` into floats; saved artifacts write them as null)."""
+    if isinstance(obj, float) and not math.isfinite(obj):
+        raise ArtifactError(f"{where}: {path} is {obj}, not a finite number "
+                            "(corrupt artifact; retrain the twin)")
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            _check_finite(v, where, f"{path}.{k}")
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            _check_finite(v, where, f"{path}[{i}]")
 
 
 def _finite(obj: Any) -> Any:

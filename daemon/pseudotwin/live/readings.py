@@ -46,6 +46,10 @@ MAX_PAYLOAD_BYTES = 64 * 1024
 EPOCH_MS_THRESHOLD = 1e11
 
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
+
+#: The rejection counted when a payload makes a consumer fail unexpectedly (a bug, not a
+#: property of the payload the parser knows): it is logged, counted and acknowledged.
+UNPROCESSABLE = "unprocessable"
 # Plain decimal numbers only: float() would also accept "1_000", "infinity" and friends.
 _DECIMAL = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?")
 _NON_FINITE = re.compile(r"[+-]?(?:nan|inf|infinity)", re.IGNORECASE)
@@ -139,7 +143,11 @@ def _timestamp(raw: Any, key: str) -> datetime:
             # Guessing a zone would shift readings by hours around DST; refuse instead.
             raise Rejected(Reason.BAD_TIMESTAMP,
                            f"{key!r} {_excerpt(raw)} has no UTC offset")
-        return ts.astimezone(UTC)
+        try:  # 0001-01-01T00:00+01:00 and 9999-12-31T23:59-01:00 have no UTC equivalent
+            return ts.astimezone(UTC)
+        except OverflowError:
+            raise Rejected(Reason.BAD_TIMESTAMP,
+                           f"{key!r} {_excerpt(raw)} is not a representable time") from None
     if isinstance(raw, bool) or not isinstance(raw, int | float):
         kind = "null" if raw is None else type(raw).__name__
         raise Rejected(Reason.BAD_TIMESTAMP,
@@ -230,16 +238,21 @@ class RejectionCounter:
         self.day: date | None = None
 
     def add(self, sensor: str, rej: Rejected, day: date) -> None:
+        self.add_reason(sensor, str(rej.reason), rej.message, day)
+
+    def add_reason(self, sensor: str, reason: str, message: str, day: date) -> None:
+        """Count a rejection for a reason outside :class:`Reason` (e.g. the daemon's
+        ``unprocessable``: a payload that made it fail unexpectedly)."""
         if day != self.day:
             self.day, self.counts = day, Counter()
-        key = (sensor, str(rej.reason))
+        key = (sensor, reason)
         self.counts[key] += 1
         n = self.counts[key]
         if n <= self.log_limit:
-            self.log.warning("rejected reading of %s (%s): %s", sensor, rej.reason, rej.message)
+            self.log.warning("rejected reading of %s (%s): %s", sensor, reason, message)
         if n == self.log_limit:
             self.log.warning("further %s rejections of %s today are only counted",
-                             rej.reason, sensor)
+                             reason, sensor)
 
     def total(self) -> int:
         return sum(self.counts.values())

@@ -12,20 +12,39 @@ also what a checkpoint stores.
 
 from __future__ import annotations
 
+import bisect
 import datetime as dt
 import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
 
 from pseudotwin.core.series import DayReadings
 from pseudotwin.errors import NumericalError
 from pseudotwin.live.artifact import Artifact
-from pseudotwin.models.base import DayEstimator
+from pseudotwin.live.calibration import SLOPE_WINDOW_H
+from pseudotwin.models.base import DayEstimator, TwinModel
 
 log = logging.getLogger(__name__)
+
+
+class Quality(StrEnum):
+    """How far to trust a published estimate (the payload's ``quality``).
+
+    ok: the model answered from fresh references; init: the init phase before day start
+    (never published); stale: a reference it needs has been silent longer than
+    ``stale_after``; fallback: the model failed numerically and a simpler one answered;
+    uncertain: the twin sees a situation unlike its training and widened σ.
+    """
+
+    OK = "ok"
+    INIT = "init"
+    STALE = "stale"
+    FALLBACK = "fallback"
+    UNCERTAIN = "uncertain"
 
 @dataclass(frozen=True)
 class TwinEstimate:
@@ -39,7 +58,7 @@ class TwinEstimate:
     value: float
     std: float
     model: str
-    quality: str
+    quality: Quality
     refs: dict[str, dt.datetime | None] = field(default_factory=dict)
 
     @property
@@ -50,7 +69,7 @@ class TwinEstimate:
     def publishable(self) -> bool:
         """What the daemon publishes (and backfill stores): nothing in the init phase, and
         no estimate without a value."""
-        return self.quality != "init" and self.finite
+        return self.quality != Quality.INIT and self.finite
 
 
 @dataclass(frozen=True)
@@ -66,7 +85,7 @@ class WindowReading:
 class Twin:
     """Runs every model of an artifact over the live window.
 
-    models: the kinds to run (default: all in the artifact); the artifact's primary model is
+    models: the kinds to run (default: the artifact's published ones); its primary model is
     reported under ``"estimate"`` by the service, the others as baselines.
     stale_after: a reference silent for longer makes its estimates ``stale`` (None: never).
     max_carry: how old the carried-over value from before the init phase may be.
@@ -81,7 +100,7 @@ class Twin:
     ) -> None:
         self.artifact = artifact
         self.hours = artifact.hours
-        kinds = list(models) if models is not None else list(artifact.models)
+        kinds = list(models) if models is not None else artifact.published
         missing = [k for k in kinds if k not in artifact.models]
         if missing:
             raise ValueError(f"artifact has no model(s) {', '.join(missing)}")
@@ -95,11 +114,13 @@ class Twin:
         self._seen: set[tuple[str, dt.datetime]] = set()
         self._est: dict[str, DayEstimator] = {}
         self._broken: set[str] = set()
+        # Today's window per reference in time order: sensor → ([hours], [values]).
+        self._series: dict[str, tuple[list[float], list[float]]] = {}
         self.fallbacks = 0
 
     # -- the window -------------------------------------------------------------------
     def _needs(self, kind: str) -> tuple[str, ...]:
-        return tuple(getattr(self.artifact.models[kind], "references_", self.references))
+        return self.artifact.models[kind].references_
 
     def _open(self, day: dt.date) -> None:
         """Start ``day``'s window: fresh model state, carried-over reference values."""
@@ -107,6 +128,7 @@ class Twin:
         self.window = []
         self._seen = set()
         self._broken = set()
+        self._series = {s: ([], []) for s in self.references}
         self._est = {k: self.artifact.models[k].start_day(day) for k in self.kinds}
         init_ts = self.hours.at(day, self.hours.init_start)
         for s in self.references:
@@ -116,6 +138,10 @@ class Twin:
 
     def _feed(self, r: WindowReading) -> None:
         self.window.append(r)
+        hs, vs = self._series[r.sensor]
+        i = bisect.bisect_right(hs, r.hours)
+        hs.insert(i, r.hours)
+        vs.insert(i, r.value)
         for kind, est in self._est.items():
             if kind in self._broken:
                 continue
@@ -131,6 +157,8 @@ class Twin:
 
     def _repair(self) -> None:
         """Rebuild broken models from the window (the recovery at the next reading)."""
+        if self.day is None:
+            return
         for kind in list(self._broken):
             est = self.artifact.models[kind].start_day(self.day)
             try:
@@ -187,11 +215,12 @@ class Twin:
 
     def numerics(self) -> dict[str, float | int]:
         """Live numerical health of the GP posteriors: jitter used, refactorizations."""
-        posts = [e.post for e in self._est.values() if hasattr(e, "post")]
+        found = [e.numerics() for e in self._est.values()]
+        nums = [n for n in found if n is not None]
         return {
-            "jitter": max((p.jitter for p in posts), default=0.0),
-            "refactorizations": sum(p.refactorizations for p in posts),
-            "gp_points": max((p.n for p in posts), default=0),
+            "jitter": max((n.jitter for n in nums), default=0.0),
+            "refactorizations": sum(n.refactorizations for n in nums),
+            "gp_points": max((n.points for n in nums), default=0),
         }
 
     # -- estimates --------------------------------------------------------------------
@@ -203,6 +232,30 @@ class Twin:
             if self.stale_after is not None and ts - last[0] > self.stale_after:
                 return True
         return False
+
+    def slope(self, sensors: Sequence[str], hours: float) -> float:
+        """Mean |slope| [unit/h] of ``sensors`` over the last ``SLOPE_WINDOW_H`` of today's
+        window up to ``hours`` (held values; 0 with fewer than two readings)."""
+        found = []
+        for s in sensors:
+            hs, vs = self._series.get(s, ([], []))
+            i1 = bisect.bisect_right(hs, hours) - 1
+            if i1 < 0:
+                continue
+            i0 = max(bisect.bisect_right(hs, hours - SLOPE_WINDOW_H) - 1, 0)
+            span = max(hs[i1] - hs[i0], SLOPE_WINDOW_H)
+            found.append(abs(vs[i1] - vs[i0]) / span)
+        return float(np.mean(found)) if found else 0.0
+
+    def _calibrated(self, kind: str, hours: float, std: float) -> float:
+        """The σ of ``kind``'s estimate: its training-day calibration where the artifact has
+        one (older artifacts: the model's own spread)."""
+        calib = self.artifact.calibration.get(kind)
+        if calib is None:
+            return std
+        model = self.artifact.models.get(kind) or self._fallback_model()
+        refs = model.references_ if model is not None else self.references
+        return calib.sigma(hours, self.slope(refs, hours))
 
     def estimate(self, ts: dt.datetime) -> dict[str, TwinEstimate]:
         """Every model's estimate at ``ts`` from the window's readings up to now.
@@ -216,37 +269,40 @@ class Twin:
         triv = None
         for kind in self.kinds:
             refs = {s: (self.last[s][0] if s in self.last else None) for s in self._needs(kind)}
-            name = getattr(self.artifact.models[kind], "model_name_", kind)
-            quality = "ok"
+            name = self.artifact.models[kind].model_name
+            quality = Quality.OK
             try:
                 if kind in self._broken:
                     raise NumericalError("model state lost")
                 e = self._est[kind].predict(h)
-                value, std = e.value, e.std
+                value, std = e.value, self._calibrated(kind, h, e.std)
             except NumericalError as exc:
                 if kind not in self._broken:
                     self._break(kind, exc)
                 triv = triv or self._triv_fallback(h)
-                value, std, name, quality = triv[0], triv[1], "triv", "fallback"
-            if quality == "ok":
+                value, name, quality = triv[0], "triv", Quality.FALLBACK
+                std = self._calibrated("triv", h, triv[1])
+            if quality == Quality.OK:
                 if h < self.hours.day_start:
-                    quality = "init"
+                    quality = Quality.INIT
                 elif self._stale(kind, ts):
-                    quality = "stale"
+                    quality = Quality.STALE
             out[kind] = TwinEstimate(ts, float(value), float(std), name, quality, refs)
         return out
+
+    def _fallback_model(self) -> TwinModel | None:
+        """TRIV of the artifact, or else the first simpler model a model offers."""
+        if "triv" in self.artifact.models:
+            return self.artifact.models["triv"]
+        offered = (m.fallback() for m in self.artifact.models.values())
+        return next((m for m in offered if m is not None), None)
 
     def _triv_fallback(self, h: float) -> tuple[float, float]:
         est = self._est.get("triv")
         if est is None:
             # The twin was not asked to run TRIV: a private one keeps the fallback available.
-            from pseudotwin.models.corrgp import CorrGpTriv
-
-            gp = next(
-                (m for m in self.artifact.models.values() if isinstance(m, CorrGpTriv)), None
-            )
-            model = self.artifact.models.get("triv") or (gp.triv_ if gp else None)
-            if model is None:
+            model = self._fallback_model()
+            if model is None or self.day is None:
                 return float("nan"), float("nan")
             est = model.start_day(self.day)
             for r in self.window:

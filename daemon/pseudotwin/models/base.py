@@ -1,13 +1,19 @@
-"""The contract shared by all twin models."""
+"""The contract every twin model follows, and the value types it trades in.
+
+A model is one class behind :class:`TwinModel` plus one entry in ``models/registry.py``;
+the twin, the artifact, training and the command line need nothing else of it.
+"""
 
 from __future__ import annotations
 
 import datetime as dt
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, ClassVar, Self
 
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.series import DayReadings
+from pseudotwin.core.spec import Quantity, TwinSpec
 
 
 @dataclass(frozen=True)
@@ -17,15 +23,28 @@ class TrainingSet:
     days: the training days' windows (init start … day end, with carry-over).
     """
 
-    references: tuple[str, ...]
-    target: str
-    hours: OperatingHours
+    spec: TwinSpec
     days: tuple[DayReadings, ...]
-    quantity: str = "temperature"
+
+    @property
+    def references(self) -> tuple[str, ...]:
+        return self.spec.references
+
+    @property
+    def target(self) -> str:
+        return self.spec.target
+
+    @property
+    def hours(self) -> OperatingHours:
+        return self.spec.hours
+
+    @property
+    def quantity(self) -> Quantity:
+        return self.spec.quantity
 
     @property
     def sensors(self) -> tuple[str, ...]:
-        return (*self.references, self.target)
+        return self.spec.sensors
 
 
 @dataclass(frozen=True)
@@ -36,21 +55,82 @@ class Estimate:
     std: float
 
 
-class DayEstimator(Protocol):
+@dataclass(frozen=True)
+class Numerics:
+    """Numerical health of a live GP posterior: jitter added to the diagonal, full
+    refactorizations after a failed extension, points in today's factor."""
+
+    jitter: float = 0.0
+    refactorizations: int = 0
+    points: int = 0
+
+
+class DayEstimator(ABC):
     """One model's live state for one operating day (the rolling-horizon window)."""
 
+    @abstractmethod
     def observe(self, sensor: str, hours: float, value: float) -> None:
-        """Condition on a reference reading at wall-clock ``hours`` [h]; in time order."""
+        """Condition on a reference reading at wall-clock ``hours`` [h]."""
 
+    @abstractmethod
     def predict(self, hours: float) -> Estimate:
         """Estimate the target at wall-clock ``hours`` [h] from what was observed so far."""
 
+    def numerics(self) -> Numerics | None:
+        """The posterior's numerical health; None for models without one."""
+        return None
 
-class TwinModel(Protocol):
-    kind: str
 
-    def fit(self, training: TrainingSet) -> TwinModel: ...
+class TwinModel(ABC):
+    """A trainable, serializable estimator of the target from the references.
 
-    def start_day(self, day: dt.date) -> DayEstimator: ...
+    scikit-learn contract: ``__init__`` stores settings (the names in ``options`` may be set
+    from the command line or the configuration), ``fit`` returns self, fitted attributes end
+    in ``_``. ``candidate``: whether validation may choose it as the primary (a baseline
+    published for monitoring is not). ``references_`` are the references the fitted model
+    reads: a reference outside them never makes its estimate stale.
+    """
 
-    def to_dict(self) -> dict[str, Any]: ...
+    kind: ClassVar[str]
+    options: ClassVar[tuple[str, ...]] = ()
+    candidate: ClassVar[bool] = True  # may become the twin's primary by validation
+    # Settings of the refits on held-out training days (validation): cheaper where a full
+    # fit per fold would cost minutes.
+    validation_options: ClassVar[dict[str, Any]] = {}
+    references_: tuple[str, ...]
+
+    @abstractmethod
+    def fit(self, training: TrainingSet) -> Self:
+        """Train on ``training``; returns self."""
+
+    @abstractmethod
+    def start_day(self, day: dt.date) -> DayEstimator:
+        """Fresh live state for one operating day."""
+
+    @abstractmethod
+    def to_dict(self) -> dict[str, Any]:
+        """The fitted state as JSON-ready data (the artifact's ``models.<kind>``)."""
+
+    @classmethod
+    @abstractmethod
+    def from_dict(cls, d: dict[str, Any], spec: TwinSpec) -> Self:
+        """Rebuild a fitted model of the twin ``spec`` from :meth:`to_dict` output; raises
+        ValueError, KeyError or ArtifactError when ``d`` does not fit."""
+
+    @property
+    def model_name(self) -> str:
+        """What the ``model`` field of an estimate says (e.g. ``var-fallback``)."""
+        return self.kind
+
+    def fallback(self) -> TwinModel | None:
+        """A simpler fitted model to publish when this one fails numerically."""
+        return None
+
+    def publish_problem(self) -> str:
+        """Why this fitted model must not be published live whatever validation says (e.g.
+        a trend extrapolated beyond the training days); empty when there is none."""
+        return ""
+
+    def fit_summary(self) -> str:
+        """One line on how the fit went (printed by ``train``); empty when nothing to say."""
+        return ""

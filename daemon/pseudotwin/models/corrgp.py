@@ -16,16 +16,17 @@ target (DESIGN.md §3).
 from __future__ import annotations
 
 import datetime as dt
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
 from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.spec import TwinSpec
 from pseudotwin.errors import DataError
-from pseudotwin.gp.kernels import DEFAULT_KERNEL, KERNELS, LcmParams
+from pseudotwin.gp.kernels import DEFAULT_KERNEL, KERNEL_REGISTRY, LcmParams
 from pseudotwin.gp.posterior import IncrementalPosterior
 from pseudotwin.gp.train import FitData, FitReport, fit_lcm
-from pseudotwin.models.base import Estimate, TrainingSet
+from pseudotwin.models.base import DayEstimator, Estimate, Numerics, TrainingSet, TwinModel
 from pseudotwin.models.triv import HeldValues, TrivModel, slot_matrix
 
 MIN_POINTS_PER_OUTPUT = 8
@@ -33,8 +34,8 @@ MIN_POINTS_PER_OUTPUT = 8
 
 def _kernel_for(kernel: str | None, quantity: str) -> str:
     k = kernel or DEFAULT_KERNEL.get(quantity, "rq")
-    if k not in KERNELS:
-        raise DataError(f"unknown kernel {k!r}; choose one of {', '.join(KERNELS)}")
+    if k not in KERNEL_REGISTRY:
+        raise DataError(f"unknown kernel {k!r}; choose one of {', '.join(KERNEL_REGISTRY)}")
     return k
 
 
@@ -64,10 +65,17 @@ def _fit_data(per_output: list[np.ndarray], hours: OperatingHours) -> FitData:
     return FitData(np.concatenate(ts), o, np.concatenate(ys), tuple(blocks), len(per_output))
 
 
-class _GpModel:
+def _numerics(post: IncrementalPosterior) -> Numerics:
+    return Numerics(post.jitter, post.refactorizations, post.n)
+
+
+class _GpModel(TwinModel):
     """Shared settings and serialization of both Corr-GP models."""
 
-    kind = ""
+    options: ClassVar[tuple[str, ...]] = (
+        "kernel", "restarts", "artificial_noise", "max_iter", "seed",
+    )
+    validation_options: ClassVar[dict[str, Any]] = {"restarts": 1}
 
     def __init__(
         self,
@@ -117,6 +125,11 @@ class _GpModel:
                 setattr(rep, k, v)
         self.report_ = rep
 
+    def fit_summary(self) -> str:
+        r = self.report_
+        return (f"NLML {r.nlml:.2f}, {r.seconds:.1f} s, max jitter {r.jitter_max:.1e}, "
+                f"max condition {r.condition_max:.2e}")
+
 
 class CorrGpLcm(_GpModel):
     """Zero-mean multi-input LCM. Outputs: references 0..q−1, target q.
@@ -125,6 +138,7 @@ class CorrGpLcm(_GpModel):
     """
 
     kind = "corrgp-lcm"
+    options = (*_GpModel.options, "n_terms")
 
     def __init__(self, kernel: str | None = None, n_terms: int | None = None, **kw: Any) -> None:
         super().__init__(kernel, **kw)
@@ -147,19 +161,17 @@ class CorrGpLcm(_GpModel):
         return {"references": list(self.references_), **self._common_dict()}
 
     @classmethod
-    def from_dict(
-        cls, d: dict[str, Any], hours: OperatingHours, references: tuple[str, ...], target: str
-    ) -> CorrGpLcm:
+    def from_dict(cls, d: dict[str, Any], spec: TwinSpec) -> CorrGpLcm:
         m = cls(kernel=d["kernel"])
-        m._load_common(d, hours)
+        m._load_common(d, spec.hours)
         m.references_ = tuple(d["references"])
-        m.target_ = target
+        m.target_ = spec.target
         if m.params_.n_outputs != len(m.references_) + 1:
             raise ValueError("LCM outputs do not match its references")
         return m
 
 
-class LcmDay:
+class LcmDay(DayEstimator):
     def __init__(self, model: CorrGpLcm) -> None:
         self.model = model
         self.index = {r: i for i, r in enumerate(model.references_)}
@@ -169,6 +181,9 @@ class LcmDay:
         o = self.index.get(sensor)
         if o is not None:
             self.post.add(hours, o, (value - self.model.c_) / self.model.s_)
+
+    def numerics(self) -> Numerics:
+        return _numerics(self.post)
 
     def predict(self, hours: float) -> Estimate:
         m = self.model
@@ -186,6 +201,7 @@ class CorrGpTriv(_GpModel):
     """
 
     kind = "corrgp-triv"
+    options = (*_GpModel.options, "reference", "ref_mean")
 
     def __init__(
         self, kernel: str | None = None, reference: str | None = None,
@@ -236,6 +252,9 @@ class CorrGpTriv(_GpModel):
     def start_day(self, day: dt.date) -> TrivGpDay:
         return TrivGpDay(self)
 
+    def fallback(self) -> TwinModel:
+        return self.triv_
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "reference": self.references_[0],
@@ -245,20 +264,18 @@ class CorrGpTriv(_GpModel):
         }
 
     @classmethod
-    def from_dict(
-        cls, d: dict[str, Any], hours: OperatingHours, references: tuple[str, ...], target: str
-    ) -> CorrGpTriv:
+    def from_dict(cls, d: dict[str, Any], spec: TwinSpec) -> CorrGpTriv:
         m = cls(kernel=d["kernel"], reference=d["reference"], ref_mean=d["ref_mean"])
-        m._load_common(d, hours)
+        m._load_common(d, spec.hours)
         m.references_ = (d["reference"],)
-        m.target_ = target
-        m.triv_ = TrivModel.from_dict(d["triv"], hours, (d["reference"],), target)
+        m.target_ = spec.target
+        m.triv_ = TrivModel.from_dict(d["triv"], spec)
         if m.params_.n_outputs != 2:
             raise ValueError("corrgp-triv must have exactly two outputs")
         return m
 
 
-class TrivGpDay:
+class TrivGpDay(DayEstimator):
     """Live state: ICM posterior on the reference's deviations from its prior mean.
 
     The level shift is a function of the *set* of readings (all init-phase deviations, or
@@ -296,6 +313,9 @@ class TrivGpDay:
             self.post.set_residuals(np.array([self._residual(t, v) for t, v in pairs]))
         self.post.add(hours, 0, self._residual(hours, value))
         self.values.append(value)  # after add: a failed add leaves both unchanged
+
+    def numerics(self) -> Numerics:
+        return _numerics(self.post)
 
     def predict(self, hours: float) -> Estimate:
         m = self.model

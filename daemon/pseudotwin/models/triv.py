@@ -11,9 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.spec import TwinSpec
 from pseudotwin.errors import DataError
-from pseudotwin.models.base import Estimate, TrainingSet
+from pseudotwin.models.base import DayEstimator, Estimate, TrainingSet, TwinModel
 
 
 def fill_slots(profile: np.ndarray) -> np.ndarray:
@@ -31,7 +31,7 @@ def slot_matrix(training: TrainingSet, sensor: str) -> np.ndarray:
     return np.array([d.slot_values(sensor, training.hours) for d in training.days])
 
 
-class TrivModel:
+class TrivModel(TwinModel):
     """TRIV with any number of references.
 
     Fitted: offsets_ [M, S] target − ref_m per window slot; std_ [S] spread of the TRIV error
@@ -39,6 +39,7 @@ class TrivModel:
     """
 
     kind = "triv"
+    options = ("references",)
 
     def __init__(self, references: tuple[str, ...] | None = None) -> None:
         self.references = references
@@ -91,13 +92,12 @@ class TrivModel:
         }
 
     @classmethod
-    def from_dict(
-        cls, d: dict[str, Any], hours: OperatingHours, references: tuple[str, ...], target: str
-    ) -> TrivModel:
+    def from_dict(cls, d: dict[str, Any], spec: TwinSpec) -> TrivModel:
+        hours = spec.hours
         m = cls(tuple(d["references"]))
         m.hours_ = hours
         m.references_ = tuple(d["references"])
-        m.target_ = target
+        m.target_ = spec.target
         m.offsets_ = np.asarray(d["offsets"], float)
         m.std_ = np.asarray(d["std"], float)
         m.profiles_ = {k: np.asarray(v, float) for k, v in d["profiles"].items()}
@@ -124,7 +124,7 @@ class HeldValues:
         return None if v is None else v[1]
 
 
-class TrivDay:
+class TrivDay(DayEstimator):
     def __init__(self, model: TrivModel) -> None:
         self.model = model
         self.held = HeldValues()
@@ -154,5 +154,5 @@ class _quiet:
         self._cm.__enter__()
         warnings.simplefilter("ignore", RuntimeWarning)
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, *exc: Any) -> None:
         self._cm.__exit__(*exc)

@@ -21,7 +21,22 @@ own small incremental implementation of statsmodels' conventions (a test checks 
 ``VARMAX.filter`` to 1e-8), advanced one slot at a time and cached, so a ``predict`` after
 every reading costs a list lookup unless a slot was completed or changed.
 
-Caveat of trend "ct" (the design's default): the drift fitted on the training days is
+Level (``target_mode``, default "shifted"): a stationary VARMA pulls the deseasonalized
+target back to its training mean, so on days warmer or colder than the training days its
+estimate sits between the training level and today's (SML2010: 2.5-3.2 % NRMSE with trend
+"c"/"n" vs TRIV's 2.06 %). "shifted" moves all series of a day by that day's level shift δ,
+the references' mean deviation from their (unshifted) training profile in the init-phase
+slots (corrgp-triv's rule, DESIGN §3), both in training (per training day) and live (δ is
+final once the init phase is over, i.e. before anything is published; it may still move
+estimates *of init-phase slots*); the estimate adds δ back. The VARMA then models only
+deviations from the typical day at today's level, so no constant or drift is needed: the
+default trend is "n". ("offset", target − mean of the references, is an invertible linear
+map of the series and therefore no re-levelling at all for an unrestricted VARMA: kept for
+comparison only.) ``live_refs`` adds the references' mean change since the slot start to
+the slot's estimate (TRIV's assumption that the target moves with them), removing the up to
+one-slot lag of the sample-and-hold grid on fast-moving data.
+
+Caveat of trend "ct" (the thesis's setting): the drift fitted on the training days is
 extrapolated to every later day, amplified by (I − ΣA)⁻¹ of a near-unit-root VAR. On
 SML2010 (train 2012-03-14…18, which warmed up day by day) the implied mean of the
 deseasonalized series rises by ~1 K per day after training and daily RMSE reaches 2–3.5 K;
@@ -48,9 +63,9 @@ from statsmodels.tsa.statespace.tools import (
 )
 from statsmodels.tsa.statespace.varmax import VARMAX
 
-from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.spec import TwinSpec
 from pseudotwin.errors import ArtifactError, DataError, NumericalError
-from pseudotwin.models.base import Estimate, TrainingSet
+from pseudotwin.models.base import DayEstimator, Estimate, TrainingSet, TwinModel
 from pseudotwin.models.triv import fill_slots
 
 log = logging.getLogger(__name__)
@@ -68,6 +83,28 @@ FALLBACK_RADIUS = 0.999
 LBFGS_FACTR = 1e10
 LBFGS_PGTOL = 1e-4
 FORMAT_VERSION = 1
+# "level": the target series is the target itself; "offset": target − mean of the
+# references (TRIV's offset), so the estimate's level comes from today's live references.
+# "shifted": every series of a day is moved by that day's level shift δ, the references'
+# mean deviation from their average profile in the init-phase slots (corrgp-triv's rule,
+# DESIGN §3), so the VARMA only sees deviations from the typical day at today's level.
+TARGET_MODES = ("level", "offset", "shifted")
+
+
+def day_shift(raw_refs: np.ndarray, ref_profile: np.ndarray, init: np.ndarray) -> float:
+    """Today's level shift δ: mean of (reference − its profile) over the init-phase slots.
+
+    raw_refs [S, M] held reference values (NaN unknown), ref_profile [S, M], init [S] bool.
+    Without any init-phase value the earliest slot with one is used; without any, 0.
+    """
+    dev = raw_refs - ref_profile
+    ok = np.isfinite(dev)
+    if (ok & init[:, None]).any():
+        return float(np.mean(dev[ok & init[:, None]]))
+    rows = np.flatnonzero(ok.any(axis=1))
+    if not len(rows):
+        return 0.0
+    return float(np.mean(dev[rows[0]][ok[rows[0]]]))
 _SLOT_EPS = 1e-9  # [h] a reading exactly at a slot start belongs to that slot (as history.py)
 
 
@@ -301,36 +338,49 @@ def _ols_var(
     return params, radius
 
 
-class VarmaModel:
+class VarmaModel(TwinModel):
     """VARMA(p, q) baseline on the slot grid (thesis 6.9); series = references + target.
 
     Settings: p, q the VARMAX order; trend a statsmodels trend ("ct": intercept + drift in
     τ [slots]); maxiter bounds the maximum-likelihood fit (max_seconds [s], off by default,
     adds a wall-clock bound; it makes the outcome depend on machine load);
-    force_fallback skips VARMAX and fits the OLS VAR(p) directly.
+    force_fallback skips VARMAX and fits the OLS VAR(p) directly; target_mode "shifted"
+    (default: each day re-levelled by its init-phase shift δ), "level" or "offset" (see the
+    module docstring); live_refs adds the references' change since the slot start.
 
     Fitted: references_, target_, sensors_ (k = len), hours_; profile_ [S, k] average daily
     profile per window slot [unit of the quantity]; train_day0_ first training day (τ = 0 at
     its 00:00); order_ (p, q) actually used; params_ [n_params] constrained VARMAX
     parameters named by param_names_; model_name_ "varma" | "var-fallback"; converged_;
     fit_message_; fit_warnings_ (what statsmodels warned, silenced on the console);
-    fit_seconds_ {"varmax": s, "fallback": s}; ssm_ the state-space matrices.
+    fit_seconds_ {"varmax": s, "fallback": s}; ssm_ the state-space matrices;
+    shift_profile_ [S, M] the references' unshifted profiles δ is measured against and
+    train_shifts_ [D] the training days' δ (both None unless target_mode is "shifted").
     """
 
     kind = "varma"
+    options = ("p", "q", "trend", "maxiter", "max_seconds", "force_fallback", "target_mode",
+               "live_refs")
+    candidate = False  # a monitoring baseline (DESIGN.md §3), never the primary
+    # Held-out folds use the OLS VAR(p) form: a VARMAX fit per fold costs minutes.
+    validation_options = {"force_fallback": True}
 
     def __init__(
         self,
         p: int = 4,
         q: int = 4,
-        trend: str = "ct",
+        trend: str = "n",
         maxiter: int = 200,
         max_seconds: float | None = None,
         force_fallback: bool = False,
+        target_mode: str = "shifted",
+        live_refs: bool = True,
     ) -> None:
         self.p = p
         self.q = q
         self.trend = trend
+        self.target_mode = target_mode
+        self.live_refs = live_refs
         self.maxiter = maxiter
         self.max_seconds = max_seconds
         self.force_fallback = force_fallback
@@ -340,6 +390,10 @@ class VarmaModel:
         if self.p < 1 or self.q < 0:
             raise DataError(f"VARMA order ({self.p}, {self.q}): need p ≥ 1 and q ≥ 0")
         prepare_trend_spec(self.trend)  # rejects an unknown trend before any work
+        if self.target_mode not in TARGET_MODES:
+            raise DataError(
+                f"VARMA target_mode {self.target_mode!r}: choose from {', '.join(TARGET_MODES)}"
+            )
         hours = training.hours
         sensors = training.sensors
         if not training.days:
@@ -349,6 +403,23 @@ class VarmaModel:
         vals = np.array(
             [[d.slot_values(s, hours) for s in sensors] for d in training.days]
         ).transpose(0, 2, 1)  # [D, S, k]
+        if self.target_mode == "offset":
+            # The target column becomes TRIV's offset: target − mean of the references.
+            vals[:, :, -1] -= vals[:, :, :-1].mean(axis=2)
+        self.shift_profile_ = None
+        self.train_shifts_ = None
+        if self.target_mode == "shifted":
+            m_refs = len(training.references)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                ref_prof = np.column_stack([
+                    fill_slots(np.nanmean(vals[:, :, j], axis=0)) for j in range(m_refs)
+                ])  # [S, M] unshifted reference profiles: what δ is measured against
+            init = slots * hours.slot_hours < hours.day_start
+            shifts = np.array([day_shift(v[:, :m_refs], ref_prof, init) for v in vals])
+            vals = vals - shifts[:, None, None]
+            self.shift_profile_ = ref_prof
+            self.train_shifts_ = shifts
         profile = np.empty(vals.shape[1:])
         for j, s in enumerate(sensors):
             if not np.isfinite(vals[:, :, j]).any():
@@ -366,7 +437,7 @@ class VarmaModel:
         self.target_ = training.target
         self.sensors_ = tuple(sensors)
         self.hours_ = hours
-        self.profile_ = profile
+        self.profile_: np.ndarray = profile  # [S, k]
         self.train_day0_ = day0
         self.fit_seconds_: dict[str, float] = {}
         self.fit_warnings_: list[str] = []
@@ -441,7 +512,7 @@ class VarmaModel:
                     # limit was hit, 2 an abnormal stop (e.g. a failed line search).
                     why = {1: "iteration or function-evaluation limit reached",
                            2: "abnormal termination of the line search"}.get(
-                        retvals.get("warnflag"), f"warnflag {retvals.get('warnflag')}")
+                        int(retvals.get("warnflag", -1)), f"warnflag {retvals.get('warnflag')}")
                     params, message = None, (
                         f"VARMAX{(self.p, self.q)} did not converge after {iters} "
                         f"iterations ({why}; maxiter {self.maxiter})"
@@ -464,6 +535,22 @@ class VarmaModel:
         return params, message
 
     # -- live -------------------------------------------------------------------------
+    @property
+    def model_name(self) -> str:
+        return self.model_name_
+
+    def publish_problem(self) -> str:
+        if "t" in self.trend:
+            return (f"trend {self.trend!r} extrapolates the training days' drift into every "
+                    "later day; that cannot be validated on the training days")
+        if self.target_mode == "level":
+            return ("target_mode 'level' pulls the target back to the training days' level; "
+                    "use 'shifted'")
+        return ""
+
+    def fit_summary(self) -> str:
+        return self.fit_message_
+
     def trend_offset(self, day: dt.date) -> int:
         """Trend time τ [slots since 00:00 of ``train_day0_``] of ``day``'s first window slot."""
         first = int(self.hours_.window_slots()[0])
@@ -485,7 +572,11 @@ class VarmaModel:
             "settings": {
                 "p": self.p, "q": self.q, "trend": self.trend, "maxiter": self.maxiter,
                 "max_seconds": self.max_seconds, "force_fallback": self.force_fallback,
+                "target_mode": self.target_mode, "live_refs": self.live_refs,
             },
+            "shift_profile": (
+                None if self.shift_profile_ is None else self.shift_profile_.tolist()
+            ),
             "order": list(self.order_),
             "trend": self.trend,
             "sensors": list(self.sensors_),
@@ -502,13 +593,13 @@ class VarmaModel:
         }
 
     @classmethod
-    def from_dict(
-        cls, d: dict[str, Any], hours: OperatingHours, references: tuple[str, ...], target: str
-    ) -> VarmaModel:
+    def from_dict(cls, d: dict[str, Any], spec: TwinSpec) -> VarmaModel:
         """Rebuild a fitted model for live use (no refit) from :meth:`to_dict` output."""
+        hours, references, target = spec.hours, spec.references, spec.target
         if int(d.get("version", 1)) > FORMAT_VERSION:
             raise ArtifactError(f"VARMA artifact version {d['version']} is newer than supported")
-        m = cls(**d["settings"])
+        # Artifacts written before these settings existed: the target's level, slot-held.
+        m = cls(**{"target_mode": "level", "live_refs": False, **d["settings"]})
         sensors = tuple(d["sensors"])
         if sensors != (*references, target):
             raise ArtifactError(
@@ -529,9 +620,16 @@ class VarmaModel:
         m.sensors_ = sensors
         m.hours_ = hours
         m.profile_ = np.asarray(d["profile"], float)
-        if m.profile_.shape != (len(slots), len(sensors)):
+        if tuple(m.profile_.shape) != (len(slots), len(sensors)):
             raise ArtifactError(f"VARMA profile has shape {m.profile_.shape}")
         m.train_day0_ = dt.date.fromisoformat(d["train_day0"])
+        sp = d.get("shift_profile")
+        m.shift_profile_ = None if sp is None else np.asarray(sp, float)
+        m.train_shifts_ = None
+        if m.target_mode == "shifted" and (
+            m.shift_profile_ is None or m.shift_profile_.shape != (len(slots), len(references))
+        ):
+            raise ArtifactError("VARMA target_mode 'shifted' needs shift_profile [S, M]")
         m.order_ = (int(d["order"][0]), int(d["order"][1]))
         m.trend = str(d["trend"])
         m.model_name_ = str(d["model_name"])
@@ -553,7 +651,7 @@ class VarmaModel:
         return m
 
 
-class VarmaDay:
+class VarmaDay(DayEstimator):
     """One day's incremental Kalman filter over the window slots (target always missing).
 
     Slot i's observation is each reference's last reading at or before the slot start
@@ -573,12 +671,21 @@ class VarmaDay:
         self._col = {s: j for j, s in enumerate(model.references_)}
         self._times: dict[str, list[float]] = {s: [] for s in model.references_}
         self._values: dict[str, list[float]] = {s: [] for s in model.references_}
-        S, k = model.profile_.shape
+        S, k = int(model.profile_.shape[0]), int(model.profile_.shape[1])
         self._obs = np.full((S, k), np.nan)  # [S, k] deseasonalized; target column stays NaN
         a0, p0 = self._ss.initial_state(self._tau0)
         self._pred: list[tuple[np.ndarray, np.ndarray]] = [(a0, p0)]  # state for slot i
         self._filt: list[tuple[np.ndarray, np.ndarray]] = []  # filtered state of slot i
         self._rqr = self._ss.selection @ self._ss.state_cov @ self._ss.selection.T
+        # The estimate is w · (series at the slot): the target itself, or in "offset" mode
+        # the modelled offset plus the mean of the (filtered = observed, when seen) references.
+        self._weights = np.zeros(k)
+        self._weights[-1] = 1.0
+        if model.target_mode == "offset":
+            self._weights[:-1] = 1.0 / (k - 1)
+        self._raw = np.full((S, k - 1), np.nan)  # [S, M] held reference values
+        self._init = hours.window_slots() * hours.slot_hours < hours.day_start  # [S]
+        self.shift = 0.0  # today's level shift δ (target_mode "shifted")
 
     # -- readings ---------------------------------------------------------------------
     def observe(self, sensor: str, hours: float, value: float) -> None:
@@ -604,11 +711,17 @@ class VarmaDay:
             return
         idx = np.searchsorted(times, self._starts[first:], side="right") - 1
         held = np.where(idx >= 0, np.asarray(values)[np.clip(idx, 0, None)], np.nan)
-        new = held - self.model.profile_[first:, j]
-        old = self._obs[first:, j]
-        changed = ~((new == old) | (np.isnan(new) & np.isnan(old)))
+        self._raw[first:, j] = held
+        if self.model.target_mode == "shifted":
+            assert self.model.shift_profile_ is not None  # checked on load
+            self.shift = day_shift(self._raw, self.model.shift_profile_, self._init)
+            first = 0  # a new δ moves every slot
+        m = self._raw.shape[1]
+        new = self._raw[first:] - self.model.profile_[first:, :m] - self.shift  # [S', M]
+        old = self._obs[first:, :m]
+        changed = (~((new == old) | (np.isnan(new) & np.isnan(old)))).any(axis=1)
         if changed.any():
-            self._obs[first:, j] = new
+            self._obs[first:, :m] = new
             self._invalidate(first + int(np.argmax(changed)))
 
     def _invalidate(self, slot: int) -> None:
@@ -631,13 +744,29 @@ class VarmaDay:
         while len(self._filt) <= slot:
             self._step()
         a, p = self._filt[slot]
-        return self._estimate(slot, a, p)
+        e = self._estimate(slot, a, p)
+        if self.model.live_refs:
+            e = Estimate(e.value + self._within_slot(slot, hours), e.std)
+        return e
+
+    def _within_slot(self, slot: int, hours: float) -> float:
+        """Mean change of the references since the slot start (the target moves with them,
+        TRIV's assumption): latest reading at or before ``hours`` minus the slot's held value."""
+        d = []
+        for s, j in self._col.items():
+            times, held = self._times[s], self._raw[slot, j]
+            if not times or not math.isfinite(held):
+                continue
+            i = int(np.searchsorted(times, hours, side="right")) - 1
+            if i >= 0:
+                d.append(self._values[s][i] - held)
+        return float(np.mean(d)) if d else 0.0
 
     def _estimate(self, slot: int, a: np.ndarray, p: np.ndarray) -> Estimate:
-        ss, t = self._ss, self._ss.k_endog - 1
-        z = ss.design[t]
-        mean = float(z @ a + ss.obs_intercept[t]) + float(self.model.profile_[slot, t])
-        var = float(z @ p @ z + ss.obs_cov[t, t])
+        ss, w = self._ss, self._weights
+        z = w @ ss.design  # [m]
+        mean = float(z @ a + w @ ss.obs_intercept + w @ self.model.profile_[slot]) + self.shift
+        var = float(z @ p @ z + w @ ss.obs_cov @ w)
         return Estimate(mean, math.sqrt(max(var, 0.0)))
 
     def _step(self) -> None:

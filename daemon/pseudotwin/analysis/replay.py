@@ -1,0 +1,78 @@
+"""Causal replay of a history through one :class:`~pseudotwin.live.twin.Twin`: every reading
+in time order, exactly as the daemon receives them, and at each true target reading in
+operating hours every model's estimate from the references' readings up to that instant.
+``evaluate`` scores the days after training with it, the validation the held-out training
+days."""
+
+from __future__ import annotations
+
+import datetime as dt
+from collections.abc import Sequence
+
+import numpy as np
+import pandas as pd
+
+from pseudotwin.live.artifact import Artifact
+from pseudotwin.live.twin import Twin
+
+REF_PREFIX = "ref:"
+ESTIMATE = "estimate"  # the rows of what the daemon publishes on <twin>/estimate
+COLUMNS = ["ts", "model", "value", "std", "truth", "quality", "slope"]
+
+
+def replay_estimates(
+    artifact: Artifact,
+    history: pd.DataFrame,
+    start: dt.date,
+    models: Sequence[str] | None = None,
+    end: dt.date | None = None,
+) -> pd.DataFrame:
+    """Estimates at every true target reading in operating hours of days ``start``…``end``.
+
+    Rows (ts, model, value, std, truth, quality, slope): one per model that answered; rows of
+    model ``estimate``, exactly what the daemon would publish on ``<twin>/estimate`` (the
+    primary, with its fallbacks and quality flags; nothing in the init phase); and, as
+    pseudo-models ``ref:<sensor>``, the raw reference value held at that time (its daily
+    Pearson r with the target is the evidence of how much a reference can tell). slope: the
+    references' |slope| [unit/h] the model's σ saw.
+    """
+    hours = artifact.hours
+    twin = Twin(artifact, models=models)
+    refs = list(artifact.references)
+    primary = artifact.primary
+    sub = history[history["sensor"].isin([*refs, artifact.target])]
+    days, hrs = hours.day_and_hours(sub["ts"])
+    keep = np.ones(len(sub), dtype=bool)
+    if end is not None:
+        keep = days <= np.datetime64(end)
+    is_target = (sub["sensor"] == artifact.target).values
+    score = is_target & (days >= np.datetime64(start)) & hours.in_operating_hours(hrs) & keep
+    # Readings at the same instant: references first, so an estimate at t sees them.
+    order = np.lexsort((is_target, pd.DatetimeIndex(sub["ts"]).asi8))
+    order = order[keep[order]]
+    sensors = sub["sensor"].values[order]
+    stamps = pd.DatetimeIndex(sub["ts"]).tz_convert("UTC")[order]
+    values = sub["value"].values[order]
+    scored = score[order]
+    held: dict[str, float] = {}
+    rows: list[tuple[object, ...]] = []
+    for s, ts, v, sc in zip(sensors, stamps, values, scored, strict=True):
+        t = ts.to_pydatetime()
+        if s != artifact.target:
+            twin.observe(s, t, float(v))
+            held[s] = float(v)
+            continue
+        if not sc:
+            continue
+        h = hours.hours_of(t)
+        for kind, e in twin.estimate(t).items():
+            if not e.finite:
+                continue
+            slope = twin.slope(artifact.models[kind].references_, h)
+            rows.append((t, kind, e.value, e.std, float(v), e.quality.value, slope))
+            if kind == primary and e.publishable:
+                rows.append((t, ESTIMATE, e.value, e.std, float(v), e.quality.value, slope))
+        for r in refs:
+            if r in held:
+                rows.append((t, REF_PREFIX + r, held[r], np.nan, float(v), "ok", np.nan))
+    return pd.DataFrame(rows, columns=COLUMNS)

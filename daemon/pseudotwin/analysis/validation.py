@@ -1,0 +1,234 @@
+"""Choosing the primary model and calibrating every model's σ from the training days alone.
+
+Leave-one-day-out (LODO) over the training days: each day in turn is held out, every model is
+trained on the other days and the held-out day is replayed causally through a
+:class:`~pseudotwin.live.twin.Twin`, exactly as the daemon would run it. Per model this gives
+honest errors on a day it has not seen:
+
+- the **primary** is the candidate with the lowest mean held-out daily NRMSE, except that the
+  simplest candidate within ``TIE_RELATIVE`` of it wins (ref < triv < corrgp-triv <
+  corrgp-lcm, the registry's order): five days cannot tell a 3 % difference from noise, and
+  the simpler model fails in simpler ways;
+- every model's **σ** is calibrated on its held-out errors (:mod:`pseudotwin.live.calibration`).
+
+Days after the training period are never looked at. Every model is refit in each fold, so the
+held-out day cannot leak in through parameters fitted on it; with its ``validation_options``
+(GP models: one data-initialized start; VARMA: its OLS VAR(p) form).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from pseudotwin.analysis.replay import replay_estimates
+from pseudotwin.core.series import DayReadings
+from pseudotwin.core.spec import TwinSpec
+from pseudotwin.errors import DataError, FitError, NumericalError
+from pseudotwin.live import metrics
+from pseudotwin.live.artifact import Artifact
+from pseudotwin.live.calibration import SigmaCalibration
+from pseudotwin.models.base import TrainingSet, TwinModel
+from pseudotwin.models.registry import MODELS, build
+
+log = logging.getLogger(__name__)
+
+TIE_RELATIVE = 0.03
+# A monitoring baseline whose held-out NRMSE exceeds this multiple of TRIV's is not published
+# live: a baseline far worse than the simple answer only misleads whoever watches it.
+BASELINE_LIMIT = 1.5
+MIN_DAYS = 3  # fewer training days leave nothing to hold out against
+
+
+@dataclass(frozen=True)
+class CandidateScore:
+    """A model's held-out performance on the training days.
+
+    nrmse_pct: mean held-out daily NRMSE [%]; crps [unit] and cover2_pct [%] with the
+    calibrated σ (on the same days it was calibrated on: a check, not a promise); days: days
+    held out; candidate: whether it may become the primary; error: why it has no score.
+    """
+
+    kind: str
+    candidate: bool
+    nrmse_pct: float = float("nan")
+    crps: float = float("nan")
+    cover2_pct: float = float("nan")
+    days: int = 0
+    error: str = ""
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "candidate": self.candidate, "nrmse_pct": self.nrmse_pct,
+                "crps": self.crps, "cover2_pct": self.cover2_pct, "days": self.days,
+                "error": self.error}
+
+
+@dataclass(frozen=True)
+class Validation:
+    """The outcome: scores per model, the primary and why, each model's σ calibration."""
+
+    scores: dict[str, CandidateScore]
+    primary: str
+    reason: str
+    calibration: dict[str, SigmaCalibration] = field(default_factory=dict)
+    offset_std: float = float("nan")
+    seconds: float = 0.0
+    withheld: dict[str, str] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "method": f"leave-one-day-out over the training days; tie {TIE_RELATIVE:.0%} "
+                      "relative → the simpler model",
+            "primary": self.primary,
+            "reason": self.reason,
+            "offset_std": self.offset_std,
+            "seconds": round(self.seconds, 1),
+            "scores": {k: s.to_dict() for k, s in self.scores.items()},
+            "withheld": self.withheld,
+        }
+
+
+def validation_table(v: Mapping[str, Any], unit: str) -> str:
+    """An artifact's ``validation`` as the table ``train`` prints."""
+    withheld = v.get("withheld", {})
+    lines = [f"  {'model':<12} {'held-out NRMSE %':>16} {'CRPS ' + unit:>12} {'±2σ cover %':>11}"
+             "  note"]
+    for kind, s in v.get("scores", {}).items():
+        note = "primary" if kind == v.get("primary") else ("" if s["candidate"] else "baseline")
+        if s.get("error"):
+            note = s["error"]
+        if kind in withheld:
+            note = f"not published live: {withheld[kind]}"
+        lines.append(f"  {kind:<12} {s['nrmse_pct']:>16.2f} {s['crps']:>12.3f} "
+                     f"{s['cover2_pct']:>11.1f}  {note}")
+    lines.append(f"  primary {v.get('reason', '')}")
+    return "\n".join(lines)
+
+
+def offset_variance(spec: TwinSpec, days: Sequence[DayReadings]) -> float:
+    """Variance across days of the day's mean target − reference offset [unit²] (mean over
+    the references, slot grid, sample-and-hold): the part of the error no reading of a new
+    day can reveal."""
+    means = []
+    for d in days:
+        tgt = d.slot_values(spec.target, spec.hours)
+        diff = np.nanmean([tgt - d.slot_values(r, spec.hours) for r in spec.references], axis=0)
+        ok = np.isfinite(diff)
+        if ok.any():
+            means.append(float(np.mean(diff[ok])))
+    return float(np.var(means, ddof=1)) if len(means) > 1 else 0.0
+
+
+def _fold(df: pd.DataFrame, spec: TwinSpec, train: Sequence[DayReadings], held: dt.date,
+          kinds: Sequence[str], options: Mapping[str, Mapping[str, Any]],
+          failures: dict[str, str]) -> pd.DataFrame:
+    """Train ``kinds`` on ``train``, replay the held-out day; rows as replay_estimates."""
+    ts = TrainingSet(spec, tuple(train))
+    fitted: dict[str, TwinModel] = {}
+    for kind in kinds:
+        if kind in failures:
+            continue
+        try:
+            settings = {**options.get(kind, {}), **MODELS[kind].validation_options}
+            fitted[kind] = build(kind, settings).fit(ts)
+        except (DataError, FitError, NumericalError, ValueError) as exc:
+            failures[kind] = f"fails on {len(train)} days: {exc}"
+            log.warning("validation: %s cannot be trained without %s (%s)", kind, held, exc)
+    if not fitted:
+        return pd.DataFrame()
+    art = Artifact(spec, fitted, next(iter(fitted)))
+    days, _ = spec.hours.day_and_hours(df["ts"])
+    near = (days >= np.datetime64(held - dt.timedelta(days=1))) & (days <= np.datetime64(held))
+    est = replay_estimates(art, df[near], held, end=held)
+    return est[est["model"].isin(list(fitted))].assign(day=held)
+
+
+def validate(
+    df: pd.DataFrame,
+    spec: TwinSpec,
+    days: Sequence[DayReadings],
+    models: Sequence[str],
+    options: Mapping[str, Mapping[str, Any]] | None = None,
+    primary: str | None = None,
+) -> Validation:
+    """Hold out each training day, score and calibrate ``models``; choose the primary among
+    the candidates (``primary`` pins it). Raises DataError with fewer than MIN_DAYS days."""
+    t0 = time.perf_counter()
+    if len(days) < MIN_DAYS:
+        raise DataError(f"validation needs at least {MIN_DAYS} training days, got {len(days)}")
+    opts = options or {}
+    failures: dict[str, str] = {}
+    frames = []
+    for d in days:
+        rest = [x for x in days if x.day != d.day]
+        frames.append(_fold(df, spec, rest, d.day, models, opts, failures))
+    held = pd.concat([f for f in frames if not f.empty], ignore_index=True)
+    offset_var = offset_variance(spec, days)
+    scores: dict[str, CandidateScore] = {}
+    calibration: dict[str, SigmaCalibration] = {}
+    for kind in models:
+        is_candidate = MODELS[kind].candidate
+        rows = held[held["model"] == kind] if not held.empty else held
+        if kind in failures or rows.empty:
+            why = failures.get(kind, "no held-out estimate")
+            scores[kind] = CandidateScore(kind, is_candidate, error=why)
+            continue
+        hours = np.array([spec.hours.hours_of(t) for t in rows["ts"]])
+        err = (rows["value"] - rows["truth"]).to_numpy()
+        calib = SigmaCalibration.fit(rows["day"].to_numpy(), hours, err,
+                                     rows["slope"].to_numpy(), offset_var)
+        calibration[kind] = calib
+        sigma = np.array([calib.sigma(h, s) for h, s in zip(hours, rows["slope"], strict=True)])
+        daily = [metrics.nrmse_pct(g["truth"], g["value"]) for _, g in rows.groupby("day")]
+        scores[kind] = CandidateScore(
+            kind, is_candidate,
+            nrmse_pct=float(np.mean(daily)),
+            crps=float(np.mean(metrics.gaussian_crps(rows["truth"], rows["value"], sigma))),
+            cover2_pct=metrics.coverage_pct(rows["truth"], rows["value"], sigma, 2.0),
+            days=int(rows["day"].nunique()),
+        )
+    chosen, reason = _choose(scores, primary)
+    return Validation(scores, chosen, reason, calibration, float(np.sqrt(offset_var)),
+                      time.perf_counter() - t0, _withheld(scores, chosen))
+
+
+def _withheld(scores: Mapping[str, CandidateScore], primary: str) -> dict[str, str]:
+    """Baselines not to publish live, with the reason (the primary is always published)."""
+    triv = scores.get("triv")
+    out = {}
+    for kind, s in scores.items():
+        if kind == primary or s.candidate:
+            continue
+        if s.error:
+            out[kind] = f"could not be validated on the training days ({s.error})"
+        elif triv is not None and not triv.error and s.nrmse_pct > BASELINE_LIMIT * triv.nrmse_pct:
+            out[kind] = (f"held-out daily NRMSE {s.nrmse_pct:.2f} % on the training days is more "
+                         f"than {BASELINE_LIMIT:g}× TRIV's {triv.nrmse_pct:.2f} %")
+    return out
+
+
+def _choose(scores: Mapping[str, CandidateScore], pinned: str | None) -> tuple[str, str]:
+    if pinned is not None:
+        return pinned, f"pinned by the user ({pinned})"
+    ranked = [s for s in scores.values()
+              if s.candidate and not s.error and np.isfinite(s.nrmse_pct)]
+    if not ranked:
+        raise DataError("no candidate model could be validated on the training days")
+    order = list(MODELS)  # the registry lists models from the simplest
+    best = min(ranked, key=lambda s: s.nrmse_pct)
+    tied = [s for s in ranked if s.nrmse_pct <= best.nrmse_pct * (1 + TIE_RELATIVE)]
+    chosen = min(tied, key=lambda s: order.index(s.kind))
+    if chosen.kind == best.kind:
+        reason = (f"{chosen.kind}: lowest held-out daily NRMSE ({chosen.nrmse_pct:.2f} %) on the "
+                  "training days")
+    else:
+        reason = (f"{chosen.kind}: within {TIE_RELATIVE:.0%} of the lowest held-out daily NRMSE "
+                  f"({chosen.nrmse_pct:.2f} % vs {best.kind} {best.nrmse_pct:.2f} %) and simpler")
+    return chosen.kind, reason

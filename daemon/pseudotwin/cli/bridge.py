@@ -1,0 +1,94 @@
+"""``pseudotwin bridge --config FILE``: publish PLC symbols (ADS notifications) as MQTT
+readings until SIGTERM/SIGINT (the bridge itself is :mod:`pseudotwin.edge.bridge`)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from collections.abc import Sequence
+from pathlib import Path
+
+from pseudotwin.cli.util import EX_CONFIG
+from pseudotwin.config import ConfigProblems
+from pseudotwin.edge.bridge import Bridge, load_bridge_config
+from pseudotwin.errors import ConfigError
+
+__all__ = ["EX_CONFIG", "build_parser", "main"]
+
+log = logging.getLogger("pseudotwin.edge.bridge")  # the bridge's own log lines
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="pseudotwin bridge",
+        description=(
+            "Publish PLC variables as sensor readings: ADS device notifications (on change) "
+            "of the symbols in [[plc.symbols]] go to their sensors' MQTT topics, QoS 1, "
+            "time-stamped by the PLC. Reconnects by itself when the PLC, the route or the "
+            "broker drops; the PLC state is polled every plc.poll_seconds because ADS has no "
+            "heartbeat. Runs until SIGTERM/SIGINT."
+        ),
+        epilog=(
+            "Exit status: 0 stopped by a signal; 78 configuration error (the file, or a "
+            "symbol the PLC does not have or declares with another type); every problem is "
+            "printed with its location, e.g. 'plc.symbols[1].plc_type: ...'."
+        ),
+    )
+    p.add_argument("--config", required=True, type=Path, metavar="FILE",
+                   help="TOML configuration: [broker], [[sensors]], [plc], [[plc.symbols]] "
+                        "(the daemon's file or one of its own)")
+    p.add_argument("--check", action="store_true",
+                   help="only validate the configuration file, without connecting to anything")
+    p.add_argument("--log-level", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+                   help="default INFO")
+    return p
+
+
+def _print_problems(path: Path, problems: Sequence[str]) -> None:
+    for problem in problems:
+        print(f"{path}: {problem}", file=sys.stderr)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``pseudotwin bridge --config FILE``: 0 after a signal, 78 on configuration errors."""
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:  # --help and usage errors; callers want an int back
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+    if args.log_level:
+        logging.getLogger().setLevel(args.log_level)
+    try:
+        cfg = load_bridge_config(args.config, runtime=True)
+    except ConfigProblems as exc:
+        _print_problems(args.config, exc.problems)
+        return EX_CONFIG
+    except ConfigError as exc:
+        print(str(exc), file=sys.stderr)  # already names the file
+        return EX_CONFIG
+    if args.check:
+        print(f"{args.config}: OK ({len(cfg.plc.symbols)} PLC symbols)")
+        return 0
+    bridge = Bridge(cfg)
+
+    def on_signal(signum: int, frame: object) -> None:
+        log.info("received %s; stopping", signal.Signals(signum).name)
+        bridge.request_stop()
+
+    in_main = threading.current_thread() is threading.main_thread()
+    previous = {}
+    if in_main:
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            previous[sig] = signal.signal(sig, on_signal)
+    try:
+        bridge.run()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    if bridge.fatal is not None:
+        print(f"pseudotwin bridge: the PLC does not match {args.config}:", file=sys.stderr)
+        _print_problems(args.config, bridge.fatal.problems)
+        return EX_CONFIG
+    return 0

@@ -1,0 +1,479 @@
+"""The configuration's value types: frozen dataclasses that validate themselves.
+
+Each type checks its own fields in ``__post_init__`` and raises :class:`ConfigProblems`
+listing every problem (``"<field>: <message>"``); :class:`ServiceConfig` also checks the
+sections against each other (:func:`cross_problems`). Field defaults are declared here only;
+the TOML loader takes them from these dataclasses.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Collection, Mapping, Sequence
+from dataclasses import dataclass
+from datetime import timedelta
+from pathlib import Path
+from typing import Literal
+
+from pseudotwin.config.validate import (
+    MAX_TOPIC_BYTES,
+    ConfigProblems,
+    Found,
+    base_topic_problem,
+    expect,
+    nonempty,
+    raise_if,
+    suggest,
+    topic_problem,
+)
+from pseudotwin.core.horizon import OperatingHours
+
+__all__ = [
+    "LOG_LEVELS",
+    "QUANTITIES",
+    "SENSOR_FORMATS",
+    "BrokerConfig",
+    "SensorConfig",
+    "ServiceConfig",
+    "TwinConfig",
+    "cross_problems",
+    "service_scalar_problems",
+]
+
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+SENSOR_FORMATS = ("number", "json")
+QUANTITIES = ("temperature", "co2")
+
+# Units a twin of each quantity accepts, with the widest range a sensor of that unit may
+# declare. The bounds are physical plausibility limits for a building, not comfort limits:
+# they catch a CO2 range typed into a temperature sensor, a °F range labelled °C, etc.
+_UNIT_BOUNDS: dict[str, dict[str, tuple[float, float]]] = {
+    "temperature": {
+        "°C": (-100.0, 200.0),
+        "degC": (-100.0, 200.0),
+        "C": (-100.0, 200.0),
+        "K": (173.15, 473.15),
+        "°F": (-148.0, 392.0),
+        "degF": (-148.0, 392.0),
+        "F": (-148.0, 392.0),
+    },
+    "co2": {"ppm": (0.0, 100_000.0)},
+}
+_QUANTITY_OF_UNIT = {u: q for q, units in _UNIT_BOUNDS.items() for u in units}
+
+_ENV_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+# Twin ids become one MQTT topic level, a file name stem and a DB key: keep them boring.
+_TWIN_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
+
+
+@dataclass(frozen=True, kw_only=True)
+class BrokerConfig:
+    """Where and how to reach the MQTT broker.
+
+    The password is never stored: ``password_env`` names an environment variable and
+    ``password_file`` a file holding it (at most one of them); :meth:`password` reads it.
+    """
+
+    host: str
+    port: int = 1883
+    tls: bool = False
+    ca_file: Path | None = None
+    username: str | None = None
+    password_env: str | None = None
+    password_file: Path | None = None
+    client_id: str = "pseudotwin"
+    keepalive: int = 30
+
+    def __post_init__(self) -> None:
+        if isinstance(self.ca_file, str):
+            object.__setattr__(self, "ca_file", Path(self.ca_file))
+        if isinstance(self.password_file, str):
+            object.__setattr__(self, "password_file", Path(self.password_file))
+        raise_if(self._problems())
+
+    def _problems(self) -> Found:
+        found: Found = []
+        nonempty(found, "host", self.host)
+        if expect(found, "port", self.port, "integer") and not 1 <= self.port <= 65535:
+            found.append(("port", f"must be in 1..65535, got {self.port}"))
+        expect(found, "tls", self.tls, "boolean")
+        if self.ca_file is not None and expect(found, "ca_file", self.ca_file, "path"):
+            if self.tls is not True:
+                found.append(("ca_file", "is only used with tls = true"))
+        if self.username is not None:
+            nonempty(found, "username", self.username)
+        if self.password_env is not None and expect(
+            found, "password_env", self.password_env, "string"
+        ):
+            if not _ENV_NAME.fullmatch(self.password_env):
+                found.append(("password_env",
+                              f"{self.password_env!r} is not an environment variable name"))
+        if self.password_file is not None:
+            expect(found, "password_file", self.password_file, "path")
+        if self.password_env is not None and self.password_file is not None:
+            found.append(("password_file", "give either password_env or password_file, not both"))
+        if (self.password_env is not None or self.password_file is not None) and (
+            self.username is None
+        ):
+            # MQTT 3.1.1 forbids a password without a user name.
+            found.append(("username", "is required when a password source is configured"))
+        if nonempty(found, "client_id", self.client_id):
+            if any(ord(c) < 0x20 for c in self.client_id):
+                found.append(("client_id", "must not contain NUL or control characters"))
+            elif len(self.client_id.encode("utf-8")) > MAX_TOPIC_BYTES:
+                found.append(("client_id", f"is longer than {MAX_TOPIC_BYTES} bytes"))
+        if expect(found, "keepalive", self.keepalive, "integer") and not (
+            1 <= self.keepalive <= 65535
+        ):
+            found.append(("keepalive", f"must be in 1..65535 seconds, got {self.keepalive}"))
+        return found
+
+    def password_problem(self) -> tuple[str, str] | None:
+        """(field, message) if the configured password source cannot be read now, else None.
+
+        Messages never contain the password or any part of the secret file.
+        """
+        if self.password_env is not None:
+            value = os.environ.get(self.password_env)
+            if value is None:
+                return ("password_env", f"environment variable {self.password_env} is not set")
+            if not value:
+                return ("password_env", f"environment variable {self.password_env} is empty")
+        elif self.password_file is not None:
+            try:
+                text = self.password_file.read_text(encoding="utf-8")
+            except FileNotFoundError:
+                return ("password_file", f"{self.password_file} does not exist")
+            except OSError as exc:
+                return ("password_file", f"{self.password_file}: {exc.strerror or 'unreadable'}")
+            except UnicodeDecodeError:
+                return ("password_file", f"{self.password_file} is not UTF-8 text")
+            if not text.rstrip("\r\n"):
+                return ("password_file", f"{self.password_file} is empty")
+        return None
+
+    def password(self) -> str | None:
+        """The MQTT password, read now from the environment or the secret file.
+
+        None when no password source is configured. Raises :class:`ConfigProblems` (without
+        the secret in it) when the source is configured but unavailable. A trailing newline
+        in the file is not part of the password (``echo secret > file`` is common).
+        """
+        problem = self.password_problem()
+        if problem is not None:
+            raise ConfigProblems([f"broker.{problem[0]}: {problem[1]}"])
+        if self.password_env is not None:
+            return os.environ[self.password_env]
+        if self.password_file is not None:
+            return self.password_file.read_text(encoding="utf-8").rstrip("\r\n")
+        return None
+
+
+@dataclass(frozen=True, kw_only=True)
+class SensorConfig:
+    """One measured quantity at one place, arriving on one MQTT topic.
+
+    format: ``"number"`` (the payload is a bare number; its time is the arrival time) or
+        ``"json"`` (an object with the value under ``value_key`` and the time under
+        ``ts_key``; ``ts_key = ""`` means the payload carries no time and arrival time is used).
+    unit: unit of the values, e.g. ``"°C"`` or ``"ppm"``.
+    min, max: valid range [unit], inclusive; readings outside are rejected.
+    """
+
+    id: str
+    topic: str
+    unit: str
+    min: float
+    max: float
+    format: Literal["number", "json"] = "json"
+    ts_key: str = "ts"
+    value_key: str = "value"
+
+    def __post_init__(self) -> None:
+        found = self._problems()
+        raise_if(found)
+        object.__setattr__(self, "min", float(self.min))
+        object.__setattr__(self, "max", float(self.max))
+
+    def _problems(self) -> Found:
+        found: Found = []
+        if nonempty(found, "id", self.id):
+            if self.id != self.id.strip() or any(ord(c) < 0x20 for c in self.id):
+                found.append(("id", f"{self.id!r} has surrounding blanks or control characters"))
+        if expect(found, "topic", self.topic, "string"):
+            problem = topic_problem(self.topic)
+            if problem:
+                found.append(("topic", problem))
+        if expect(found, "format", self.format, "string") and self.format not in SENSOR_FORMATS:
+            found.append(("format", f"must be one of {', '.join(map(repr, SENSOR_FORMATS))}, "
+                                    f"got {self.format!r}"))
+        expect(found, "ts_key", self.ts_key, "string")
+        nonempty(found, "value_key", self.value_key)
+        if (self.format == "json" and isinstance(self.ts_key, str) and self.ts_key
+                and self.ts_key == self.value_key):
+            found.append(("ts_key", "must differ from value_key"))
+        nonempty(found, "unit", self.unit)
+        lo_ok = expect(found, "min", self.min, "number")
+        hi_ok = expect(found, "max", self.max, "number")
+        if lo_ok and hi_ok:
+            if not self.min < self.max:
+                found.append(("max", f"must be greater than min ({self.min} >= {self.max})"))
+            elif isinstance(self.unit, str) and self.unit in _QUANTITY_OF_UNIT:
+                quantity = _QUANTITY_OF_UNIT[self.unit]
+                lo, hi = _UNIT_BOUNDS[quantity][self.unit]
+                label = "CO2" if quantity == "co2" else quantity
+                for name, value in (("min", self.min), ("max", self.max)):
+                    if not lo <= value <= hi:
+                        found.append((name, f"{value:g} {self.unit} is not a plausible {label} "
+                                            f"(expected within {lo:g}..{hi:g} {self.unit})"))
+        return found
+
+    def accepts(self, value: float) -> bool:
+        """Whether ``value`` lies in the configured valid range (inclusive)."""
+        return self.min <= value <= self.max
+
+
+@dataclass(frozen=True, kw_only=True)
+class TwinConfig:
+    """One pseudo-measurement stream.
+
+    references: the permanent sensors feeding the twin live (ids of configured sensors).
+    target: the sensor at the user-relevant spot when it is live (temporarily installed), for
+        monitoring against the estimate; None otherwise.
+    artifact: the trained model file.
+    quantity: what is estimated; selects kernels and the accepted units.
+    """
+
+    id: str
+    references: tuple[str, ...]
+    artifact: Path
+    quantity: Literal["temperature", "co2"]
+    target: str | None = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.references, list):
+            object.__setattr__(self, "references", tuple(self.references))
+        if isinstance(self.artifact, str):
+            object.__setattr__(self, "artifact", Path(self.artifact))
+        raise_if(self._problems())
+
+    def _problems(self) -> Found:
+        found: Found = []
+        if nonempty(found, "id", self.id) and not _TWIN_ID.fullmatch(self.id):
+            found.append(("id", f"{self.id!r} must be letters, digits, '.', '_' or '-' "
+                                "(it becomes an MQTT topic level and a file name)"))
+        refs = self.references
+        if not isinstance(refs, tuple) or not all(isinstance(r, str) for r in refs):
+            found.append(("references", "expected an array of sensor ids (strings)"))
+        elif not refs:
+            found.append(("references", "needs at least one reference sensor"))
+        else:
+            seen: set[str] = set()
+            for ref in refs:
+                if ref in seen:
+                    found.append(("references", f"sensor {ref!r} is listed twice"))
+                seen.add(ref)
+        if self.target is not None and nonempty(found, "target", self.target):
+            if isinstance(refs, tuple) and self.target in refs:
+                found.append(("target", f"sensor {self.target!r} is also a reference; "
+                                        "the target must not feed its own estimate"))
+        expect(found, "artifact", self.artifact, "path")
+        if expect(found, "quantity", self.quantity, "string") and self.quantity not in QUANTITIES:
+            found.append(("quantity", f"must be one of {', '.join(map(repr, QUANTITIES))}, "
+                                      f"got {self.quantity!r}"))
+        return found
+
+    @property
+    def sensors(self) -> tuple[str, ...]:
+        """References, then the target if configured."""
+        return (*self.references, self.target) if self.target else self.references
+
+
+def service_scalar_problems(
+    *,
+    base_topic: object,
+    publish_every_minutes: object,
+    stale_after_minutes: object,
+    max_skew_seconds: object,
+    queue_size: object,
+    log_level: object,
+) -> Found:
+    found: Found = []
+    if expect(found, "base_topic", base_topic, "string"):
+        assert isinstance(base_topic, str)
+        problem = base_topic_problem(base_topic)
+        if problem:
+            found.append(("base_topic", problem))
+    if expect(found, "publish_every_minutes", publish_every_minutes, "number"):
+        assert isinstance(publish_every_minutes, int | float)
+        seconds = publish_every_minutes * 60.0
+        if publish_every_minutes <= 0:
+            found.append(("publish_every_minutes", "must be positive"))
+        elif abs(seconds - round(seconds)) > 1e-6 or 86400 % round(seconds):
+            # The grid is anchored at local midnight, so it must tile the day exactly.
+            found.append(("publish_every_minutes",
+                          f"{publish_every_minutes:g} min does not divide a day into whole "
+                          "seconds (e.g. 1, 5, 10, 15, 30, 60)"))
+    if expect(found, "stale_after_minutes", stale_after_minutes, "number"):
+        assert isinstance(stale_after_minutes, int | float)
+        if stale_after_minutes <= 0:
+            found.append(("stale_after_minutes", "must be positive"))
+    if expect(found, "max_skew_seconds", max_skew_seconds, "number"):
+        assert isinstance(max_skew_seconds, int | float)
+        if max_skew_seconds < 0:
+            found.append(("max_skew_seconds", "must not be negative"))
+    if expect(found, "queue_size", queue_size, "integer"):
+        assert isinstance(queue_size, int)
+        if queue_size < 1:
+            found.append(("queue_size", "must be at least 1"))
+    if expect(found, "log_level", log_level, "string"):
+        assert isinstance(log_level, str)
+        if log_level.upper() not in LOG_LEVELS:
+            found.append(("log_level",
+                          f"must be one of {', '.join(LOG_LEVELS)}, got {log_level!r}"))
+    return found
+
+
+def cross_problems(
+    base_topic: str | None,
+    sensors: Sequence[tuple[str, SensorConfig]],
+    twins: Sequence[tuple[str, TwinConfig]],
+    unchecked_ids: Collection[str] | None = (),
+) -> list[str]:
+    """Problems between sections: duplicate ids, topics and artifacts; twins vs sensors.
+
+    Items come as (location, config). ``unchecked_ids`` are ids of sensors that exist but
+    failed their own validation: references to them are not reported as unknown. None
+    means the sensor list itself is unusable, so no reference is reported as unknown.
+    """
+    out: list[str] = []
+    first_id: dict[str, str] = {}
+    first_topic: dict[str, str] = {}
+    for loc, s in sensors:
+        if s.id in first_id:
+            out.append(f"{loc}.id: duplicate id {s.id!r} (first used by {first_id[s.id]})")
+        else:
+            first_id[s.id] = loc
+        if s.topic in first_topic:
+            out.append(f"{loc}.topic: {s.topic!r} is already the topic of "
+                       f"{first_topic[s.topic]}; one topic per sensor")
+        else:
+            first_topic[s.topic] = loc
+        if base_topic is not None and (
+            s.topic == base_topic or s.topic.startswith(base_topic + "/")
+        ):
+            out.append(f"{loc}.topic: {s.topic!r} lies under base_topic {base_topic!r}, "
+                       "where the daemon publishes its own outputs")
+    by_id = {s.id: s for _, s in sensors}
+    first_twin: dict[str, str] = {}
+    first_artifact: dict[Path, str] = {}
+    for loc, t in twins:
+        if t.id in first_twin:
+            out.append(f"{loc}.id: duplicate id {t.id!r} (first used by {first_twin[t.id]})")
+        else:
+            first_twin[t.id] = loc
+        if t.artifact in first_artifact:
+            out.append(f"{loc}.artifact: {t.artifact} is already the artifact of "
+                       f"{first_artifact[t.artifact]}")
+        else:
+            first_artifact[t.artifact] = loc
+        roles = [("references", r) for r in t.references]
+        if t.target is not None:
+            roles.append(("target", t.target))
+        accepted = _UNIT_BOUNDS[t.quantity]
+        units: dict[str, str] = {}
+        for field, sid in roles:
+            sensor = by_id.get(sid)
+            if sensor is None:
+                if unchecked_ids is not None and sid not in unchecked_ids:
+                    out.append(f"{loc}.{field}: unknown sensor {sid!r}{suggest(sid, by_id)}")
+                continue
+            if sensor.unit not in accepted:
+                out.append(f"{loc}.{field}: sensor {sid!r} has unit {sensor.unit!r}, not a "
+                           f"{t.quantity} unit ({', '.join(accepted)})")
+            units[sid] = sensor.unit
+        if len(set(units.values())) > 1:
+            listing = ", ".join(f"{sid!r}: {u!r}" for sid, u in units.items())
+            out.append(f"{loc}.references: all sensors of a twin must share one unit ({listing})")
+    return out
+
+
+@dataclass(frozen=True, kw_only=True)
+class ServiceConfig:
+    """Everything the daemon needs: broker, operating hours, sensors and twins.
+
+    publish_every_minutes: the fixed publishing grid [min]; must divide a day.
+    stale_after_minutes: a reference silent for longer makes dependent estimates stale [min].
+    max_skew_seconds: how far a reading's timestamp may lie in the future [s].
+    state_dir: where the daemon keeps its state (window snapshots, counters).
+    queue_size: bound of the queue between the MQTT thread and the twins (readings).
+    """
+
+    broker: BrokerConfig
+    hours: OperatingHours
+    state_dir: Path
+    sensors: dict[str, SensorConfig]
+    twins: dict[str, TwinConfig]
+    base_topic: str = "pseudotwin"
+    publish_every_minutes: float = 15
+    stale_after_minutes: float = 30
+    max_skew_seconds: float = 300
+    queue_size: int = 10000
+    log_level: str = "INFO"
+    store: str | None = None  # history DB: SQLite file path or crate://host:4200
+
+    def __post_init__(self) -> None:
+        if isinstance(self.state_dir, str):
+            object.__setattr__(self, "state_dir", Path(self.state_dir))
+        found = service_scalar_problems(
+            base_topic=self.base_topic,
+            publish_every_minutes=self.publish_every_minutes,
+            stale_after_minutes=self.stale_after_minutes,
+            max_skew_seconds=self.max_skew_seconds,
+            queue_size=self.queue_size,
+            log_level=self.log_level,
+        )
+        if not isinstance(self.broker, BrokerConfig):
+            found.append(("broker", "expected a BrokerConfig"))
+        if not isinstance(self.hours, OperatingHours):
+            found.append(("hours", "expected OperatingHours"))
+        expect(found, "state_dir", self.state_dir, "path")
+        for name, mapping, cls in (("sensors", self.sensors, SensorConfig),
+                                   ("twins", self.twins, TwinConfig)):
+            if not isinstance(mapping, Mapping) or not all(
+                isinstance(v, cls) and k == v.id for k, v in mapping.items()
+            ):
+                found.append((name, f"expected a mapping of id to {cls.__name__}"))
+        raise_if(found)
+        cross = cross_problems(
+            self.base_topic,
+            [(f"sensors[{k!r}]", s) for k, s in self.sensors.items()],
+            [(f"twins[{k!r}]", t) for k, t in self.twins.items()],
+        )
+        if cross:
+            raise ConfigProblems(cross)
+        object.__setattr__(self, "log_level", self.log_level.upper())
+
+    @property
+    def publish_every(self) -> timedelta:
+        return timedelta(minutes=self.publish_every_minutes)
+
+    @property
+    def stale_after(self) -> timedelta:
+        return timedelta(minutes=self.stale_after_minutes)
+
+    @property
+    def max_skew(self) -> timedelta:
+        return timedelta(seconds=self.max_skew_seconds)
+
+    def sensor_for_topic(self, topic: str) -> SensorConfig | None:
+        """The sensor subscribed on ``topic``, if any."""
+        for sensor in self.sensors.values():
+            if sensor.topic == topic:
+                return sensor
+        return None
+
+    def twin_topic(self, twin: str, *suffix: str) -> str:
+        """``<base_topic>/<twin>/<suffix...>``."""
+        return "/".join((self.base_topic, twin, *suffix))

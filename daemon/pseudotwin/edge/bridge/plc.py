@@ -1,0 +1,593 @@
+"""The PLC bridge at runtime: ADS device notifications of configured PLC symbols → MQTT
+sensor readings.
+
+``pseudotwin bridge --config FILE`` (:mod:`pseudotwin.cli.bridge`) runs it. Per configured
+symbol the bridge registers an ADS device notification (transmission mode "on change") and
+publishes every change as one reading on the topic of the symbol's sensor, in that sensor's
+payload format (:func:`pseudotwin.edge.replay.payload_for`), QoS 1. The reading's time is
+the FILETIME stamp the PLC puts on the notification, so a reading delayed by a slow network
+or a broker outage still carries the instant the PLC saw the value.
+
+Threads, and why:
+
+- the ADS notification thread (adslib's dispatcher; pyads' test server calls it from its
+  connection thread) runs :meth:`Bridge._on_notification`: decode, timestamp, ``put_nowait``
+  on a bounded queue and nothing else. It must never block: a blocked dispatcher delays
+  every other symbol's notifications, and on a full queue dropping (counted, logged) is
+  better than stalling the PLC link;
+- one publisher thread turns queue items into MQTT messages (paho keeps QoS 1 messages that
+  cannot be sent right now and sends them after the broker reconnect);
+- paho's network thread (``loop_start``), which also reconnects to the broker by itself;
+- one supervisor thread owns the ADS connection: connect, validate the symbols, register the
+  notifications, publish each symbol's current value, then poll ``read_state`` every
+  ``poll_seconds``. ADS has no heartbeat: without the poll, a dropped route or a PLC stopped
+  by its operator would just look like values that never change. On failure it tears the
+  connection down and reconnects with exponential backoff (1 s doubling up to
+  ``reconnect_max_seconds``), re-registering every notification.
+
+Outputs besides the readings (retained, QoS 1):
+
+- ``<base_topic>/bridge/status``: ``online``; the MQTT last will sets ``offline``;
+- ``<base_topic>/bridge/plc``: ``up`` while the PLC is connected, in RUN and its
+  notifications are registered, ``down`` otherwise.
+
+Configuration problems found on the PLC itself (an unknown symbol, a symbol whose PLC type
+differs from ``plc_type``) are fatal at the first successful connection: the bridge stops and
+``pseudotwin bridge`` exits with 78 (EX_CONFIG), so systemd does not restart it in a loop. If
+they appear only after a later reconnect (a PLC program changed under a running bridge), the
+affected symbols are skipped with an error in the log and the others keep working.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+import math
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import paho.mqtt.client as mqtt
+import pyads
+from paho.mqtt.enums import CallbackAPIVersion
+from pyads import constants as adsc
+from pyads.structs import SAdsSymbolEntry
+
+from pseudotwin.config import ConfigProblems, SensorConfig
+from pseudotwin.edge.bridge.config import PLC_TYPES, BridgeConfig, SymbolConfig
+from pseudotwin.edge.clock import Clock, SystemClock
+from pseudotwin.edge.replay import payload_for
+from pseudotwin.edge.sdnotify import notify, watchdog_interval
+
+__all__ = [
+    "ADSERR_SYMBOL_NOT_FOUND",
+    "Bridge",
+    "SymbolProblems",
+    "filetime_to_utc",
+]
+
+# One logger for the whole bridge (``pseudotwin.edge.bridge``), whichever module logs.
+log = logging.getLogger(__package__)
+
+#: ADS error "symbol not found" (0x710): what a TwinCAT runtime answers for an unknown name.
+ADSERR_SYMBOL_NOT_FOUND = 0x710
+#: While tearing down a link that is known to be dead, each notification delete would wait
+#: the full request timeout (adslib deletes them one by one, also when closing the port).
+TEARDOWN_TIMEOUT_MS = 250
+#: paho's reconnect backoff towards the broker [s].
+MQTT_RECONNECT_MIN, MQTT_RECONNECT_MAX = 1, 30
+#: A PLC clock this far from ours is logged: the daemon rejects readings more than its
+#: max_skew in the future and older than its window, so the operator should know why.
+CLOCK_SKEW_WARN = dt.timedelta(minutes=5)
+_FILETIME_EPOCH = dt.datetime(1601, 1, 1, tzinfo=dt.UTC)
+_ADS_STATES = {v: k.removeprefix("ADSSTATE_") for k, v in vars(adsc).items()
+               if k.startswith("ADSSTATE_") and isinstance(v, int)}
+
+
+def filetime_to_utc(filetime: int) -> dt.datetime:
+    """A Windows FILETIME (100 ns ticks since 1601-01-01 UTC) as an aware UTC datetime.
+
+    pyads' own conversion goes through a float of seconds since 1970, which loses the
+    sub-microsecond part and can round; integer arithmetic keeps every microsecond.
+    """
+    return _FILETIME_EPOCH + dt.timedelta(microseconds=filetime // 10)
+
+
+class SymbolProblems(ConfigProblems):
+    """The PLC does not have a configured symbol, or declares it with another type."""
+
+
+class _PlcNotRunning(Exception):
+    """The PLC answers, but its runtime is not in RUN: values are frozen, and a restart may
+    invalidate notification handles, so the link counts as down."""
+
+
+#: Failures of the PLC link itself (anything else is logged with a traceback).
+_EXPECTED = (pyads.ADSError, _PlcNotRunning, OSError, RuntimeError)
+
+
+@dataclass
+class _Resolved:
+    """A configured symbol as found on the PLC."""
+
+    cfg: SymbolConfig
+    sensor: SensorConfig
+    index_group: int
+    index_offset: int
+
+
+@dataclass
+class _Link:
+    """One ADS connection and what was registered on it."""
+
+    conn: pyads.Connection
+    gen: int
+    symbols: list[_Resolved] = field(default_factory=list)
+    handles: list[tuple[int, int | None]] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class _Item:
+    """One reading on its way from the ADS thread to the publisher."""
+
+    symbol: SymbolConfig
+    sensor: SensorConfig
+    ts: dt.datetime
+    value: float
+    arrival: dt.datetime
+    source: str  # "notification" or "read"
+
+
+_STOP = object()
+
+
+class Bridge:
+    """Runs the PLC → MQTT bridge of one configuration until stopped.
+
+    ``start()`` returns at once; the bridge then keeps both links up by itself.
+    ``stop()`` deletes the notifications, closes ADS, publishes ``offline`` and disconnects.
+    ``finished`` is set when the supervisor has ended: after ``stop()``, or by itself when
+    the PLC showed configuration problems at the first connection (``fatal``).
+    """
+
+    def __init__(self, cfg: BridgeConfig, clock: Clock | None = None) -> None:
+        self.cfg = cfg
+        self.clock: Clock = clock or SystemClock()
+        self.queue: queue.Queue[Any] = queue.Queue(maxsize=cfg.queue_size)
+        self.stop_event = threading.Event()
+        self.finished = threading.Event()
+        self.plc_up = threading.Event()
+        self.mqtt_connected = threading.Event()
+        self.fatal: SymbolProblems | None = None
+        # Counters (read by tests and worth a look in a debugger; only ever incremented).
+        self.ads_connects = 0
+        self.published = 0
+        self.dropped = 0
+        self.decode_errors = 0
+        self._gen = 0  # generation of the current ADS link; older callbacks are ignored
+        self._validated = False
+        self._down_logged = False
+        self._down_since: float | None = None
+        self._skew_warned_gen = -1
+        self._heartbeat = time.monotonic()
+        self._count_lock = threading.Lock()  # counters are bumped from several threads
+        # Setting plc_up and publishing it happen under one lock, in the supervisor and in
+        # paho's on_connect alike: otherwise a connect racing a PLC state change could leave
+        # the opposite state retained on the broker.
+        self._state_lock = threading.Lock()
+        self._publisher_thread: threading.Thread | None = None
+        self._supervisor_thread: threading.Thread | None = None
+        self._started = False
+        self.client = self._make_client()
+
+    # -- MQTT --------------------------------------------------------------------------
+    def _make_client(self) -> mqtt.Client:
+        b = self.cfg.broker
+        c = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=self.cfg.client_id,
+                        clean_session=False)
+        c.will_set(self.cfg.status_topic, "offline", qos=1, retain=True)
+        if b.username:
+            c.username_pw_set(b.username, b.password())
+        if b.tls:
+            c.tls_set(ca_certs=str(b.ca_file) if b.ca_file else None)
+        c.reconnect_delay_set(MQTT_RECONNECT_MIN, MQTT_RECONNECT_MAX)
+        # Readings published while the broker is away wait in paho's queue (QoS 1, sent
+        # after the reconnect); the bound keeps a long outage from eating the memory.
+        c.max_queued_messages_set(self.cfg.queue_size)
+        c.on_connect = self._on_connect
+        c.on_disconnect = self._on_disconnect
+        return c
+
+    def _on_connect(self, client: mqtt.Client, userdata: Any, flags: Any, reason_code: Any,
+                    properties: Any) -> None:
+        if reason_code.is_failure:
+            log.error("broker refused the connection: %s", reason_code)
+            return
+        client.publish(self.cfg.status_topic, "online", qos=1, retain=True)
+        with self._state_lock:
+            self._publish_state(self.plc_up.is_set())
+        log.info("connected to the broker %s:%d as %r (session present: %s)",
+                 self.cfg.broker.host, self.cfg.broker.port, self.cfg.client_id,
+                 flags.session_present)
+        self.mqtt_connected.set()
+
+    def _on_disconnect(self, client: mqtt.Client, userdata: Any, flags: Any, reason_code: Any,
+                       properties: Any) -> None:
+        self.mqtt_connected.clear()
+        if not self.stop_event.is_set():
+            log.warning("disconnected from the broker (%s); reconnecting, readings are kept "
+                        "until it is back (up to %d)", reason_code, self.cfg.queue_size)
+
+    def _publisher(self) -> None:
+        while True:
+            item = self.queue.get()
+            if item is _STOP:
+                return
+            try:
+                self._publish_reading(item)
+            except Exception:  # the bridge must outlive one bad reading
+                log.exception("unexpected error while publishing a reading of %s",
+                              item.symbol.symbol)
+
+    def _publish_reading(self, item: _Item) -> None:
+        if item.source == "notification" and self._skew_warned_gen != self._gen:
+            skew = item.ts - item.arrival
+            if abs(skew) > CLOCK_SKEW_WARN:
+                self._skew_warned_gen = self._gen
+                log.warning("the PLC's clock differs from this host's by %.0f s (reading of "
+                            "%s); readings carry the PLC's time, and the daemon rejects "
+                            "readings too far in the future or the past",
+                            skew.total_seconds(), item.symbol.symbol)
+        s = item.sensor
+        payload = payload_for(s.format, s.ts_key, s.value_key, item.ts, item.value)
+        info = self.client.publish(s.topic, payload, qos=1)
+        if info.rc == mqtt.MQTT_ERR_QUEUE_SIZE:
+            self._count_drop(f"the MQTT queue is full ({self.cfg.queue_size} readings waiting "
+                             "for the broker)")
+        else:
+            # MQTT_ERR_NO_CONN means queued by paho for after the reconnect: not lost.
+            with self._count_lock:
+                self.published += 1
+
+    def _count_drop(self, why: str) -> None:
+        with self._count_lock:
+            self.dropped += 1
+            n = self.dropped
+        if n & (n - 1) == 0:  # 1, 2, 4, 8, ...: visible, but not one line per reading
+            log.warning("reading dropped: %s (%d dropped so far)", why, n)
+
+    def _publish_state(self, up: bool) -> None:
+        self.client.publish(self.cfg.plc_topic, "up" if up else "down", qos=1, retain=True)
+
+    # -- ADS notification thread: decode, stamp, enqueue; nothing that can block -------
+    def _enqueue(self, item: _Item) -> None:
+        try:
+            self.queue.put_nowait(item)
+        except queue.Full:
+            self._count_drop(f"the reading queue is full ({self.cfg.queue_size}); the "
+                             "publisher is behind")
+
+    def _callback(self, link: _Link, r: _Resolved) -> Callable[[Any, Any], None]:
+        gen = link.gen
+        decode = link.conn.notification(r.cfg.type.ctype, timestamp_as_filetime=True)
+
+        @decode
+        def on_change(handle: int, name: Any, filetime: int, raw: Any) -> None:
+            if gen != self._gen:
+                return  # a late notification of a link already torn down
+            arrival = self.clock.now()
+            # A zero stamp means the server did not set one; arrival time is then the best.
+            ts = filetime_to_utc(filetime) if filetime > 0 else arrival
+            self._accept(r, raw, ts, arrival, "notification")
+
+        def guarded(notification: Any, data: Any) -> None:
+            # An exception must not escape into the ctypes callback (it would be printed
+            # and lost); a sample of an unexpected size makes struct.unpack raise.
+            try:
+                on_change(notification, data)
+            except Exception as exc:  # noqa: BLE001 - counted and logged, never fatal
+                with self._count_lock:
+                    self.decode_errors += 1
+                    n = self.decode_errors
+                if n & (n - 1) == 0:
+                    log.warning("cannot decode a notification of %s as %s: %s (%d so far)",
+                                r.cfg.symbol, r.cfg.plc_type, exc, n)
+
+        return guarded
+
+    def _accept(self, r: _Resolved, raw: Any, ts: dt.datetime, arrival: dt.datetime,
+                source: str) -> None:
+        value = r.cfg.convert(raw)
+        if not math.isfinite(value):
+            # JSON has no NaN/Infinity; the daemon would reject it anyway.
+            log.warning("%s is %r; not published", r.cfg.symbol, value)
+            return
+        self._enqueue(_Item(r.cfg, r.sensor, ts, value, arrival, source))
+
+    # -- the supervisor: connect, validate, register, poll, reconnect ------------------
+    def _sleep(self, seconds: float) -> bool:
+        """Wait ``seconds`` (keeping the watchdog heartbeat fresh); True if asked to stop."""
+        deadline = time.monotonic() + seconds
+        while True:
+            self._heartbeat = time.monotonic()
+            left = deadline - self._heartbeat
+            if left <= 0:
+                return self.stop_event.is_set()
+            if self.stop_event.wait(min(left, 1.0)):
+                return True
+
+    def _supervise(self) -> None:
+        plc = self.cfg.plc
+        delay = 1.0
+        try:
+            while not self.stop_event.is_set():
+                self._heartbeat = time.monotonic()
+                try:
+                    link = self._connect()
+                except SymbolProblems as exc:
+                    self.fatal = exc
+                    log.error("the PLC does not match the configuration:\n%s", exc)
+                    return
+                except Exception as exc:  # noqa: BLE001 - any failure: back off and retry
+                    if not isinstance(exc, _EXPECTED):
+                        # A bug rather than the network; retrying beats a supervisor thread
+                        # that died silently while the process looks alive.
+                        log.exception("unexpected error while connecting to the PLC")
+                    self._mark_down(f"cannot connect: {_describe(exc)}")
+                    if self._sleep(delay):
+                        return
+                    delay = min(delay * 2, plc.reconnect_max_seconds)
+                    continue
+                delay = 1.0
+                self._mark_up(link)
+                lost = self._poll(link)
+                self._gen += 1  # from here on, callbacks of this link are ignored
+                self._teardown(link, alive=lost is None or isinstance(lost, _PlcNotRunning))
+                if lost is None:
+                    return
+                self._mark_down(_describe(lost))
+        finally:
+            self.plc_up.clear()
+            self.finished.set()
+
+    def _connect(self) -> _Link:
+        plc = self.cfg.plc
+        conn = pyads.Connection(plc.ams_net_id, plc.port, plc.ip_address)
+        conn.open()  # adds the route; raises ADSError when the PLC cannot be reached
+        self._gen += 1
+        link = _Link(conn, self._gen)
+        try:
+            conn.set_timeout(max(1, round(plc.timeout_seconds * 1000)))
+            self._check_running(conn)
+            link.symbols = self._resolve(conn)
+            for r in link.symbols:
+                attr = pyads.NotificationAttrib(r.cfg.type.size, adsc.ADSTRANS_SERVERONCHA,
+                                                r.cfg.max_delay_ms, r.cfg.cycle_ms)
+                # By index group/offset rather than by name: one lookup per connect, and
+                # it also works with servers that cannot notify by handle (pyads' own
+                # test server). Limitation: a PLC program download or online change that
+                # moves a variable without a state change seen by the poll leaves the
+                # notification on the old offset until the next reconnect (watching the
+                # PLC's symbol version, index group 0xF008, would catch it).
+                handles = conn.add_device_notification(
+                    (r.index_group, r.index_offset), attr, self._callback(link, r)
+                )
+                if handles is not None:
+                    link.handles.append(handles)
+            # A fresh value right away: the symbols may not change for hours.
+            now = self.clock.now()
+            for r in link.symbols:
+                raw = conn.read_by_name(r.cfg.symbol, r.cfg.type.ctype)
+                self._accept(r, raw, now, now, "read")
+        except BaseException:
+            self._gen += 1
+            self._teardown(link, alive=False)
+            raise
+        return link
+
+    def _check_running(self, conn: pyads.Connection) -> None:
+        state = conn.read_state()
+        if state is None:
+            raise RuntimeError("ADS port is not open")
+        if state[0] != adsc.ADSSTATE_RUN:
+            raise _PlcNotRunning(f"PLC state is {_ADS_STATES.get(state[0], state[0])}, not RUN")
+
+    def _resolve(self, conn: pyads.Connection) -> list[_Resolved]:
+        """Look every symbol up on the PLC; SymbolProblems at the first validation, else
+        the bad ones are logged and skipped."""
+        plc = self.cfg.plc
+        where = f"{plc.ams_net_id}:{plc.port} ({plc.ip_address})"
+        good: list[_Resolved] = []
+        problems: list[str] = []
+        for i, sym in enumerate(plc.symbols):
+            loc = f"plc.symbols[{i}]"
+            try:
+                info = conn.read_write(adsc.ADSIGRP_SYM_INFOBYNAMEEX, 0, SAdsSymbolEntry,
+                                       sym.symbol, pyads.PLCTYPE_STRING)
+            except pyads.ADSError as exc:
+                if getattr(exc, "err_code", None) != ADSERR_SYMBOL_NOT_FOUND:
+                    raise
+                problems.append(f"{loc}.symbol: {sym.symbol!r} is not a symbol of the PLC at "
+                                f"{where} (check the spelling and the POU/GVL prefix, e.g. "
+                                "'MAIN.' or 'GVL.')")
+                continue
+            problem = _type_problem(sym, info)
+            if problem:
+                problems.append(f"{loc}.plc_type: {problem}")
+                continue
+            good.append(_Resolved(sym, self.cfg.sensor_of(sym), info.iGroup, info.iOffs))
+        if problems:
+            if not self._validated:
+                raise SymbolProblems(problems)
+            for p in problems:
+                log.error("skipping a symbol until the next reconnect: %s", p)
+        self._validated = True
+        return good
+
+    def _poll(self, link: _Link) -> BaseException | None:
+        """Read the PLC state every poll_seconds; the reason the link is lost, or None when
+        asked to stop."""
+        while not self._sleep(self.cfg.plc.poll_seconds):
+            try:
+                self._check_running(link.conn)
+            except Exception as exc:  # noqa: BLE001 - whatever it is, the link is not usable
+                if not isinstance(exc, _EXPECTED):
+                    log.exception("unexpected error while polling the PLC state")
+                return exc
+        return None
+
+    def _teardown(self, link: _Link, *, alive: bool) -> None:
+        """Delete the notifications and close the connection; never raises.
+
+        Deleting also drops pyads' reference to our callback. On a dead link the deletes
+        cannot reach the PLC (which forgets a closed connection's notifications anyway), so
+        they get a short timeout instead of the full one each.
+        """
+        conn = link.conn
+        try:
+            if not alive:
+                conn.set_timeout(TEARDOWN_TIMEOUT_MS)
+        except pyads.ADSError:
+            pass
+        for notification, user in link.handles:
+            try:
+                conn.del_device_notification(notification, user)
+            except pyads.ADSError as exc:
+                log.debug("deleting notification %d: %s", notification, _describe(exc))
+        link.handles.clear()
+        try:
+            conn.close()
+        except (pyads.ADSError, OSError) as exc:
+            log.debug("closing the ADS connection: %s", _describe(exc))
+
+    def _mark_up(self, link: _Link) -> None:
+        self.ads_connects += 1
+        plc = self.cfg.plc
+        since = ""
+        if self._down_since is not None:
+            since = f" after {time.monotonic() - self._down_since:.0f} s"
+        log.info("PLC %s:%d (%s) connected%s; %d of %d symbols registered for notifications",
+                 plc.ams_net_id, plc.port, plc.ip_address, since, len(link.symbols),
+                 len(plc.symbols))
+        self._down_logged = False
+        self._down_since = None
+        with self._state_lock:
+            self.plc_up.set()
+            self._publish_state(True)
+
+    def _mark_down(self, reason: str) -> None:
+        with self._state_lock:
+            was_up = self.plc_up.is_set()
+            self.plc_up.clear()
+            if was_up or not self._down_logged:
+                # Also at the start of an outage that began before we were ever up: a
+                # retained "up" may be left over from a bridge that was killed.
+                self._publish_state(False)
+        if self._down_since is None:
+            self._down_since = time.monotonic()
+        plc = self.cfg.plc
+        if not self._down_logged:
+            # Once per outage: a PLC away for a weekend must not fill the journal.
+            self._down_logged = True
+            log.warning("PLC %s:%d (%s) %s: %s; reconnecting (backoff 1..%g s)",
+                        plc.ams_net_id, plc.port, plc.ip_address,
+                        "lost" if was_up else "unavailable", reason, plc.reconnect_max_seconds)
+        else:
+            log.debug("PLC still unavailable: %s", reason)
+
+    # -- lifecycle ---------------------------------------------------------------------
+    def start(self) -> None:
+        if self._started:
+            raise RuntimeError("a Bridge can only be started once")
+        self._started = True
+        if self.cfg.plc.local_ams_net_id:
+            # Process-wide in pyads' router: the net id the PLC's route points back to.
+            pyads.set_local_address(self.cfg.plc.local_ams_net_id)
+        b = self.cfg.broker
+        # connect_async: the bridge starts (and watches the PLC) even if the broker is down.
+        self.client.connect_async(b.host, b.port, keepalive=b.keepalive)
+        self.client.loop_start()
+        self._publisher_thread = threading.Thread(target=self._publisher,
+                                                  name="bridge-publisher", daemon=True)
+        self._supervisor_thread = threading.Thread(target=self._supervise,
+                                                   name="bridge-supervisor", daemon=True)
+        self._publisher_thread.start()
+        self._supervisor_thread.start()
+        interval = watchdog_interval()
+        if interval is not None:
+            threading.Thread(target=self._watchdog, args=(interval,), name="bridge-watchdog",
+                             daemon=True).start()
+        notify("READY=1")
+
+    def _watchdog(self, interval: float) -> None:
+        while not self.stop_event.wait(interval):
+            # Only while the supervisor is alive: a hung ADS call must get us restarted.
+            if time.monotonic() - self._heartbeat < 2 * interval + self.cfg.plc.timeout_seconds:
+                notify("WATCHDOG=1")
+
+    def request_stop(self) -> None:
+        """Ask the bridge to stop (safe from a signal handler); ``stop()`` finishes it."""
+        self.stop_event.set()
+
+    def stop(self, timeout: float = 10.0) -> None:
+        notify("STOPPING=1")
+        self.stop_event.set()
+        if self._supervisor_thread is not None:
+            self._supervisor_thread.join(timeout)  # deletes the notifications, closes ADS
+            if self._supervisor_thread.is_alive():
+                log.warning("the ADS connection did not close within %g s", timeout)
+        if self._publisher_thread is not None:
+            # The publisher empties the queue before it sees _STOP: nothing already read
+            # from the PLC is left behind.
+            try:
+                self.queue.put(_STOP, timeout=timeout)
+            except queue.Full:
+                log.warning("reading queue still full at stop; %d readings not published",
+                            self.queue.qsize())
+            self._publisher_thread.join(timeout)
+        if self.mqtt_connected.is_set():
+            info = self.client.publish(self.cfg.status_topic, "offline", qos=1, retain=True)
+            try:
+                info.wait_for_publish(timeout)
+            except (RuntimeError, ValueError) as exc:
+                log.warning("could not publish the offline status: %s", exc)
+        self.client.disconnect()
+        self.client.loop_stop()
+        log.info("bridge stopped: %d readings published, %d dropped", self.published,
+                 self.dropped)
+
+    def run(self) -> None:
+        """Start, wait until ``request_stop()`` or a fatal problem, then stop."""
+        self.start()
+        try:
+            while not self.finished.wait(1.0):
+                pass
+        finally:
+            self.stop()
+
+
+def _type_problem(sym: SymbolConfig, info: SAdsSymbolEntry) -> str | None:
+    """Why the PLC's declaration of ``sym`` does not fit its configured plc_type, or None."""
+    want = sym.type
+    declared = info.symbol_type.strip()
+    name = declared.upper()
+    size = int(info.size)
+    if name == want.name and size == want.size:
+        return None
+    # An alias (TYPE T_Celsius : LREAL) reports its own name but the base type's ADS type
+    # id and size; a different elementary type name is a mismatch even when the encoding
+    # happens to agree (WORD vs UINT), because it usually means the wrong variable.
+    if name not in PLC_TYPES and info.dataType == want.ads_type and size == want.size:
+        return None
+    return (f"configured {want.name}, but the PLC declares {sym.symbol!r} as {declared} "
+            f"({size} bytes); set plc_type = \"{declared}\" if that is right"
+            if name in PLC_TYPES else
+            f"configured {want.name}, but the PLC declares {sym.symbol!r} as {declared} "
+            f"({size} bytes), which is not an elementary numeric type")
+
+
+def _describe(exc: BaseException) -> str:
+    return str(exc).removeprefix("ADSError: ").strip() or type(exc).__name__

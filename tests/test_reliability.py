@@ -1,0 +1,378 @@
+"""Issue 13: no input, fault or flood may stall, deafen or silently lose readings.
+
+Every scenario runs against the real Mosquitto of conftest.py; the ones about the process
+(signals, exit statuses, file modes, connection logging) run the real ``pseudotwin run``.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import logging
+import math
+import os
+import shutil
+import signal
+import socket
+import stat
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from daemon_support import DAY, HOURS, REF, config, day_readings, sml, wait_for, write_config
+from pseudotwin.edge.clock import ReplayClock
+from pseudotwin.edge.mqttconn import EX_NOPERM
+from pseudotwin.edge.recorder import Recorder
+from pseudotwin.edge.service import Service
+from pseudotwin.history.store import open_store
+from test_daemon import Viewer, publisher, reading
+from test_daemon_process import EXE, start_daemon
+
+TOPIC = "house/dining/temp"
+NOON = HOURS.at(DAY, 12.0)
+BAD_TS = [b'{"ts": "0001-01-01T00:00:00+01:00", "value": 20}',
+          b'{"ts": "9999-12-31T23:59:59-01:00", "value": 20}']
+
+
+def morning(n: int | None = None) -> list[bytes]:
+    """The day's reference readings before 11:00 (all in the past of a clock at noon)."""
+    df = day_readings(sml())
+    df = df[df["ts"] < HOURS.at(DAY, 11.0)]
+    out = [reading(r["ts"].to_pydatetime(), float(r["value"])) for _, r in df.iterrows()]
+    return out[:n] if n else out
+
+
+def journal_lines(folder: Path) -> int:
+    return sum(len(p.read_bytes().splitlines()) for p in (folder / "state" / "journal")
+               .glob("*.jsonl"))
+
+
+@pytest.fixture
+def services(mosquitto, desk_artifact, tmp_path):
+    made: list[Service | Recorder] = []
+
+    def make(kind: type = Service, at: dt.datetime = NOON, **kw: object) -> Service:
+        cfg = config(tmp_path, mosquitto.port, desk_artifact, **kw)
+        s = kind(cfg, clock=ReplayClock(at, 1.0))
+        s.start(wait_connected=15)
+        made.append(s)
+        return s
+
+    yield make
+    for s in made:
+        if not s.stop_event.is_set():
+            s.stop()
+
+
+def send(port: int, payloads: list[bytes], name: str) -> None:
+    pub = publisher(port, name)
+    for b in payloads:
+        pub.publish(TOPIC, b, qos=1).wait_for_publish(10)
+    pub.disconnect()
+    pub.loop_stop()
+
+
+# -- 1. edge-of-range timestamps ----------------------------------------------------------
+def test_edge_of_range_timestamps_are_rejected_and_never_stall_the_daemon(
+    services, mosquitto
+) -> None:
+    svc = services()
+    good = morning(40)
+    send(mosquitto.port, BAD_TS * 30 + good, "rel-ts-daemon")  # 60 > the in-flight window
+    wait_for(lambda: svc.accepted == len(good), what=lambda: f"{svc.accepted} accepted")
+    assert svc.rejections.counts[(REF, "bad-timestamp")] == 60
+
+
+def test_edge_of_range_timestamps_are_rejected_by_the_recorder(services, mosquitto,
+                                                               tmp_path: Path) -> None:
+    rec = services(Recorder, store="history.db")
+    good = morning(40)
+    send(mosquitto.port, BAD_TS * 30 + good, "rel-ts-recorder")
+    wait_for(lambda: rec.written == len(good), what=lambda: f"{rec.written} written")
+    assert rec._worker.is_alive()
+    assert rec.rejections.counts[(REF, "bad-timestamp")] == 60
+
+
+# -- 2 + 3. the journal fails, then works again -------------------------------------------
+def test_journal_failure_degrades_and_recovers_by_itself_without_losing_a_reading(
+    services, mosquitto, tmp_path: Path
+) -> None:
+    status = Viewer(mosquitto.port, "pt/status")
+    svc = services()
+    readings = morning(60)
+    send(mosquitto.port, readings[:10], "rel-journal-1")
+    wait_for(lambda: svc.accepted == 10, what="first readings")
+    jdir = tmp_path / "state" / "journal"
+    shutil.rmtree(jdir)
+    jdir.write_text("a file where the journal directory was")  # open() fails, even as root
+    send(mosquitto.port, readings[10:], "rel-journal-2")
+    wait_for(lambda: "degraded" in [b for _, b in status.msgs], what="status degraded")
+    time.sleep(1.0)
+    assert svc.accepted == 10  # nothing acknowledged while the journal cannot take it
+    assert svc.health.snapshot()["journal"]["ok"] is False
+    t0 = time.monotonic()
+    jdir.unlink()  # the fault clears
+    wait_for(lambda: svc.accepted == len(readings), what=lambda: f"{svc.accepted} accepted")
+    recovery = time.monotonic() - t0
+    wait_for(lambda: [b for _, b in status.msgs][-1] == "online", what="status online again")
+    assert recovery < 10
+    assert journal_lines(tmp_path) == len(readings)  # the first 10 rebuilt from memory
+    status.close()
+
+
+# -- 4. invalid UTF-8 in a journal ---------------------------------------------------------
+def test_invalid_utf8_in_the_journal_is_skipped_and_the_daemon_starts(
+    services, tmp_path: Path, caplog
+) -> None:
+    jdir = tmp_path / "state" / "journal"
+    jdir.mkdir(parents=True)
+    good = [json.dumps({"sensor": REF, "ts": json.loads(b)["ts"], "value": json.loads(b)["value"]})
+            .encode() for b in morning()]
+    (jdir / f"{DAY.isoformat()}.jsonl").write_bytes(
+        b"\n".join(good[:10]) + b"\n\xff\xfe\x00garbage\n" + b"\n".join(good[10:]) + b"\n")
+    with caplog.at_level(logging.INFO):
+        svc = services()
+    assert svc.connected.is_set()
+    assert f"restored state from {len(good)} journaled readings" in caplog.text
+    assert "unreadable, skipped" in caplog.text
+
+
+# -- 5. state dir / store deleted while running -------------------------------------------
+def test_deleted_state_dir_is_detected_and_rebuilt(services, mosquitto, tmp_path: Path,
+                                                   caplog) -> None:
+    svc = services()
+    readings = morning(40)
+    send(mosquitto.port, readings[:20], "rel-rm-1")
+    wait_for(lambda: svc.accepted == 20, what="first half")
+    with caplog.at_level(logging.ERROR):
+        shutil.rmtree(tmp_path / "state")
+        send(mosquitto.port, readings[20:], "rel-rm-2")
+        wait_for(lambda: svc.accepted == 40, what="second half")
+    assert "was deleted while running" in caplog.text
+    assert journal_lines(tmp_path) == 40
+    assert svc.health.snapshot()["journal"]["recreated"] == 1
+    svc.stop()
+    again = Service(svc.cfg, ReplayClock(NOON, 1.0))
+    assert again.restore() == 40
+    again.journal.close()
+
+
+def test_deleted_store_is_detected_and_recreated_by_the_recorder(
+    services, mosquitto, tmp_path: Path, caplog
+) -> None:
+    rec = services(Recorder, store="history.db")
+    readings = morning(40)
+    send(mosquitto.port, readings[:20], "rel-rmdb-1")
+    wait_for(lambda: rec.written == 20, what="first half stored")
+    with caplog.at_level(logging.ERROR):
+        for p in tmp_path.glob("history.db*"):
+            p.unlink()
+        send(mosquitto.port, readings[20:], "rel-rmdb-2")
+        wait_for(lambda: rec.written == 40, what="second half stored")
+    assert "was deleted or replaced while recording" in caplog.text
+    with open_store(tmp_path / "history.db") as store:
+        assert len(store.read_readings([REF])) == 20  # into the new file, not the void
+
+
+# -- 6. flood: reported, bounded, and SIGTERM within seconds -------------------------------
+def test_flood_is_reported(services, mosquitto, caplog) -> None:
+    svc = services()
+    svc.health.backlog_seconds = svc.health.report_seconds = 0.5
+    base = HOURS.at(DAY, 8.0)
+    flood = [reading(base + dt.timedelta(seconds=i), 20 + (i % 7) / 10) for i in range(1500)]
+    with caplog.at_level(logging.WARNING):
+        send(mosquitto.port, flood, "rel-flood")
+        wait_for(lambda: "flood: behind" in caplog.text, timeout=60, what="flood report")
+    ingest = svc.health.snapshot()["ingest"]
+    assert ingest["queue_max_seen"] <= svc.queue.maxsize
+    assert ingest["received"] > 0
+
+
+def test_sigterm_stops_within_seconds_while_flooded_and_unacked_are_redelivered(
+    mosquitto, desk_artifact, tmp_path: Path
+) -> None:
+    cfg = write_config(tmp_path, mosquitto.port, desk_artifact)
+    log = tmp_path / "daemon.log"
+    d = start_daemon(cfg, log)
+    status = Viewer(mosquitto.port, "pt/status")
+    try:
+        wait_for(lambda: "online" in [b for _, b in status.msgs], what="online")
+        base = HOURS.at(DAY, 8.0)
+        n = 800
+        send(mosquitto.port, [reading(base + dt.timedelta(seconds=i), 20.0 + i % 5 / 10)
+                              for i in range(n)], "rel-term")
+        wait_for(lambda: journal_lines(tmp_path) > 20, what="processing")
+        t0 = time.monotonic()
+        d.send_signal(signal.SIGTERM)
+        assert d.wait(15) == 0
+        stop_s = time.monotonic() - t0
+        assert stop_s < 5, stop_s
+        first = journal_lines(tmp_path)
+        assert first < n  # stopped with work left: nothing was drained
+        d = start_daemon(cfg, log)  # the broker redelivers what was not acknowledged
+        wait_for(lambda: journal_lines(tmp_path) == n, timeout=60,
+                 what=lambda: f"{journal_lines(tmp_path)} of {n} journaled")
+    finally:
+        d.send_signal(signal.SIGTERM)
+        d.wait(15)
+        status.close()
+
+
+# -- 7. corrupt artifact -------------------------------------------------------------------
+def _poison(d: object) -> bool:
+    """Set the first float found under ``d`` to +inf (in place)."""
+    items = d.items() if isinstance(d, dict) else enumerate(d) if isinstance(d, list) else []
+    for k, v in items:
+        if isinstance(v, float):
+            d[k] = math.inf  # type: ignore[index]
+            return True
+        if _poison(v):
+            return True
+    return False
+
+
+def test_non_finite_number_in_an_artifact_is_a_configuration_error(
+    mosquitto, desk_artifact, tmp_path: Path
+) -> None:
+    art = json.loads(desk_artifact.read_text())
+    assert _poison(art["models"])
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(art))  # writes Infinity, as a corrupted file would hold
+    cfg = write_config(tmp_path, mosquitto.port, bad)
+    run = subprocess.run([*EXE, "run", "--config", str(cfg)], capture_output=True, text=True,
+                         timeout=60)
+    assert run.returncode == 78
+    assert "$.models." in run.stderr and "not a finite number" in run.stderr
+    check = subprocess.run([*EXE, "check-config", str(cfg)], capture_output=True, text=True,
+                           timeout=60)
+    assert check.returncode != 0 and "not a finite number" in check.stderr
+
+
+# -- 8. state from the future --------------------------------------------------------------
+def test_state_from_a_day_ahead_does_not_silence_today(services, mosquitto, tmp_path: Path,
+                                                      caplog) -> None:
+    jdir = tmp_path / "state" / "journal"
+    jdir.mkdir(parents=True)
+    tomorrow = DAY + dt.timedelta(days=1)
+    lines = []
+    for b in morning(60):
+        o = json.loads(b)
+        ts = dt.datetime.fromisoformat(o["ts"]) + dt.timedelta(days=1)
+        lines.append(json.dumps({"sensor": REF, "ts": ts.isoformat(), "value": o["value"]}))
+    (jdir / f"{tomorrow.isoformat()}.jsonl").write_text("\n".join(lines) + "\n")
+    viewer = Viewer(mosquitto.port)
+    with caplog.at_level(logging.WARNING):
+        svc = services()
+    assert "days after today" in caplog.text
+    send(mosquitto.port, morning(), "rel-future")
+    wait_for(lambda: svc.accepted == len(morning()), what="all journaled")
+    wait_for(lambda: len(viewer.on("/estimate")) > 0, what="today's estimates")
+    viewer.close()
+
+
+# -- 9. operations -------------------------------------------------------------------------
+def _closed_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_broker_down_at_start_logged_at_once_no_ready_and_sigint_is_prompt(
+    desk_artifact, tmp_path: Path
+) -> None:
+    cfg = write_config(tmp_path, _closed_port(), desk_artifact)
+    sock_path = tmp_path / "notify.sock"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(sock_path))
+    sock.setblocking(False)
+    log = tmp_path / "daemon.log"
+    d = start_daemon(cfg, log, {"NOTIFY_SOCKET": str(sock_path)})
+    try:
+        wait_for(lambda: "cannot connect to the broker" in log.read_text(), timeout=10,
+                 what="first connection failure logged")
+        assert "ConnectionRefusedError" in log.read_text()
+        t0 = time.monotonic()
+        d.send_signal(signal.SIGINT)
+        assert d.wait(10) == 0
+        assert time.monotonic() - t0 < 5
+        got = []
+        while True:
+            try:
+                got.append(sock.recv(256).decode())
+            except BlockingIOError:
+                break
+        assert "READY=1" not in got
+    finally:
+        if d.poll() is None:
+            d.kill()
+        sock.close()
+    text = log.read_text()
+    assert "running" not in text[text.index("received SIGINT"):]
+
+
+@pytest.fixture
+def password_broker(tmp_path: Path):
+    pw = tmp_path / "passwd"
+    subprocess.run(["mosquitto_passwd", "-b", "-c", str(pw), "pt", "right"], check=True,
+                   capture_output=True)
+    port = _closed_port()
+    conf = tmp_path / "mosquitto-auth.conf"
+    import pwd
+
+    conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous false\npassword_file {pw}\n"
+                    f"user {pwd.getpwuid(os.getuid()).pw_name}\n")
+    proc = subprocess.Popen([shutil.which("mosquitto") or "/usr/sbin/mosquitto", "-c", str(conf)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    wait_for(lambda: _accepts(port), what="auth broker")
+    yield port
+    proc.terminate()
+    proc.wait(10)
+
+
+def _accepts(port: int) -> bool:
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=0.5):
+            return True
+    except OSError:
+        return False
+
+
+def test_wrong_password_exits_with_a_distinct_status(password_broker, desk_artifact,
+                                                     tmp_path: Path) -> None:
+    cfg = write_config(tmp_path, password_broker, desk_artifact)
+    cfg.write_text(cfg.read_text().replace("keepalive = 30", 'keepalive = 30\nusername = "pt"\n'
+                                           'password_env = "PT_TEST_PASSWORD"'))
+    log = tmp_path / "daemon.log"
+    d = start_daemon(cfg, log, {"PT_TEST_PASSWORD": "wrong"})
+    try:
+        assert d.wait(20) == EX_NOPERM
+    finally:
+        if d.poll() is None:
+            d.kill()
+    assert "refused the credentials" in log.read_text()
+
+
+def test_files_are_private_whatever_the_launcher(mosquitto, desk_artifact,
+                                                 tmp_path: Path) -> None:
+    cfg = write_config(tmp_path, mosquitto.port, desk_artifact)
+    old = os.umask(0o022)  # a permissive launcher
+    try:
+        d = start_daemon(cfg, tmp_path / "daemon.log")
+    finally:
+        os.umask(old)
+    status = Viewer(mosquitto.port, "pt/status")
+    try:
+        wait_for(lambda: "online" in [b for _, b in status.msgs], what="online")
+        send(mosquitto.port, morning(5), "rel-umask")
+        wait_for(lambda: journal_lines(tmp_path) == 5, what="journaled")
+    finally:
+        d.send_signal(signal.SIGTERM)
+        d.wait(15)
+        status.close()
+    state = tmp_path / "state"
+    for p in [state, state / "journal"]:
+        assert stat.S_IMODE(p.stat().st_mode) == 0o700, p
+    for p in (state / "journal").glob("*.jsonl"):
+        assert stat.S_IMODE(p.stat().st_mode) == 0o600, p
