@@ -201,8 +201,14 @@ def test_sigterm_stops_within_seconds_while_flooded_and_unacked_are_redelivered(
         wait_for(lambda: "online" in [b for _, b in status.msgs], what="online")
         base = HOURS.at(DAY, 8.0)
         n = 800
-        send(mosquitto.port, [reading(base + dt.timedelta(seconds=i), 20.0 + i % 5 / 10)
-                              for i in range(n)], "rel-term")
+        # Paused while the flood arrives, so a backlog is waiting when it resumes (otherwise
+        # a fast machine keeps up with the sender and there is nothing left to abandon).
+        d.send_signal(signal.SIGSTOP)
+        try:
+            send(mosquitto.port, [reading(base + dt.timedelta(seconds=i), 20.0 + i % 5 / 10)
+                                  for i in range(n)], "rel-term")
+        finally:
+            d.send_signal(signal.SIGCONT)
         wait_for(lambda: journal_lines(tmp_path) > 20, what="processing")
         t0 = time.monotonic()
         d.send_signal(signal.SIGTERM)

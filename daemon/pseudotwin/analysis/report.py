@@ -24,12 +24,20 @@ import numpy as np
 import pandas as pd
 
 import pseudotwin
-from pseudotwin.analysis.evaluate import REF_PREFIX, Evaluation, evaluate, write_outputs
+from pseudotwin.analysis.evaluate import (
+    ESTIMATE,
+    REF_PREFIX,
+    Evaluation,
+    evaluate,
+    write_outputs,
+)
+from pseudotwin.analysis.validation import BASELINE_LIMIT
+from pseudotwin.analysis.validation import TIE_RELATIVE as VALIDATION_TIE
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.history.convert import load
 from pseudotwin.live import metrics
-from pseudotwin.models.registry import ALL_MODELS
+from pseudotwin.models.registry import ALL_MODELS, MODELS
 
 PACKAGE = Path(pseudotwin.__file__).resolve().parent
 #: The repository root of a source checkout (daemon/pseudotwin/ → ../..).
@@ -38,10 +46,16 @@ DOCS = REPO / "docs"
 COMMAND = ".venv/bin/python scripts/results.py"
 
 PROFILE = "corrgp-triv (profile)"
-# Column order of every model table; ref:* pseudo-models follow.
-MODEL_ORDER = ("corrgp-triv", PROFILE, "corrgp-lcm", "triv", "varma")
-PRIMARY, BASE = "corrgp-triv", "triv"
+# Column order of every model table; ref:* pseudo-models follow. ``estimate`` is what the
+# daemon publishes (the primary chosen by validation, with its fallbacks).
+MODEL_ORDER = (ESTIMATE, "ref", "corrgp-triv", PROFILE, "corrgp-lcm", "triv", "varma")
+# GP: the Corr-GP with the TRIV mean, compared with its prior mean TRIV (secondary evidence).
+GP, BASE, REF = "corrgp-triv", "triv", "ref"
 
+# The issue's figures for the ``estimate`` rows (Trust I):
+FLOOR_RATIO = 1.02  # mean daily NRMSE ≤ this × min(TRIV, best raw reference)
+COVER2_RANGE = (90.0, 98.0)  # ±2σ coverage of all scored readings [%]
+OK = "✓"
 
 
 def triv1_label(reference: str) -> str:
@@ -138,7 +152,10 @@ class RunResult:
 
     @property
     def primary_ref(self) -> str:
-        return str(self.ev.artifact.models[PRIMARY].references_[0])
+        """corrgp-triv's single reference (the twin's first reference without it)."""
+        gp = self.ev.artifact.models.get(GP)
+        refs = getattr(gp, "references_", None) or self.ev.artifact.references
+        return str(refs[0])
 
 
 # ---------------------------------------------------------------------------- running
@@ -175,7 +192,7 @@ def run_one(spec: RunSpec, history: pd.DataFrame, out_root: Path,
     notes: list[str] = []
     variants: list[tuple[str, str, str, dict[str, Any]]] = []  # label, folder, model, options
     if spec.long_term:
-        variants.append((PROFILE, "profile", PRIMARY, {PRIMARY: {"ref_mean": "profile"}}))
+        variants.append((PROFILE, "profile", GP, {GP: {"ref_mean": "profile"}}))
     if len(spec.references) > 1:
         # corrgp-triv uses one reference; TRIV on that same reference is its like-for-like
         # baseline (and exactly its prior mean).
@@ -242,9 +259,12 @@ def _ordered(models: Sequence[str]) -> list[str]:
     return head + sorted(m for m in ms if m not in head)
 
 
-def _table(header: Sequence[str], rows: Sequence[Sequence[str]], left: int = 1) -> str:
+def _table(header: Sequence[str], rows: Sequence[Sequence[str]], left: int = 1,
+           text: Sequence[int] = ()) -> str:
+    """Markdown table: the first ``left`` columns and those in ``text`` left-aligned."""
     lines = ["| " + " | ".join(header) + " |",
-             "|" + "|".join("---" if i < left else "---:" for i in range(len(header))) + "|"]
+             "|" + "|".join("---" if i < left or i in text else "---:"
+                            for i in range(len(header))) + "|"]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     return "\n".join(lines)
 
@@ -297,7 +317,7 @@ def monthly_md(res: RunResult) -> str:
     piv = res.monthly.pivot(index="month", columns="model", values="nrmse_pct")
     models = _ordered(list(piv.columns))
     d = res.daily.assign(month=res.daily["day"].str[:7])
-    days = d[d["model"] == PRIMARY].groupby("month")["day"].nunique()
+    days = d[d["model"] == ESTIMATE].groupby("month")["day"].nunique()
     r = d[d["model"].str.startswith(REF_PREFIX)].pivot_table(
         index="month", columns="model", values="pearson_r", aggfunc="median")
     refs = [m for m in models if m.startswith(REF_PREFIX)]
@@ -314,18 +334,21 @@ def monthly_md(res: RunResult) -> str:
 def daily_md(res: RunResult) -> str:
     nr = res.daily.pivot(index="day", columns="model", values="nrmse_pct")
     rr = res.daily.pivot(index="day", columns="model", values="pearson_r")
-    n = res.daily[res.daily["model"] == PRIMARY].set_index("day")["n"]
+    n = res.daily[res.daily["model"] == ESTIMATE].set_index("day")["n"]
     models = [m for m in _ordered(list(nr.columns)) if not m.startswith(REF_PREFIX)]
     refs = [REF_PREFIX + s for s in res.ev.artifact.references if REF_PREFIX + s in rr.columns]
-    header = ["day", "n", *models, "corrgp-triv vs triv",
+    duel_col = GP in nr.columns and BASE in nr.columns
+    header = ["day", "n", *models, *(["corrgp-triv vs triv"] if duel_col else []),
               *[f"r {m[len(REF_PREFIX):]}" for m in refs]]
     rows = []
     for day in nr.index:
-        a, b = nr.at[day, PRIMARY], nr.at[day, BASE]
-        mark = "—" if not (np.isfinite(a) and np.isfinite(b)) else (
-            "win" if a < b else "loss" if a > b else "tie")
-        rows.append([day, str(int(n.get(day, 0))), *[_f(nr.at[day, m]) for m in models], mark,
-                     *[_f(rr.at[day, m], 3) for m in refs]])
+        marks = []
+        if duel_col:
+            a, b = nr.at[day, GP], nr.at[day, BASE]
+            marks.append("—" if not (np.isfinite(a) and np.isfinite(b)) else (
+                "win" if a < b else "loss" if a > b else "tie"))
+        rows.append([day, str(int(n.get(day, 0))), *[_f(nr.at[day, m]) for m in models],
+                     *marks, *[_f(rr.at[day, m], 3) for m in refs]])
     return _table(header, rows)
 
 
@@ -372,14 +395,14 @@ class Duel:
 
 def duel(daily: pd.DataFrame, other: str) -> Duel | None:
     piv = daily.pivot(index="day", columns="model", values="nrmse_pct")
-    if PRIMARY not in piv.columns or other not in piv.columns:
+    if GP not in piv.columns or other not in piv.columns:
         return None
-    d = piv[[PRIMARY, other]].dropna()
+    d = piv[[GP, other]].dropna()
     if d.empty:
         return None
-    win = d[PRIMARY] < d[other]
-    return Duel(other, len(d), int(win.sum()), float(d[PRIMARY].mean()),
-                float(d[other].mean()), list(d.index[win]), list(d.index[d[PRIMARY] > d[other]]))
+    win = d[GP] < d[other]
+    return Duel(other, len(d), int(win.sum()), float(d[GP].mean()),
+                float(d[other].mean()), list(d.index[win]), list(d.index[d[GP] > d[other]]))
 
 
 def _median_r(daily: pd.DataFrame, ref_model: str, days: Sequence[str]) -> float:
@@ -423,7 +446,7 @@ def evidence(res: RunResult, t: Duel) -> Evidence:
     ref_model = REF_PREFIX + res.primary_ref
     piv = daily.pivot(index="day", columns="model", values="nrmse_pct")
     rr = daily[daily["model"] == ref_model].set_index("day")["pearson_r"]
-    gain = (piv[BASE] - piv[PRIMARY]).dropna()
+    gain = (piv[BASE] - piv[GP]).dropna()
     both = pd.concat([gain.rename("gain"), rr.rename("r")], axis=1).dropna()
     rho = float(both["gain"].corr(both["r"], method="spearman")) if len(both) > 3 else np.nan
     return Evidence(
@@ -433,18 +456,21 @@ def evidence(res: RunResult, t: Duel) -> Evidence:
     )
 
 
-def verdict_md(res: RunResult) -> str:
+def gp_md(res: RunResult) -> str:
+    """Secondary evidence: the Corr-GP with the TRIV mean against TRIV (the thesis's claim),
+    with the daily r of its reference and the reasons read off it."""
     daily, art = res.daily, res.ev.artifact
     t = duel(daily, BASE)
     if t is None:
-        return "No common days of corrgp-triv and triv: no verdict."
+        return "No common days of corrgp-triv and triv: no comparison."
     if t.beats:
-        head = "**corrgp-triv beats TRIV**"
+        head = "corrgp-triv beats TRIV"
     elif t.tie:
-        head = "**corrgp-triv does not beat TRIV (practically equal)**"
+        head = "corrgp-triv does not beat TRIV (practically equal)"
     else:
-        head = "**corrgp-triv does not beat TRIV**"
-    parts = [f"{head}: {t.sentence('TRIV')}."]
+        head = "corrgp-triv does not beat TRIV"
+    parts = [f"*Secondary — the Corr-GP against TRIV (the thesis's claim):* {head}: "
+             f"{t.sentence('TRIV')}."]
     # The TRIV that is corrgp-triv's own prior mean: the baseline on the same reference.
     own = triv1_label(res.primary_ref) if len(art.references) > 1 else BASE
     t1 = duel(daily, own) if own != BASE else None
@@ -482,7 +508,7 @@ def verdict_md(res: RunResult) -> str:
             "co-varies strongly with the target."
         )
     med_r = daily.groupby("model")["pearson_r"].median()
-    r_p, r_b = med_r.get(PRIMARY, np.nan), med_r.get(BASE, np.nan)
+    r_p, r_b = med_r.get(GP, np.nan), med_r.get(BASE, np.nan)
     if t.beats and r_p < r_b - 0.1:
         parts.append(
             f"Its estimate follows the target's within-day course less well than TRIV's "
@@ -496,9 +522,6 @@ def verdict_md(res: RunResult) -> str:
             "TRIV: the offset profile learnt on the five training days does not carry over to "
             "the test days, and corrgp-triv inherits it as its prior mean."
         )
-    drift = _varma_drift(daily)
-    if drift:
-        parts.append(drift)
     return " ".join(parts)
 
 
@@ -527,7 +550,7 @@ def _why(t: Duel, t1: Duel | None, ev: Evidence, bias: pd.Series, unit: str, own
                 "TRIV's offset plus the live reference already carries the target's course and "
                 "the GP has little to add."
             )
-    b_p, b_t = bias.get(PRIMARY, np.nan), bias.get(own, np.nan)
+    b_p, b_t = bias.get(GP, np.nan), bias.get(own, np.nan)
     errs = (f"mean signed error of corrgp-triv {_signed(b_p)} {unit} vs "
             f"{_signed(b_t)} {unit} of {own}")
     if ev.separates:
@@ -574,7 +597,8 @@ def _why(t: Duel, t1: Duel | None, ev: Evidence, bias: pd.Series, unit: str, own
     )
 
 
-def _varma_drift(daily: pd.DataFrame) -> str:
+def _varma_drift(daily: pd.DataFrame, trend: str) -> str:
+    """A sentence when VARMA's error grows with the distance from the training days."""
     v = daily[daily["model"] == "varma"].sort_values("day")["nrmse_pct"].to_numpy()
     if len(v) < 6:
         return ""
@@ -582,24 +606,240 @@ def _varma_drift(daily: pd.DataFrame) -> str:
     first, last = float(np.mean(v[:k])), float(np.mean(v[-k:]))
     if last <= 2 * first:
         return ""
-    return (
-        f"VARMA's error grows with the distance from the training days (mean daily NRMSE "
-        f"{_f(first)} % over the first third of the test days, {_f(last)} % over the last "
-        "third), consistent with its trend `ct`: the drift fitted on five days is "
-        "extrapolated to every later day (the caveat documented in `models/varma.py`)."
+    why = (
+        "consistent with a trend with drift: the drift fitted on five days is extrapolated to "
+        "every later day (the caveat documented in `models/varma.py`)"
+        if "t" in trend else
+        f"with trend `{trend}` no drift is extrapolated, so this is the training days' "
+        "dynamics carrying over less well to later days"
     )
+    return (
+        f"Its error grows with the distance from the training days (mean daily NRMSE "
+        f"{_f(first)} % over the first third of the test days, {_f(last)} % over the last "
+        f"third), {why}."
+    )
+
+
+# ---------------------------------------------------------------------------- the targets
+
+
+@dataclass(frozen=True)
+class Figures:
+    """The issue's figures for one run, computed from its evaluation outputs.
+
+    NRMSE figures are mean daily NRMSE [%] over each model's scored days; cover1/cover2 [%],
+    mean_std and rmse [unit] pool all scored readings of the ``estimate`` rows; sigma_cv is
+    the mean over days of std(σ)/mean(σ) of those rows (0 = σ constant within each day).
+    """
+
+    days: int
+    primary: str
+    estimate: float
+    triv: float
+    best_ref: str  # the raw reference with the lowest mean daily NRMSE (`ref` or ref:<sensor>)
+    ref: float
+    n: int
+    cover1: float
+    cover2: float
+    mean_std: float
+    rmse: float
+    sigma_cv: float
+    varma: float
+    varma_withheld: str  # why VARMA is not published live ("" when it is)
+    best_model: str  # hindsight: the trained model with the lowest NRMSE on the test days
+    best_nrmse: float
+
+    @property
+    def floor(self) -> float:
+        """The simple answer: the lower of TRIV's and the best raw reference's NRMSE."""
+        return float(np.nanmin([self.triv, self.ref])) if np.isfinite(
+            [self.triv, self.ref]).any() else float("nan")
+
+    @property
+    def ratio(self) -> float:
+        return self.estimate / self.floor if self.floor > 0 else float("nan")
+
+    @property
+    def floor_met(self) -> bool:
+        return bool(self.ratio <= FLOOR_RATIO)
+
+    @property
+    def cover_met(self) -> bool:
+        return bool(COVER2_RANGE[0] <= self.cover2 <= COVER2_RANGE[1])
+
+    @property
+    def sigma_varies(self) -> bool:
+        return bool(self.sigma_cv > 1e-9)
+
+    @property
+    def varma_ratio(self) -> float:
+        return self.varma / self.triv if self.triv > 0 else float("nan")
+
+    @property
+    def varma_met(self) -> bool:
+        """VARMA within BASELINE_LIMIT × TRIV, or not published live."""
+        return bool(self.varma_ratio <= BASELINE_LIMIT) or bool(self.varma_withheld)
+
+
+def _is_raw(model: str) -> bool:
+    return model == REF or model.startswith(REF_PREFIX)
+
+
+def _raw_name(res: RunResult, model: str) -> str:
+    """A raw reference's row named with its sensor: `ref` (sensor) or `sensor` raw."""
+    if model.startswith(REF_PREFIX):
+        return f"`{model[len(REF_PREFIX):]}` raw"
+    refs = getattr(res.ev.artifact.models.get(model), "references_", None)
+    return f"`{model}` on {refs[0]}" if refs else f"`{model}`"
+
+
+def figures(res: RunResult) -> Figures:
+    art = res.ev.artifact
+    g = res.daily.groupby("model")["nrmse_pct"].mean()
+    raw = g[[m for m in g.index if _is_raw(str(m))]].dropna()
+    best_ref = str(raw.idxmin()) if len(raw) else "—"
+    e = res.estimates[res.estimates["model"] == ESTIMATE]
+    s = metrics.score(e["truth"].to_numpy(), e["value"].to_numpy(), e["std"].to_numpy())
+    cv = float("nan")
+    if len(e):
+        days, _ = res.spec.twin.hours.day_and_hours(e["ts"])
+        std = e["std"].astype(float)
+        per_day = std.groupby(np.asarray(days)).agg(["std", "mean", "count"])
+        per_day = per_day[(per_day["count"] > 1) & (per_day["mean"] > 0)]
+        if len(per_day):
+            cv = float((per_day["std"] / per_day["mean"]).mean())
+    trained = g[[m for m in g.index if m in art.models]].dropna()
+    best = str(trained.idxmin()) if len(trained) else "—"
+    return Figures(
+        days=int(res.daily["day"].nunique()), primary=art.primary,
+        estimate=float(g.get(ESTIMATE, np.nan)), triv=float(g.get(BASE, np.nan)),
+        best_ref=best_ref, ref=float(raw.min()) if len(raw) else float("nan"), n=s.n,
+        cover1=s.cover1_pct, cover2=s.cover2_pct, mean_std=s.mean_std, rmse=s.rmse,
+        sigma_cv=cv, varma=float(g.get("varma", np.nan)),
+        varma_withheld=str(art.withheld.get("varma", "")),
+        best_model=best, best_nrmse=float(trained.min()) if len(trained) else float("nan"),
+    )
+
+
+def _mark(ok: bool, value: str) -> str:
+    return value if value == "—" else f"{value} {OK if ok else '✗'}"
+
+
+def validation_md(res: RunResult) -> str:
+    """The artifact's leave-one-day-out scores on the training days, and why the primary won."""
+    art = res.ev.artifact
+    v = art.validation
+    if not v or not v.get("scores"):
+        return (f"No validation recorded in the artifact: the primary `{art.primary}` was not "
+                "chosen by validation.")
+    withheld = v.get("withheld", {})
+    unit = art.unit
+    rows = []
+    for kind, sc in v["scores"].items():
+        if kind == art.primary:
+            note = "**primary** (published as `estimate`)"
+        elif sc.get("candidate"):
+            note = "candidate"
+        else:
+            note = "baseline (never primary)"
+        if sc.get("error"):
+            note += f"; {sc['error']}"
+        if kind in withheld:
+            note += f"; **not published live**: {withheld[kind]}"
+        elif kind != art.primary:
+            note += "; published live"
+        rows.append([kind, _f(sc.get("nrmse_pct")), _f(sc.get("crps"), 3),
+                     _f(sc.get("cover2_pct"), 1), str(sc.get("days", "")), note])
+    table = _table(["model", "held-out NRMSE %", f"CRPS [{unit}]", "±2σ cover %", "days",
+                    "note"], rows, text=(5,))
+    reason = f"Primary: {v.get('reason', '')}."
+    if v.get("primary") not in (None, art.primary):
+        reason += (f" (Validation chose `{v['primary']}`; `{art.primary}` was pinned by the "
+                   "user.)")
+    extra = [f"Method: {v.get('method', 'unknown')}"]
+    if np.isfinite(float(v.get("offset_std", np.nan))):
+        extra.append(f"spread (std) of the daily mean reference–target offset over the "
+                     f"training days {_f(v['offset_std'], 3)} {unit}, the floor of every "
+                     "model's day-level σ")
+    if "seconds" in v:
+        extra.append(f"{_f(v['seconds'], 1)} s")
+    return "\n\n".join([table, reason + " " + "; ".join(extra) + "."])
+
+
+def verdict_md(res: RunResult) -> str:
+    """The published estimate against the issue's figures; then the GP-vs-TRIV evidence."""
+    f = figures(res)
+    unit = res.ev.artifact.unit
+    parts: list[str] = []  # the estimate against the figures
+    more: list[str] = []  # the primary, VARMA
+    if not np.isfinite(f.ratio):
+        parts.append("**Estimate vs floor: not measurable** (no `estimate` or no floor rows).")
+    else:
+        pct = 100.0 * (f.ratio - 1.0)
+        where = ("equal to the floor" if abs(pct) < 0.05 else
+                 f"{_f(-pct, 1)} % below the floor" if pct < 0 else
+                 f"{_f(pct, 1)} % above the floor ({_signed(f.estimate - f.floor)} points)")
+        state = ("met" if f.floor_met else "not met")
+        limit = f"≤ {FLOOR_RATIO:.2f}" if f.floor_met else f"> {FLOOR_RATIO:.2f}"
+        parts.append(
+            f"**Estimate vs floor: {state}** — the published estimate scores {_f(f.estimate)} % "
+            f"mean daily NRMSE against the floor {_f(f.floor)} % (the lower of TRIV's "
+            f"{_f(f.triv)} % and the best raw reference's {_f(f.ref)} %, "
+            f"{_raw_name(res, f.best_ref)}): ratio {_f(f.ratio, 3)} ({limit}), {where}."
+        )
+    lo, hi = COVER2_RANGE
+    size = (f"mean σ {_f(f.mean_std, 3)} {unit} vs RMSE {_f(f.rmse, 3)} {unit} "
+            f"(ratio {_f(f.mean_std / f.rmse if f.rmse > 0 else np.nan)})")
+    if not np.isfinite(f.cover2):
+        parts.append("**±2σ coverage: not measurable** (the estimate has no σ).")
+    elif f.cover_met:
+        parts.append(f"**±2σ coverage: met** — {_f(f.cover2, 1)} % of the {f.n} scored "
+                     f"readings lie inside the estimate's ±2σ band (target {lo:.0f}–{hi:.0f} %; "
+                     f"±1σ: {_f(f.cover1, 1)} %); {size}.")
+    else:
+        kind = "too narrow" if f.cover2 < lo else "too wide"
+        parts.append(f"**±2σ coverage: not met, σ {kind}** — {_f(f.cover2, 1)} % of the {f.n} "
+                     f"scored readings lie inside ±2σ (target {lo:.0f}–{hi:.0f} %; ±1σ: "
+                     f"{_f(f.cover1, 1)} %); {size}.")
+    if np.isfinite(f.sigma_cv):
+        parts.append(
+            f"σ varies within the day (mean within-day std/mean of σ {_f(100 * f.sigma_cv, 1)} "
+            "%)." if f.sigma_varies else "**σ is constant within each day** (a defect).")
+    hind = ("also the best trained model on the test days" if f.best_model == f.primary
+            else f"in hindsight `{f.best_model}` was the best trained model on the test days "
+                 f"({_f(f.best_nrmse)} %)")
+    more.append(f"The estimate is `{f.primary}`'s, chosen on the training days (table above); "
+                 f"{hind}.")
+    if np.isfinite(f.varma):
+        vm = res.ev.artifact.models.get("varma")
+        name = getattr(vm, "model_name_", "varma")
+        trend = str(getattr(vm, "trend", "?"))
+        mode = getattr(vm, "target_mode", None)
+        fell = (f", re-levelled each day (target_mode `{mode}`)" if mode == "shifted" else
+                f", target_mode `{mode}`" if mode else "")
+        fell += f", here the fallback `{name}`" if name != "varma" else ""
+        live = (f"not published live ({f.varma_withheld})" if f.varma_withheld
+                else "published live")
+        within = (f"within the {BASELINE_LIMIT:g}× limit" if f.varma_ratio <= BASELINE_LIMIT
+                  else f"above the {BASELINE_LIMIT:g}× limit")
+        state = "met" if f.varma_met else "not met"
+        sent = (f"**VARMA: {state}** — trend `{trend}`{fell}: {_f(f.varma)} % mean daily "
+                f"NRMSE, {_f(f.varma_ratio)}× TRIV's ({within}); {live}.")
+        drift = _varma_drift(res.daily, trend)
+        more.append(sent + (" " + drift if drift else ""))
+    return "\n\n".join([" ".join(parts), " ".join(more), gp_md(res)])
 
 
 def seasonal_md(res: RunResult) -> str:
     """Appliances: zero-mean LCM vs TRIV-mean corrgp-triv over the months."""
-    models = [m for m in ("corrgp-lcm", PRIMARY, PROFILE, BASE, "varma")
+    models = [m for m in ("corrgp-lcm", GP, PROFILE, BASE, "varma")
               if m in set(res.monthly["model"])]
     piv = res.monthly.pivot(index="month", columns="model", values="nrmse_pct")[models]
     d = res.daily.assign(month=res.daily["day"].str[:7])
-    days = d[d["model"] == PRIMARY].groupby("month")["day"].nunique()
+    days = d[d["model"] == ESTIMATE].groupby("month")["day"].nunique()
     ref_model = REF_PREFIX + res.primary_ref
     r = d[d["model"] == ref_model].groupby("month")["pearson_r"].median()
-    names = {PRIMARY: "corrgp-triv (shifted)"}
+    names = {GP: "corrgp-triv (shifted)"}
     x = np.arange(len(piv.index), dtype=float)
     slope: dict[str, float] = {}
     rel: dict[str, float] = {}
@@ -627,13 +867,13 @@ def seasonal_md(res: RunResult) -> str:
     def span(m: str) -> str:
         return f"{_f(piv.at[first, m])} % in {first} → {_f(piv.at[last, m])} % in {last}"
 
-    lcm_t, triv_t = trend("corrgp-lcm"), trend(PRIMARY)
+    lcm_t, triv_t = trend("corrgp-lcm"), trend(GP)
     rule = (f"Rule: a model *degrades* when the least-squares slope of its monthly NRMSE over "
             f"the month index exceeds {100 * SEASON_REL_SLOPE:.0f} % of its mean monthly NRMSE "
             "per month; otherwise it *holds*.")
     facts = (f"corrgp-lcm (zero mean) {span('corrgp-lcm')}, slope {_f(slope.get('corrgp-lcm'))}"
-             f" points/month ({lcm_t}); corrgp-triv (shifted) {span(PRIMARY)}, slope "
-             f"{_f(slope.get(PRIMARY))} points/month ({triv_t})")
+             f" points/month ({lcm_t}); corrgp-triv (shifted) {span(GP)}, slope "
+             f"{_f(slope.get(GP))} points/month ({triv_t})")
     if PROFILE in slope:
         facts += (f"; corrgp-triv (profile) {span(PROFILE)}, slope {_f(slope[PROFILE])} "
                   f"points/month ({trend(PROFILE)})")
@@ -642,7 +882,7 @@ def seasonal_md(res: RunResult) -> str:
     if best != first:
         facts += (f" corrgp-lcm is not monotonic: its lowest month is {best} "
                   f"({_f(piv.at[best, 'corrgp-lcm'])} %).")
-    below = [str(mo) for mo in piv.index if piv.at[mo, PRIMARY] < piv.at[mo, BASE]]
+    below = [str(mo) for mo in piv.index if piv.at[mo, GP] < piv.at[mo, BASE]]
     facts += (f" corrgp-triv (shifted) is below TRIV in {len(below)} of {len(piv.index)} "
               f"months ({', '.join(below) or 'none'}).")
     if lcm_t == "degrades" and triv_t == "holds":
@@ -654,12 +894,12 @@ def seasonal_md(res: RunResult) -> str:
     else:
         finding = ("**The thesis's finding is not reproduced here**: the zero-mean LCM does "
                    "not degrade with the seasons on this pair of rooms by the rule above.")
-        lvl = piv["corrgp-lcm"] - piv[PRIMARY]
+        lvl = piv["corrgp-lcm"] - piv[GP]
         if (lvl > 0).all():
             finding += (" It is worse than corrgp-triv in every month, but by a margin that "
                         "does not grow towards May.")
     if PROFILE in piv.columns:
-        diff = float((piv[PROFILE] - piv[PRIMARY]).mean())
+        diff = float((piv[PROFILE] - piv[GP]).mean())
         better = "shifted" if diff > 0 else "profile"
         finding += (f" Shifted vs unshifted reference prior mean: the {better} variant is "
                     f"better on average by {_f(abs(diff))} points of monthly NRMSE.")
@@ -728,7 +968,10 @@ def _versions() -> str:
     return ", ".join(out)
 
 
-HOW_TO_READ = """\
+# The candidates for primary, simplest first (the tie-break order of validation).
+_CANDIDATES = " < ".join(k for k, c in MODELS.items() if c.candidate)
+
+HOW_TO_READ = f"""\
 ## How to read these tables
 
 * **Protocol** (DESIGN.md §7, thesis 6.5): every model is trained on the first five days from
@@ -736,28 +979,51 @@ HOW_TO_READ = """\
   replayed reading by reading through the same `Twin` the daemon runs; at each true reading of
   the target within operating hours 08:00–19:00 local time every model gives its estimate from
   the references' readings up to that instant only (causal; the target is never fed in).
+* **`estimate`** is exactly what the daemon publishes on `<twin>/estimate`: the primary
+  model's estimate, with its fallbacks and quality flags. It is the product; the other
+  rows are the models behind it and the baselines it is judged against.
+* **Validation** (training days only): each training day in turn is held out, every model is
+  trained on the other days and the held-out day replayed causally. The candidate with the
+  lowest mean held-out daily NRMSE becomes the primary, except that the simplest candidate
+  within {VALIDATION_TIE:.0%} of it wins ({_CANDIDATES}). VARMA is a monitoring
+  baseline, never primary, and is not published live when its held-out NRMSE exceeds
+  {BASELINE_LIMIT:g}× TRIV's. The test days are never looked at for any of this.
 * **NRMSE %** (6.10) = the day's RMSE of the estimate against the target's true readings in
   operating hours / the mean of those true readings × 100. **ΔT_max %** (6.14) = the day's
   largest absolute error / the same mean × 100. *Mean daily* = mean over the test days; the
   monthly tables are the monthly means of the daily NRMSE (thesis Tables 6.2–6.4).
-* **Models**: `corrgp-triv` = Corr-GP ICM with TRIV as the target's prior mean (one reference,
-  its prior mean the training profile shifted to the day's level in the 30-min init phase);
-  `corrgp-lcm` = zero-mean Corr-GP LCM over all references; `triv` = training offset profile +
-  live reference, averaged over references; `varma` = VARMAX(4, 4) with trend `ct` on the
-  15-min grid. `ref:<sensor> (raw)` is the raw reference value held at the reading's time,
+* **Models**: `ref` = the raw reference held (the one closest to the target on the training
+  days), with a calibrated σ; `corrgp-triv` = Corr-GP ICM with TRIV as the target's prior
+  mean (one reference, its prior mean the training profile shifted to the day's level in the
+  30-min init phase); `corrgp-lcm` = zero-mean Corr-GP LCM over all references; `triv` =
+  training offset profile + live reference, averaged over references; `varma` = VARMAX(4, 4)
+  with trend `n` (no constant, no drift) on the 15-min grid, every series re-levelled each
+  day by the references' init-phase shift (its fallback: VAR(4) by least squares).
+  `ref:<sensor> (raw)` is the raw reference value held at the reading's time, without σ,
   scored as if it were an estimate: its NRMSE is the error of "just use the reference", and
   its **daily Pearson r** with the target is the evidence of how much that reference can tell
   about the target's within-day course (thesis Fig. 6.6). The r of a model is that of its
   estimate with the truth.
-* **Calibration** (per model, pooled over all scored readings): the share of true readings
-  inside the estimate's ±1σ and ±2σ bands (a calibrated Gaussian σ covers 68.3 % and
+* **σ calibration**: every model's σ (ref and TRIV included) comes from its held-out errors
+  in validation: a day-level part (never below the day-to-day spread of the reference–target
+  offset, which no reading of today reveals) plus a within-day part that depends on the time
+  of day and on how fast the references move, widened for the few days it is estimated from.
+  So σ varies within a day.
+* **Calibration tables** (per model, pooled over all scored readings): the share of true
+  readings inside the estimate's ±1σ and ±2σ bands (a calibrated Gaussian σ covers 68.3 % and
   95.4 %), the mean σ next to the RMSE (mean σ / RMSE ≈ 1 when σ is the right size), and the
-  mean CRPS (continuous ranked probability score of the Gaussian N(estimate, σ²), in the
-  quantity's unit, lower is better; for an estimate without σ, such as a raw reference, it
-  is the absolute error). Computed by `pseudotwin.live.metrics`, as in `daily.csv`.
-* **Verdicts** are computed by the script from the daily tables: corrgp-triv *beats* a
-  baseline when its mean daily NRMSE is lower **and** it is better on more than half of the
-  days. n = scored target readings per day.
+  mean **CRPS** (continuous ranked probability score of the Gaussian N(estimate, σ²), in the
+  quantity's unit, lower is better: it rewards a small error and a σ of the right size; for
+  an estimate without σ, such as a raw reference, it is the absolute error). Computed by
+  `pseudotwin.live.metrics`, as in `daily.csv`.
+* **Verdicts** are computed by the script from the test days, against the figures the
+  product must reach: the estimate's mean daily NRMSE ≤ {FLOOR_RATIO:.2f} × the *floor*, the
+  lower of TRIV's and the best raw reference's (never meaningfully worse than the simple
+  answer); ±2σ coverage of the estimate {COVER2_RANGE[0]:.0f}–{COVER2_RANGE[1]:.0f} %, σ not
+  constant within a day; VARMA's mean daily NRMSE ≤ {BASELINE_LIMIT:g}× TRIV's, or VARMA not
+  published live. Secondary: corrgp-triv *beats* TRIV when its mean daily NRMSE is lower
+  **and** it is better on more than half of the days, with the daily r evidence. n = scored
+  target readings per day.
 * CSV (`daily.csv`, `monthly.csv`, `estimates.csv`), the artifact and plots (daily NRMSE per
   model, one median day) of each run are written to `out/results/<run>/` (not committed).
 """
@@ -837,17 +1103,39 @@ def _performance() -> list[str]:
 
 def _overview(results: Sequence[RunResult]) -> str:
     rows = []
-    for res in results:
-        g = res.daily.groupby("model")["nrmse_pct"].mean()
-        t = duel(res.daily, BASE)
+    figs = [figures(res) for res in results]
+    for res, f in zip(results, figs, strict=True):
+        ref = _raw_name(res, f.best_ref)
         rows.append([
-            res.spec.name, str(res.daily["day"].nunique()),
-            *[_f(g.get(m, np.nan)) for m in ("corrgp-triv", "corrgp-lcm", "triv", "varma")],
-            "—" if t is None else f"{'yes' if t.beats else 'no'} ({t.wins}/{t.days} days)",
+            res.spec.name, str(f.days), f"`{f.primary}`", _f(f.estimate), _f(f.triv),
+            f"{_f(f.ref)} ({ref})", _f(f.floor), _mark(f.floor_met, _f(f.ratio, 3)),
+            _mark(f.cover_met, _f(f.cover2, 1)), _mark(f.sigma_varies, _f(100 * f.sigma_cv, 1)),
+            _mark(bool(f.varma_ratio <= BASELINE_LIMIT), _f(f.varma_ratio)),
+            "—" if not np.isfinite(f.varma) else ("no" if f.varma_withheld else "yes"),
         ])
-    return _table(["run", "test days", "corrgp-triv", "corrgp-lcm", "triv", "varma",
-                   "corrgp-triv beats triv"], rows) + (
-        "\n\nMean daily NRMSE % per run and model.")
+    table = _table(["run", "test days", "primary (validation)", "estimate", "triv",
+                    "best raw reference", "floor", "estimate / floor", "±2σ cover %",
+                    "σ within-day CV %", "varma / triv", "varma live"], rows, left=3)
+    n = len(figs)
+    met = [
+        f"estimate ≤ {FLOOR_RATIO:.2f} × floor on {sum(f.floor_met for f in figs)} of {n}",
+        f"±2σ coverage {COVER2_RANGE[0]:.0f}–{COVER2_RANGE[1]:.0f} % on "
+        f"{sum(f.cover_met for f in figs)} of {n}",
+        f"σ varying within the day on {sum(f.sigma_varies for f in figs)} of {n}",
+        f"VARMA within {BASELINE_LIMIT:g}× TRIV or not published live on "
+        f"{sum(f.varma_met for f in figs if np.isfinite(f.varma))} of "
+        f"{sum(bool(np.isfinite(f.varma)) for f in figs)}",
+    ]
+    return table + (
+        "\n\nMean daily NRMSE % over the test days: `estimate` is what the daemon publishes "
+        "(the primary chosen by validation on the training days, with its fallbacks); the "
+        "floor is the lower of TRIV's and the best raw reference's (the `ref` model or a "
+        "`ref:<sensor>` row). ±2σ coverage pools all scored readings of the estimate; σ "
+        "within-day CV = mean over days of std(σ)/mean(σ) of the estimate. ✓/✗: estimate / "
+        f"floor ≤ {FLOOR_RATIO:.2f}, coverage {COVER2_RANGE[0]:.0f}–{COVER2_RANGE[1]:.0f} %, "
+        f"CV > 0, VARMA / TRIV ≤ {BASELINE_LIMIT:g} (otherwise VARMA must not be published "
+        "live). Targets met: " + "; ".join(met) + " runs."
+    )
 
 
 def _section(res: RunResult) -> list[str]:
@@ -868,7 +1156,8 @@ def _section(res: RunResult) -> list[str]:
     ]
     if res.notes:
         lines += ["Notes: " + "; ".join(res.notes) + ".", ""]
-    lines += ["### Summary", "", summary_md(res), "",
+    lines += ["### Validation on the training days", "", validation_md(res), "",
+              "### Summary", "", summary_md(res), "",
               "### Calibration (all scored readings)", "", calibration_md(res), "",
               "### Verdict", "", verdict_md(res), ""]
     if spec.long_term:

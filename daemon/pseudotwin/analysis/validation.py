@@ -119,10 +119,10 @@ def offset_variance(spec: TwinSpec, days: Sequence[DayReadings]) -> float:
     means = []
     for d in days:
         tgt = d.slot_values(spec.target, spec.hours)
-        diff = np.nanmean([tgt - d.slot_values(r, spec.hours) for r in spec.references], axis=0)
-        ok = np.isfinite(diff)
+        diffs = np.array([tgt - d.slot_values(r, spec.hours) for r in spec.references])
+        ok = np.isfinite(diffs)
         if ok.any():
-            means.append(float(np.mean(diff[ok])))
+            means.append(float(np.mean(diffs[ok])))
     return float(np.var(means, ddof=1)) if len(means) > 1 else 0.0
 
 

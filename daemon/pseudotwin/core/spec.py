@@ -91,3 +91,34 @@ class TwinSpec:
             "quantity": self.quantity.value,
             "unit": self.unit,
         }
+
+
+class OfTwin:
+    """Read access to a ``spec: TwinSpec`` attribute's parts, for the value objects that
+    belong to one twin (its training set, its artifact)."""
+
+    spec: TwinSpec
+
+    @property
+    def references(self) -> tuple[str, ...]:
+        return self.spec.references
+
+    @property
+    def target(self) -> str:
+        return self.spec.target
+
+    @property
+    def quantity(self) -> Quantity:
+        return self.spec.quantity
+
+    @property
+    def hours(self) -> OperatingHours:
+        return self.spec.hours
+
+    @property
+    def unit(self) -> str:
+        return self.spec.unit
+
+    @property
+    def sensors(self) -> tuple[str, ...]:
+        return self.spec.sensors

@@ -161,6 +161,8 @@ class Service:
             log.warning("disconnected from the broker (%s); reconnecting", reason_code)
 
     def _on_message(self, client: mqtt.Client, userdata: Any, msg: mqtt.MQTTMessage) -> None:
+        if self.stop_event.is_set():
+            return  # stopping: not queued, not acknowledged, redelivered on the next start
         self.health.received += 1
         sensor = self.cfg.sensor_for_topic(msg.topic)
         item = ("msg", sensor, msg.topic, msg.payload, self.clock.now(),

@@ -16,7 +16,7 @@ from typing import Any
 
 from pseudotwin import __version__
 from pseudotwin.core.horizon import OperatingHours
-from pseudotwin.core.spec import Quantity, TwinSpec
+from pseudotwin.core.spec import OfTwin, Quantity, TwinSpec
 from pseudotwin.errors import ArtifactError, ConfigError
 from pseudotwin.live.calibration import SigmaCalibration
 from pseudotwin.models.base import TwinModel
@@ -27,7 +27,7 @@ VERSION = 1
 
 
 @dataclass(frozen=True)
-class Artifact:
+class Artifact(OfTwin):
     """A trained twin.
 
     models: kind → fitted model; primary: the kind published as the twin's ``estimate``.
@@ -50,22 +50,6 @@ class Artifact:
             raise ArtifactError(f"primary model {self.primary!r} is not in the artifact")
 
     @property
-    def references(self) -> tuple[str, ...]:
-        return self.spec.references
-
-    @property
-    def target(self) -> str:
-        return self.spec.target
-
-    @property
-    def quantity(self) -> Quantity:
-        return self.spec.quantity
-
-    @property
-    def hours(self) -> OperatingHours:
-        return self.spec.hours
-
-    @property
     def withheld(self) -> dict[str, str]:
         """Models trained but not published live: kind → why (from validation)."""
         return dict(self.validation.get("withheld", {}))
@@ -75,14 +59,6 @@ class Artifact:
         """The models the daemon runs and publishes: the primary and the baselines that
         validation did not withhold."""
         return [k for k in self.models if k == self.primary or k not in self.withheld]
-
-    @property
-    def unit(self) -> str:
-        return self.spec.unit
-
-    @property
-    def sensors(self) -> tuple[str, ...]:
-        return self.spec.sensors
 
     def to_dict(self) -> dict[str, Any]:
         return {

@@ -90,7 +90,9 @@ class SigmaCalibration:
             bins[int(bi)] = max((n * float(np.mean(rest[sel])) + n0 * a) / (n + n0), BIN_FLOOR * a)
         within = float(np.mean(w2))
         total = day_var + within
-        nu = total**2 / (day_var**2 / n_days + within**2 / (WITHIN_DAY_DOF * n_days) + 1e-300)
+        # The held-out day levels are centred on the other days' mean: n − 1 dof.
+        day_dof = max(n_days - 1, 1)
+        nu = total**2 / (day_var**2 / day_dof + within**2 / (WITHIN_DAY_DOF * n_days) + 1e-300)
         factor = float((stats.t.ppf(stats.norm.cdf(Z2), nu) / Z2) ** 2)
         return cls(day_var, a, float(k), factor, n_days, bins)
 

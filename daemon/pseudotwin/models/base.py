@@ -11,13 +11,12 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any, ClassVar, Self
 
-from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.series import DayReadings
-from pseudotwin.core.spec import Quantity, TwinSpec
+from pseudotwin.core.spec import OfTwin, TwinSpec
 
 
 @dataclass(frozen=True)
-class TrainingSet:
+class TrainingSet(OfTwin):
     """What a model is trained on: a few days on which the target stood next to the references.
 
     days: the training days' windows (init start … day end, with carry-over).
@@ -25,26 +24,6 @@ class TrainingSet:
 
     spec: TwinSpec
     days: tuple[DayReadings, ...]
-
-    @property
-    def references(self) -> tuple[str, ...]:
-        return self.spec.references
-
-    @property
-    def target(self) -> str:
-        return self.spec.target
-
-    @property
-    def hours(self) -> OperatingHours:
-        return self.spec.hours
-
-    @property
-    def quantity(self) -> Quantity:
-        return self.spec.quantity
-
-    @property
-    def sensors(self) -> tuple[str, ...]:
-        return self.spec.sensors
 
 
 @dataclass(frozen=True)
