@@ -318,3 +318,31 @@ def desk_artifact(tmp_path_factory: pytest.TempPathFactory) -> Path:
     # Pinned: the daemon tests exercise the GP on <twin>/estimate (validation would pick TRIV).
     art = train_twin(sml(), spec, dt.date(2012, 3, 14), 5, primary="corrgp-triv")
     return art.save(tmp_path_factory.mktemp("artifact") / "desk.json")
+
+
+@pytest.fixture
+def service_factory(
+    mosquitto: MosquittoBroker, desk_artifact: Path, tmp_path: Path
+) -> Iterator[Callable[..., Any]]:
+    """Start in-process daemons (or recorders: ``kind``) on the test broker with the desk
+    twin, on a replay clock from ``start`` at ``speed``; all are stopped at the end."""
+    import datetime as dt
+
+    from daemon_support import DAY, HOURS, config
+    from pseudotwin.edge.clock import ReplayClock
+    from pseudotwin.edge.service import Service
+
+    made: list[Any] = []
+
+    def make(start: dt.datetime | None = None, speed: float = 1.0, *, kind: type = Service,
+             **kw: object) -> Any:
+        cfg = config(tmp_path, mosquitto.port, desk_artifact, **kw)
+        s = kind(cfg, clock=ReplayClock(start or HOURS.at(DAY, 12.0), speed))
+        s.start(wait_connected=15)
+        made.append(s)
+        return s
+
+    yield make
+    for s in made:
+        if not s.stop_event.is_set():
+            s.stop()

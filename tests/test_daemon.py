@@ -9,7 +9,6 @@ import threading
 from pathlib import Path
 
 import paho.mqtt.client as mqtt
-import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 
 from daemon_support import DAY, HOURS, REF, TARGET, config, day_readings, sml, wait_for
@@ -66,21 +65,6 @@ def reading(ts: dt.datetime, value: float) -> bytes:
     return json.dumps({"ts": ts.isoformat(), "value": value}).encode()
 
 
-@pytest.fixture
-def service_factory(mosquitto, desk_artifact, tmp_path):
-    made: list[Service] = []
-
-    def make(start: dt.datetime, speed: float = 1.0, **kw) -> Service:
-        cfg = config(tmp_path, mosquitto.port, desk_artifact, **kw)
-        s = Service(cfg, ReplayClock(start, speed))
-        s.start(wait_connected=15)
-        made.append(s)
-        return s
-
-    yield make
-    for s in made:
-        if not s.stop_event.is_set():
-            s.stop()
 
 
 def test_live_estimates_equal_evaluate(service_factory, mosquitto, desk_artifact) -> None:

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from daemon_support import DAY, HOURS, REF, config, day_readings, sml, wait_for, write_config
+from daemon_support import DAY, HOURS, REF, day_readings, sml, wait_for, write_config
 from pseudotwin.edge.clock import ReplayClock
 from pseudotwin.edge.mqttconn import EX_NOPERM
 from pseudotwin.edge.recorder import Recorder
@@ -49,21 +49,6 @@ def journal_lines(folder: Path) -> int:
                .glob("*.jsonl"))
 
 
-@pytest.fixture
-def services(mosquitto, desk_artifact, tmp_path):
-    made: list[Service | Recorder] = []
-
-    def make(kind: type = Service, at: dt.datetime = NOON, **kw: object) -> Service:
-        cfg = config(tmp_path, mosquitto.port, desk_artifact, **kw)
-        s = kind(cfg, clock=ReplayClock(at, 1.0))
-        s.start(wait_connected=15)
-        made.append(s)
-        return s
-
-    yield make
-    for s in made:
-        if not s.stop_event.is_set():
-            s.stop()
 
 
 def send(port: int, payloads: list[bytes], name: str) -> None:
@@ -76,18 +61,18 @@ def send(port: int, payloads: list[bytes], name: str) -> None:
 
 # -- 1. edge-of-range timestamps ----------------------------------------------------------
 def test_edge_of_range_timestamps_are_rejected_and_never_stall_the_daemon(
-    services, mosquitto
+    service_factory, mosquitto
 ) -> None:
-    svc = services()
+    svc = service_factory()
     good = morning(40)
     send(mosquitto.port, BAD_TS * 30 + good, "rel-ts-daemon")  # 60 > the in-flight window
     wait_for(lambda: svc.accepted == len(good), what=lambda: f"{svc.accepted} accepted")
     assert svc.rejections.counts[(REF, "bad-timestamp")] == 60
 
 
-def test_edge_of_range_timestamps_are_rejected_by_the_recorder(services, mosquitto,
+def test_edge_of_range_timestamps_are_rejected_by_the_recorder(service_factory, mosquitto,
                                                                tmp_path: Path) -> None:
-    rec = services(Recorder, store="history.db")
+    rec = service_factory(kind=Recorder, store="history.db")
     good = morning(40)
     send(mosquitto.port, BAD_TS * 30 + good, "rel-ts-recorder")
     wait_for(lambda: rec.written == len(good), what=lambda: f"{rec.written} written")
@@ -97,10 +82,10 @@ def test_edge_of_range_timestamps_are_rejected_by_the_recorder(services, mosquit
 
 # -- 2 + 3. the journal fails, then works again -------------------------------------------
 def test_journal_failure_degrades_and_recovers_by_itself_without_losing_a_reading(
-    services, mosquitto, tmp_path: Path
+    service_factory, mosquitto, tmp_path: Path
 ) -> None:
     status = Viewer(mosquitto.port, "pt/status")
-    svc = services()
+    svc = service_factory()
     readings = morning(60)
     send(mosquitto.port, readings[:10], "rel-journal-1")
     wait_for(lambda: svc.accepted == 10, what="first readings")
@@ -124,7 +109,7 @@ def test_journal_failure_degrades_and_recovers_by_itself_without_losing_a_readin
 
 # -- 4. invalid UTF-8 in a journal ---------------------------------------------------------
 def test_invalid_utf8_in_the_journal_is_skipped_and_the_daemon_starts(
-    services, tmp_path: Path, caplog
+    service_factory, tmp_path: Path, caplog
 ) -> None:
     jdir = tmp_path / "state" / "journal"
     jdir.mkdir(parents=True)
@@ -133,16 +118,16 @@ def test_invalid_utf8_in_the_journal_is_skipped_and_the_daemon_starts(
     (jdir / f"{DAY.isoformat()}.jsonl").write_bytes(
         b"\n".join(good[:10]) + b"\n\xff\xfe\x00garbage\n" + b"\n".join(good[10:]) + b"\n")
     with caplog.at_level(logging.INFO):
-        svc = services()
+        svc = service_factory()
     assert svc.connected.is_set()
     assert f"restored state from {len(good)} journaled readings" in caplog.text
     assert "unreadable, skipped" in caplog.text
 
 
 # -- 5. state dir / store deleted while running -------------------------------------------
-def test_deleted_state_dir_is_detected_and_rebuilt(services, mosquitto, tmp_path: Path,
+def test_deleted_state_dir_is_detected_and_rebuilt(service_factory, mosquitto, tmp_path: Path,
                                                    caplog) -> None:
-    svc = services()
+    svc = service_factory()
     readings = morning(40)
     send(mosquitto.port, readings[:20], "rel-rm-1")
     wait_for(lambda: svc.accepted == 20, what="first half")
@@ -160,9 +145,9 @@ def test_deleted_state_dir_is_detected_and_rebuilt(services, mosquitto, tmp_path
 
 
 def test_deleted_store_is_detected_and_recreated_by_the_recorder(
-    services, mosquitto, tmp_path: Path, caplog
+    service_factory, mosquitto, tmp_path: Path, caplog
 ) -> None:
-    rec = services(Recorder, store="history.db")
+    rec = service_factory(kind=Recorder, store="history.db")
     readings = morning(40)
     send(mosquitto.port, readings[:20], "rel-rmdb-1")
     wait_for(lambda: rec.written == 20, what="first half stored")
@@ -177,8 +162,8 @@ def test_deleted_store_is_detected_and_recreated_by_the_recorder(
 
 
 # -- 6. flood: reported, bounded, and SIGTERM within seconds -------------------------------
-def test_flood_is_reported(services, mosquitto, caplog) -> None:
-    svc = services()
+def test_flood_is_reported(service_factory, mosquitto, caplog) -> None:
+    svc = service_factory()
     svc.health.backlog_seconds = svc.health.report_seconds = 0.5
     base = HOURS.at(DAY, 8.0)
     flood = [reading(base + dt.timedelta(seconds=i), 20 + (i % 7) / 10) for i in range(1500)]
@@ -257,7 +242,7 @@ def test_non_finite_number_in_an_artifact_is_a_configuration_error(
 
 
 # -- 8. state from the future --------------------------------------------------------------
-def test_state_from_a_day_ahead_does_not_silence_today(services, mosquitto, tmp_path: Path,
+def test_state_from_a_day_ahead_does_not_silence_today(service_factory, mosquitto, tmp_path: Path,
                                                       caplog) -> None:
     jdir = tmp_path / "state" / "journal"
     jdir.mkdir(parents=True)
@@ -270,7 +255,7 @@ def test_state_from_a_day_ahead_does_not_silence_today(services, mosquitto, tmp_
     (jdir / f"{tomorrow.isoformat()}.jsonl").write_text("\n".join(lines) + "\n")
     viewer = Viewer(mosquitto.port)
     with caplog.at_level(logging.WARNING):
-        svc = services()
+        svc = service_factory()
     assert "days after today" in caplog.text
     send(mosquitto.port, morning(), "rel-future")
     wait_for(lambda: svc.accepted == len(morning()), what="all journaled")
