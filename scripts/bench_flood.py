@@ -34,6 +34,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 from brokerutil import free_port, start_broker
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.history.convert import load
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -95,8 +96,8 @@ def main() -> int:
     work = Path(tempfile.mkdtemp(prefix="pt-flood-"))
     artifact = a.artifact
     if artifact is None:
-        art = train_twin(load("sml2010"), [REF], TARGET, "temperature", hours,
-                         dt.date(2012, 3, 14), 5)
+        spec = TwinSpec((REF,), TARGET, Quantity.TEMPERATURE, hours)
+        art = train_twin(load("sml2010"), spec, dt.date(2012, 3, 14), 5, primary="corrgp-triv")
         artifact = art.save(work / "desk.json")
     port = free_port()
     broker = start_broker(work, port, BROKER_SETTINGS)
