@@ -28,6 +28,7 @@ from pseudotwin.config.validate import (
     topic_problem,
 )
 from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.spec import Quantity, TwinSpec
 
 __all__ = [
     "LOG_LEVELS",
@@ -257,6 +258,12 @@ class TwinConfig:
         if isinstance(self.artifact, str):
             object.__setattr__(self, "artifact", Path(self.artifact))
         raise_if(self._problems())
+
+    def spec(self, hours: OperatingHours, target: str) -> TwinSpec:
+        """What this twin pseudo-measures under the service's ``hours``; ``target`` stands in
+        when the configuration names none (the desk sensor is usually gone live)."""
+        return TwinSpec(self.references, self.target or target, Quantity.parse(self.quantity),
+                        hours)
 
     def _problems(self) -> Found:
         found: Found = []

@@ -28,7 +28,6 @@ import paho.mqtt.client as mqtt
 
 from pseudotwin.config import SensorConfig, ServiceConfig, TwinConfig
 from pseudotwin.core.horizon import OperatingHours
-from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.edge.clock import Clock, SystemClock
 from pseudotwin.edge.health import Health
 from pseudotwin.edge.journal import Journal
@@ -61,9 +60,7 @@ def check_artifact(
     without ``hours`` the artifact's are taken, and a config without a target takes the
     artifact's."""
     art = art or Artifact.load(twin.artifact)
-    expected = TwinSpec(tuple(twin.references), twin.target or art.target,
-                        Quantity.parse(twin.quantity), hours or art.hours)
-    return expected.differences(art.spec, "the artifact's")
+    return twin.spec(hours or art.hours, art.target).differences(art.spec, "the artifact's")
 
 
 @dataclass

@@ -1,0 +1,287 @@
+"""The page: code identity and versions, "How to read", the overview, one section per run
+and the recorded performance outputs."""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import subprocess
+import sys
+from collections.abc import Sequence
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+
+from pseudotwin.analysis.report.evidence import seasonal_md
+from pseudotwin.analysis.report.runs import COMMAND, DOCS, PACKAGE, REPO, RunResult
+from pseudotwin.analysis.report.tables import (
+    calibration_md,
+    daily_md,
+    fmt,
+    md_table,
+    monthly_md,
+    summary_md,
+    validation_md,
+)
+from pseudotwin.analysis.report.verdicts import (
+    COVER2_RANGE,
+    FLOOR_RATIO,
+    figures,
+    mark,
+    raw_name,
+    verdict_md,
+)
+from pseudotwin.analysis.validation import BASELINE_LIMIT
+from pseudotwin.analysis.validation import TIE_RELATIVE as VALIDATION_TIE
+from pseudotwin.models.registry import MODELS
+
+
+def _commit() -> str:
+    try:
+        p = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO,
+                           capture_output=True, text=True, timeout=10, check=True)
+        return p.stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def package_files() -> dict[str, str]:
+    """sha256 of every Python source of the package now: relative path → hex digest."""
+    pkg = PACKAGE
+    return {str(f.relative_to(pkg)): hashlib.sha256(f.read_bytes()).hexdigest()
+            for f in sorted(pkg.rglob("*.py"))}
+
+
+def _loaded_package_files() -> list[str]:
+    """Package sources this process imported (relative paths): the code behind the results."""
+    pkg = PACKAGE
+    out = []
+    for mod in list(sys.modules.values()):
+        f = getattr(mod, "__file__", None)
+        if f and Path(f).resolve().is_relative_to(pkg):
+            out.append(str(Path(f).resolve().relative_to(pkg)))
+    return sorted(out)
+
+
+def _code_identity(at_start: dict[str, str]) -> tuple[str, list[str]]:
+    """(12-hex hash over the imported sources as they were at the start, those changed since)."""
+    now = package_files()
+    h = hashlib.sha256()
+    changed = []
+    for f in _loaded_package_files():
+        h.update(f.encode())
+        h.update(at_start.get(f, "new").encode())
+        if at_start.get(f) != now.get(f):
+            changed.append(f)
+    return h.hexdigest()[:12], changed
+
+
+def _versions() -> str:
+    out = []
+    for pkg in ("pseudotwin", "numpy", "pandas", "GPy", "statsmodels"):
+        try:
+            out.append(f"{pkg} {metadata.version(pkg)}")
+        except metadata.PackageNotFoundError:
+            continue
+    return ", ".join(out)
+
+
+# The candidates for primary, simplest first (the tie-break order of validation).
+_CANDIDATES = " < ".join(k for k, c in MODELS.items() if c.candidate)
+
+HOW_TO_READ = f"""\
+## How to read these tables
+
+* **Protocol** (DESIGN.md §7, thesis 6.5): every model is trained on the first five days from
+  the stated start on which all sensors report, then every later day is scored. Each day is
+  replayed reading by reading through the same `Twin` the daemon runs; at each true reading of
+  the target within operating hours 08:00–19:00 local time every model gives its estimate from
+  the references' readings up to that instant only (causal; the target is never fed in).
+* **`estimate`** is exactly what the daemon publishes on `<twin>/estimate`: the primary
+  model's estimate, with its fallbacks and quality flags. It is the product; the other
+  rows are the models behind it and the baselines it is judged against.
+* **Validation** (training days only): each training day in turn is held out, every model is
+  trained on the other days and the held-out day replayed causally. The candidate with the
+  lowest mean held-out daily NRMSE becomes the primary, except that the simplest candidate
+  within {VALIDATION_TIE:.0%} of it wins ({_CANDIDATES}). VARMA is a monitoring
+  baseline, never primary, and is not published live when its held-out NRMSE exceeds
+  {BASELINE_LIMIT:g}× TRIV's. The test days are never looked at for any of this.
+* **NRMSE %** (6.10) = the day's RMSE of the estimate against the target's true readings in
+  operating hours / the mean of those true readings × 100. **ΔT_max %** (6.14) = the day's
+  largest absolute error / the same mean × 100. *Mean daily* = mean over the test days; the
+  monthly tables are the monthly means of the daily NRMSE (thesis Tables 6.2–6.4).
+* **Models**: `ref` = the raw reference held (the one closest to the target on the training
+  days), with a calibrated σ; `corrgp-triv` = Corr-GP ICM with TRIV as the target's prior
+  mean (one reference, its prior mean the training profile shifted to the day's level in the
+  30-min init phase); `corrgp-lcm` = zero-mean Corr-GP LCM over all references; `triv` =
+  training offset profile + live reference, averaged over references; `varma` = VARMAX(4, 4)
+  with trend `n` (no constant, no drift) on the 15-min grid, every series re-levelled each
+  day by the references' init-phase shift (its fallback: VAR(4) by least squares).
+  `ref:<sensor> (raw)` is the raw reference value held at the reading's time, without σ,
+  scored as if it were an estimate: its NRMSE is the error of "just use the reference", and
+  its **daily Pearson r** with the target is the evidence of how much that reference can tell
+  about the target's within-day course (thesis Fig. 6.6). The r of a model is that of its
+  estimate with the truth.
+* **σ calibration**: every model's σ (ref and TRIV included) comes from its held-out errors
+  in validation: a day-level part (never below the day-to-day spread of the reference–target
+  offset, which no reading of today reveals) plus a within-day part that depends on the time
+  of day and on how fast the references move, widened for the few days it is estimated from.
+  So σ varies within a day.
+* **Calibration tables** (per model, pooled over all scored readings): the share of true
+  readings inside the estimate's ±1σ and ±2σ bands (a calibrated Gaussian σ covers 68.3 % and
+  95.4 %), the mean σ next to the RMSE (mean σ / RMSE ≈ 1 when σ is the right size), and the
+  mean **CRPS** (continuous ranked probability score of the Gaussian N(estimate, σ²), in the
+  quantity's unit, lower is better: it rewards a small error and a σ of the right size; for
+  an estimate without σ, such as a raw reference, it is the absolute error). Computed by
+  `pseudotwin.live.metrics`, as in `daily.csv`.
+* **Verdicts** are computed by the script from the test days, against the figures the
+  product must reach: the estimate's mean daily NRMSE ≤ {FLOOR_RATIO:.2f} × the *floor*, the
+  lower of TRIV's and the best raw reference's (never meaningfully worse than the simple
+  answer); ±2σ coverage of the estimate {COVER2_RANGE[0]:.0f}–{COVER2_RANGE[1]:.0f} %, σ not
+  constant within a day; VARMA's mean daily NRMSE ≤ {BASELINE_LIMIT:g}× TRIV's, or VARMA not
+  published live. Secondary: corrgp-triv *beats* TRIV when its mean daily NRMSE is lower
+  **and** it is better on more than half of the days, with the daily r evidence. n = scored
+  target readings per day.
+* CSV (`daily.csv`, `monthly.csv`, `estimates.csv`), the artifact and plots (daily NRMSE per
+  model, one median day) of each run are written to `out/results/<run>/` (not committed).
+"""
+
+
+def render(
+    results: Sequence[RunResult], total: float, partial: bool, at_start: dict[str, str]
+) -> str:
+    """``at_start``: the package's source digests when the run started (code imported)."""
+    now = dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    source, changed = _code_identity(at_start)
+    lines = [
+        "# Accuracy results",
+        "",
+        f"Generated by `{COMMAND}`"
+        + (f" `--only {','.join(r.spec.name for r in results)}` (partial)" if partial else "")
+        + f" on {now} at commit `{_commit()}` (sha256 of the imported package sources "
+        f"`{source}`) in {total / 60:.1f} min ({total:.0f} s).",
+        f"Regenerate with `{COMMAND}` (from the repository root). Versions: {_versions()}.",
+        *(["", f"**Warning: package source(s) {', '.join(changed)} changed while this ran; "
+                "regenerate.**"] if changed else []),
+        "",
+        HOW_TO_READ,
+        "## Overview",
+        "",
+        _overview(results),
+        "",
+    ]
+    for res in results:
+        lines += _section(res)
+    if not partial:
+        lines += _performance()
+    return "\n".join(lines).rstrip() + "\n"
+
+
+PERFORMANCE = (
+    ("gpy_comparison.txt", ".venv/bin/python scripts/compare_gpy_restarts.py",
+     "Training the LCM: our fit vs GPy's `optimize_restarts(5)`",
+     "Same data (Room Climate A, references A1 and A3, target A4, five training days, 15-min "
+     "grid), same 3-term LCM with 30 free parameters, same day-block likelihood. GPy starts "
+     "from its default initialization and randomizes each restart. Ours: data-initialized "
+     "starts (eigen-directions of the outputs' second moment, lengthscales from fast to slow, "
+     "a near-constant daily-level term), stopping once two starts agree, then a tight polish."),
+    ("bench_update.txt", ".venv/bin/python scripts/bench_update.py",
+     "Live conditioning and training time",
+     "Per-reading update (condition + estimate) of the live Cholesky posterior over a real "
+     "day with two references, side by side with rebuilding a GPy model per reading; "
+     "training times of corrgp-triv and corrgp-lcm (two references, default 15-min grid) on "
+     "five days."),
+    ("bench_daemon.txt", ".venv/bin/python scripts/bench_daemon.py",
+     "The daemon with 100 twins",
+     "100 twins fed 5-minute COV readings at 60× replay speed through a real Mosquitto: "
+     "latency from a reading's publish to its estimate's arrival, CPU and peak RSS."),
+    ("bench_history.txt", ".venv/bin/python scripts/bench_history.py",
+     "Backfill and recorder",
+     "Backfill of one twin over 7 months of 1-minute readings in SQLite (days per second, "
+     "peak RSS of the backfill process) and the recorder's sustained rate into SQLite."),
+)
+
+
+def _performance() -> list[str]:
+    """The benchmark outputs kept in docs/ (each produced by the command shown; they are
+    not rerun here because they take minutes and measure time, not accuracy)."""
+    out = ["## Performance", "",
+           "Recorded outputs of the benchmark commands below (rerun a command to refresh its "
+           "file: `CMD > docs/FILE`). Figures are from this 2-core machine.", ""]
+    for name, cmd, title, what in PERFORMANCE:
+        path = DOCS / name
+        if not path.exists():
+            continue
+        text = "\n".join(line for line in path.read_text(encoding="utf-8").splitlines()
+                         if "approaches 1e6" not in line)
+        out += [f"### {title}", "", what, "", f"`{cmd} > docs/{name}`:", "", "```",
+                text.strip(), "```", ""]
+    return out
+
+
+def _overview(results: Sequence[RunResult]) -> str:
+    rows = []
+    figs = [figures(res) for res in results]
+    for res, f in zip(results, figs, strict=True):
+        ref = raw_name(res, f.best_ref)
+        rows.append([
+            res.spec.name, str(f.days), f"`{f.primary}`", fmt(f.estimate), fmt(f.triv),
+            f"{fmt(f.ref)} ({ref})", fmt(f.floor), mark(f.floor_met, fmt(f.ratio, 3)),
+            mark(f.cover_met, fmt(f.cover2, 1)), mark(f.sigma_varies, fmt(100 * f.sigma_cv, 1)),
+            mark(bool(f.varma_ratio <= BASELINE_LIMIT), fmt(f.varma_ratio)),
+            "—" if not np.isfinite(f.varma) else ("no" if f.varma_withheld else "yes"),
+        ])
+    table = md_table(["run", "test days", "primary (validation)", "estimate", "triv",
+                    "best raw reference", "floor", "estimate / floor", "±2σ cover %",
+                    "σ within-day CV %", "varma / triv", "varma live"], rows, left=3)
+    n = len(figs)
+    met = [
+        f"estimate ≤ {FLOOR_RATIO:.2f} × floor on {sum(f.floor_met for f in figs)} of {n}",
+        f"±2σ coverage {COVER2_RANGE[0]:.0f}–{COVER2_RANGE[1]:.0f} % on "
+        f"{sum(f.cover_met for f in figs)} of {n}",
+        f"σ varying within the day on {sum(f.sigma_varies for f in figs)} of {n}",
+        f"VARMA within {BASELINE_LIMIT:g}× TRIV or not published live on "
+        f"{sum(f.varma_met for f in figs if np.isfinite(f.varma))} of "
+        f"{sum(bool(np.isfinite(f.varma)) for f in figs)}",
+    ]
+    return table + (
+        "\n\nMean daily NRMSE % over the test days: `estimate` is what the daemon publishes "
+        "(the primary chosen by validation on the training days, with its fallbacks); the "
+        "floor is the lower of TRIV's and the best raw reference's (the `ref` model or a "
+        "`ref:<sensor>` row). ±2σ coverage pools all scored readings of the estimate; σ "
+        "within-day CV = mean over days of std(σ)/mean(σ) of the estimate. ✓/✗: estimate / "
+        f"floor ≤ {FLOOR_RATIO:.2f}, coverage {COVER2_RANGE[0]:.0f}–{COVER2_RANGE[1]:.0f} %, "
+        f"CV > 0, VARMA / TRIV ≤ {BASELINE_LIMIT:g} (otherwise VARMA must not be published "
+        "live). Targets met: " + "; ".join(met) + " runs."
+    )
+
+
+def _section(res: RunResult) -> list[str]:
+    spec, art = res.spec, res.ev.artifact
+    days = sorted(res.daily["day"].unique())
+    varma = art.models.get("varma")
+    vname = getattr(varma, "model_name_", None)
+    lines = [
+        f"## {spec.title} (`{spec.name}`)",
+        "",
+        f"{spec.about} Time zone {spec.timezone}; training days "
+        f"{', '.join(art.training['days'])} (from {spec.train_start}); {len(days)} test days "
+        f"{days[0]} … {days[-1]}; quantity {spec.quantity} [{art.unit}]"
+        + (f"; VARMA model `{vname}`" if vname else "")
+        + f". Run time {res.seconds:.0f} s; outputs in `out/results/{spec.name}/`"
+        + (f" and `out/results/{spec.name}-profile/`" if spec.long_term else "") + ".",
+        "",
+    ]
+    if res.notes:
+        lines += ["Notes: " + "; ".join(res.notes) + ".", ""]
+    lines += ["### Validation on the training days", "", validation_md(res), "",
+              "### Summary", "", summary_md(res), "",
+              "### Calibration (all scored readings)", "", calibration_md(res), "",
+              "### Verdict", "", verdict_md(res), ""]
+    if spec.long_term:
+        lines += ["### Seasons: zero-mean LCM vs TRIV-mean Corr-GP", "", seasonal_md(res), ""]
+    lines += ["### Monthly mean of daily NRMSE %", "", monthly_md(res), "",
+              "### Per day (NRMSE %, and daily r of each raw reference vs the target)", "",
+              daily_md(res), ""]
+    return lines

@@ -1,0 +1,169 @@
+"""Markdown tables of one run: number formatting, summary, calibration, monthly, daily and
+the validation on the training days."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from pseudotwin.analysis.evaluate import ESTIMATE, REF_PREFIX
+from pseudotwin.analysis.report.runs import BASE, GP, MODEL_ORDER, RunResult
+from pseudotwin.live import metrics
+
+
+def fmt(x: Any, nd: int = 2) -> str:
+    """A number to ``nd`` decimals, or an em dash when missing."""
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return "—"
+    return "—" if not np.isfinite(v) else f"{v:.{nd}f}"
+
+
+def _ordered(models: Sequence[str]) -> list[str]:
+    ms = set(models)
+    head = [m for m in MODEL_ORDER if m in ms]
+    extra = sorted(m for m in ms if m.startswith(BASE + " ("))
+    if BASE in head:
+        i = head.index(BASE) + 1
+        head[i:i] = extra
+    else:
+        head += extra
+    return head + sorted(m for m in ms if m not in head)
+
+
+def md_table(header: Sequence[str], rows: Sequence[Sequence[str]], left: int = 1,
+           text: Sequence[int] = ()) -> str:
+    """Markdown table: the first ``left`` columns and those in ``text`` left-aligned."""
+    lines = ["| " + " | ".join(header) + " |",
+             "|" + "|".join("---" if i < left or i in text else "---:"
+                            for i in range(len(header))) + "|"]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def _label(model: str) -> str:
+    return f"{model} (raw)" if model.startswith(REF_PREFIX) else model
+
+
+def signed(x: float, nd: int = 2) -> str:
+    """Signed number; a value that rounds to zero prints as 0.00 (never -0.00)."""
+    v = round(float(x), nd)
+    return fmt(v, nd) if v == 0 or not np.isfinite(v) else f"{v:+.{nd}f}"
+
+
+def mean_bias(estimates: pd.DataFrame) -> pd.Series:
+    """Mean signed error (estimate − truth) per model over all scored readings."""
+    return (estimates["value"] - estimates["truth"]).groupby(estimates["model"]).mean()
+
+
+def summary_md(res: RunResult) -> str:
+    daily = res.daily
+    g = daily.groupby("model").agg(
+        nrmse=("nrmse_pct", "mean"), dmax=("dmax_pct", "mean"),
+        r=("pearson_r", "median"), days=("day", "nunique"),
+    )
+    bias = mean_bias(res.estimates)
+    unit = res.ev.artifact.unit
+    rows = [[_label(m), fmt(g.at[m, "nrmse"]), fmt(g.at[m, "dmax"]), fmt(g.at[m, "r"], 3),
+             signed(bias.get(m, np.nan)), str(int(g.at[m, "days"]))]
+            for m in _ordered(list(g.index))]
+    return md_table(["model", "mean daily NRMSE %", "mean ΔT_max %", "median daily r",
+                   f"mean error [{unit}]", "days"], rows)
+
+
+def calibration_md(res: RunResult) -> str:
+    """Per model over all scored readings: does ±σ mean what it says?"""
+    unit = res.ev.artifact.unit
+    rows = []
+    for m in _ordered(list(res.estimates["model"].unique())):
+        e = res.estimates[res.estimates["model"] == m]
+        s = metrics.score(e["truth"].to_numpy(), e["value"].to_numpy(), e["std"].to_numpy())
+        ratio = s.mean_std / s.rmse if s.rmse > 0 else float("nan")
+        rows.append([_label(m), fmt(s.cover1_pct, 1), fmt(s.cover2_pct, 1), fmt(s.mean_std, 3),
+                     fmt(s.rmse, 3), fmt(ratio), fmt(s.crps, 3), str(s.n)])
+    return md_table(["model", "±1σ coverage %", "±2σ coverage %", f"mean σ [{unit}]",
+                   f"RMSE [{unit}]", "mean σ / RMSE", f"mean CRPS [{unit}]", "n"], rows)
+
+
+def monthly_md(res: RunResult) -> str:
+    piv = res.monthly.pivot(index="month", columns="model", values="nrmse_pct")
+    models = _ordered(list(piv.columns))
+    d = res.daily.assign(month=res.daily["day"].str[:7])
+    days = d[d["model"] == ESTIMATE].groupby("month")["day"].nunique()
+    r = d[d["model"].str.startswith(REF_PREFIX)].pivot_table(
+        index="month", columns="model", values="pearson_r", aggfunc="median")
+    refs = [m for m in models if m.startswith(REF_PREFIX)]
+    header = ["month", "days", *[_label(m) for m in models],
+              *[f"median r {m[len(REF_PREFIX):]}" for m in refs]]
+    rows = []
+    for month in piv.index:
+        rows.append([month, str(int(days.get(month, 0))),
+                     *[fmt(piv.at[month, m]) for m in models],
+                     *[fmt(r.at[month, m], 3) if m in r.columns else "—" for m in refs]])
+    return md_table(header, rows)
+
+
+def daily_md(res: RunResult) -> str:
+    nr = res.daily.pivot(index="day", columns="model", values="nrmse_pct")
+    rr = res.daily.pivot(index="day", columns="model", values="pearson_r")
+    n = res.daily[res.daily["model"] == ESTIMATE].set_index("day")["n"]
+    models = [m for m in _ordered(list(nr.columns)) if not m.startswith(REF_PREFIX)]
+    refs = [REF_PREFIX + s for s in res.ev.artifact.references if REF_PREFIX + s in rr.columns]
+    duel_col = GP in nr.columns and BASE in nr.columns
+    header = ["day", "n", *models, *(["corrgp-triv vs triv"] if duel_col else []),
+              *[f"r {m[len(REF_PREFIX):]}" for m in refs]]
+    rows = []
+    for day in nr.index:
+        marks = []
+        if duel_col:
+            a, b = nr.at[day, GP], nr.at[day, BASE]
+            marks.append("—" if not (np.isfinite(a) and np.isfinite(b)) else (
+                "win" if a < b else "loss" if a > b else "tie"))
+        rows.append([day, str(int(n.get(day, 0))), *[fmt(nr.at[day, m]) for m in models],
+                     *marks, *[fmt(rr.at[day, m], 3) for m in refs]])
+    return md_table(header, rows)
+
+
+def validation_md(res: RunResult) -> str:
+    """The artifact's leave-one-day-out scores on the training days, and why the primary won."""
+    art = res.ev.artifact
+    v = art.validation
+    if not v or not v.get("scores"):
+        return (f"No validation recorded in the artifact: the primary `{art.primary}` was not "
+                "chosen by validation.")
+    withheld = v.get("withheld", {})
+    unit = art.unit
+    rows = []
+    for kind, sc in v["scores"].items():
+        if kind == art.primary:
+            note = "**primary** (published as `estimate`)"
+        elif sc.get("candidate"):
+            note = "candidate"
+        else:
+            note = "baseline (never primary)"
+        if sc.get("error"):
+            note += f"; {sc['error']}"
+        if kind in withheld:
+            note += f"; **not published live**: {withheld[kind]}"
+        elif kind != art.primary:
+            note += "; published live"
+        rows.append([kind, fmt(sc.get("nrmse_pct")), fmt(sc.get("crps"), 3),
+                     fmt(sc.get("cover2_pct"), 1), str(sc.get("days", "")), note])
+    table = md_table(["model", "held-out NRMSE %", f"CRPS [{unit}]", "±2σ cover %", "days",
+                    "note"], rows, text=(5,))
+    reason = f"Primary: {v.get('reason', '')}."
+    if v.get("primary") not in (None, art.primary):
+        reason += (f" (Validation chose `{v['primary']}`; `{art.primary}` was pinned by the "
+                   "user.)")
+    extra = [f"Method: {v.get('method', 'unknown')}"]
+    if np.isfinite(float(v.get("offset_std", np.nan))):
+        extra.append(f"spread (std) of the daily mean reference–target offset over the "
+                     f"training days {fmt(v['offset_std'], 3)} {unit}, the floor of every "
+                     "model's day-level σ")
+    if "seconds" in v:
+        extra.append(f"{fmt(v['seconds'], 1)} s")
+    return "\n\n".join([table, reason + " " + "; ".join(extra) + "."])
