@@ -150,3 +150,25 @@ def test_artifact_round_trip_keeps_validation_and_calibration_and_old_ones_still
     assert isinstance(model, TrivModel)
     own = [model.std_[model.slot_index(HOURS.hours_of(x))] for x in triv["ts"]]
     assert np.allclose(triv["std"], own)
+
+
+def test_train_prints_the_validation_table_and_the_reason(tmp_path, capsys) -> None:
+    from pseudotwin.cli import main
+    from pseudotwin.core.series import write_history
+
+    rng = np.random.default_rng(6)
+    days, h = 6, _grid()
+    ref = 21.0 + _smooth(rng, days, len(h), 0.6, 8)
+    desk = ref + 0.5 + rng.normal(0.0, 0.2, size=(days, 1))
+    csv = tmp_path / "history.csv"
+    write_history(_frame(ref, desk, days), csv)
+    out = tmp_path / "a.json"
+    rc = main(["train", "--history", str(csv), "--references", "ref", "--target", "desk",
+               "--quantity", "temperature", "--models", "ref,triv", "--out", str(out)])
+    printed = capsys.readouterr().out
+    assert rc == 0 and out.exists()
+    assert "validation on the training days" in printed
+    primary = Artifact.load(out).primary
+    assert f"{primary:<12}" in printed and "primary" in printed
+    assert "lowest held-out daily NRMSE" in printed or "simpler" in printed
+

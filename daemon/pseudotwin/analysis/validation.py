@@ -106,10 +106,15 @@ def validation_table(v: Mapping[str, Any], unit: str) -> str:
             note = s["error"]
         if kind in withheld:
             note = f"not published live: {withheld[kind]}"
-        lines.append(f"  {kind:<12} {s['nrmse_pct']:>16.2f} {s['crps']:>12.3f} "
-                     f"{s['cover2_pct']:>11.1f}  {note}")
+        lines.append(f"  {kind:<12} {_num(s['nrmse_pct'], 2):>16} {_num(s['crps'], 3):>12} "
+                     f"{_num(s['cover2_pct'], 1):>11}  {note}")
     lines.append(f"  primary {v.get('reason', '')}")
     return "\n".join(lines)
+
+
+def _num(x: object, digits: int) -> str:
+    """A score as printed; '—' where there is none (NaN, or null once saved as JSON)."""
+    return f"{x:.{digits}f}" if isinstance(x, int | float) and np.isfinite(x) else "—"
 
 
 def offset_variance(spec: TwinSpec, days: Sequence[DayReadings]) -> float:
