@@ -41,7 +41,8 @@ from pseudotwin.config import load_config
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.edge.replay import replay
-from pseudotwin.history.convert import load
+from pseudotwin.errors import PseudotwinError
+from pseudotwin.history.convert import SHARED_DATA_ENV, load
 
 ROOT = Path(__file__).resolve().parent.parent
 TZ = "Europe/Madrid"
@@ -73,13 +74,19 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "demo")
     a = ap.parse_args()
     out = a.out
+    try:
+        df = load("sml2010")
+    except (PseudotwinError, OSError) as exc:
+        print(f"demo: the shared SML2010 data is missing or unreadable ({exc}); put it in "
+              f"../shared/data/sml2010 or point {SHARED_DATA_ENV} to the data folder",
+              file=sys.stderr)
+        return 1
     if out.exists():
         shutil.rmtree(out)
     (out / "artifacts").mkdir(parents=True)
     hours = OperatingHours(timezone=TZ)
 
     print("1/4 training two twins on SML2010, 2012-03-14 … 2012-03-18", flush=True)
-    df = load("sml2010")
     for tid, (ref, tgt, quantity, _) in TWINS.items():
         t0 = time.perf_counter()
         spec = TwinSpec((ref,), tgt, Quantity.parse(quantity), hours)

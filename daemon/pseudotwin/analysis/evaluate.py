@@ -91,8 +91,16 @@ def evaluate(
     t0 = time.perf_counter()
     target, hours = spec.target, spec.hours
     require_sensors(history, list(spec.sensors))
+    if plot_day is not None:  # fail before training, not with an empty plot
+        days, _ = hours.day_and_hours(history.loc[history["sensor"] == target, "ts"])
+        if not np.any(days == np.datetime64(plot_day)):
+            raise DataError(f"--plot-day {plot_day}: no readings of {target} on that day "
+                            f"({hours.timezone}), nothing to plot")
     artifact = train_twin(history, spec, train_start, train_days, models, options, primary)
     test_start = dt.date.fromisoformat(artifact.training["end"]) + dt.timedelta(days=1)
+    if plot_day is not None and plot_day < test_start:
+        raise DataError(f"--plot-day {plot_day} is not scored: the evaluated days begin on "
+                        f"{test_start}, after training")
     est = replay_estimates(artifact, history, test_start, models)
     if est.empty:
         raise DataError(

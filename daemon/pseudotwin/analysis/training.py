@@ -15,7 +15,7 @@ from pseudotwin.analysis import validation
 from pseudotwin.analysis.validation import MIN_DAYS
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.series import DayReadings, require_sensors, split_days
-from pseudotwin.core.spec import TwinSpec
+from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.errors import DataError
 from pseudotwin.history.store import Store
 from pseudotwin.live.artifact import Artifact
@@ -37,6 +37,29 @@ def day_is_usable(day: DayReadings, sensors: Sequence[str], hours: OperatingHour
         if int(np.sum(hours.in_operating_hours(h))) < MIN_READINGS_PER_DAY:
             return False
     return True
+
+
+PLAUSIBLE = {Quantity.TEMPERATURE: (-40.0, 80.0), Quantity.CO2: (0.0, 10000.0)}
+MIN_MEDIAN = {Quantity.CO2: 100.0}  # no air holds less CO2 (outdoors ≈ 420 ppm)
+MAX_IMPLAUSIBLE_SHARE = 0.01  # a few glitches (a DS18B20's 85 °C) are not a mislabelled series
+
+
+def check_plausible(df: pd.DataFrame, spec: TwinSpec) -> None:
+    """DataError naming the sensor and the quantity when a reference's or the target's
+    readings do not look like that quantity (CO2 data trained as temperature writes °C)."""
+    lo, hi = PLAUSIBLE[spec.quantity]
+    for s in spec.sensors:
+        v = df.loc[df["sensor"] == s, "value"].to_numpy(dtype=float)
+        v = v[np.isfinite(v)]
+        if not len(v):
+            continue
+        outside, med = float(np.mean((v < lo) | (v > hi))), float(np.median(v))
+        if outside > MAX_IMPLAUSIBLE_SHARE or med < MIN_MEDIAN.get(spec.quantity, lo):
+            raise DataError(
+                f"sensor {s}: readings implausible for the quantity {spec.quantity.value} "
+                f"(median {med:.4g} {spec.unit}, {100 * outside:.0f} % outside {lo:g} … {hi:g} "
+                f"{spec.unit}); is it another quantity's sensor, or the wrong --quantity?"
+            )
 
 
 def pick_training_days(
@@ -86,6 +109,9 @@ def train_twin(
     sensors = list(spec.sensors)
     require_sensors(df, sensors)
     days = pick_training_days(df, sensors, spec.hours, train_start, train_days)
+    # Judged on the training days only: a sensor broken some other week must not stop this.
+    local_day, _ = spec.hours.day_and_hours(df["ts"])
+    check_plausible(df[np.isin(local_day, [np.datetime64(d.day) for d in days])], spec)
     ts = TrainingSet(spec, tuple(days))
     fitted: dict[str, TwinModel] = {}
     opts = options or {}

@@ -375,8 +375,12 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--config", required=True, type=Path,
                     help="the daemon's configuration (broker, sensors and their topics)")
     rp.add_argument("--history", required=True, type=Path, help="canonical history file")
-    rp.add_argument("--start", required=True, type=_aware, help="first instant to replay")
-    rp.add_argument("--end", required=True, type=_aware, help="instant to stop before")
+    rp.add_argument("--start", required=True, type=_aware, metavar="INSTANT",
+                    help="first instant to replay: ISO 8601 with a UTC offset, "
+                         "e.g. 2012-03-20T07:00:00+01:00 (or Z)")
+    rp.add_argument("--end", required=True, type=_aware, metavar="INSTANT",
+                    help="instant to stop before: ISO 8601 with a UTC offset, "
+                         "e.g. 2012-03-20T20:00:00+01:00 (or Z)")
     rp.add_argument("--speed", type=float, default=60.0, help="speed-up factor (default 60)")
     rp.set_defaults(func=cmd_replay)
 
@@ -393,8 +397,11 @@ def build_parser() -> argparse.ArgumentParser:
                                     "estimates table. Idempotent and resumable.")
     bf.add_argument("--config", required=True, type=Path, help="TOML configuration file")
     bf.add_argument("--twin", required=True, help="twin id from the configuration")
-    bf.add_argument("--from", dest="start", required=True, type=_date, help="first day")
-    bf.add_argument("--to", dest="end", required=True, type=_date, help="last day (inclusive)")
+    bf.add_argument("--from", dest="start", required=True, type=_date, metavar="YYYY-MM-DD",
+                    help="first day, YYYY-MM-DD (a local day in the configured time zone)")
+    bf.add_argument("--to", dest="end", required=True, type=_date, metavar="YYYY-MM-DD",
+                    help="last day (inclusive), YYYY-MM-DD (a local day in the configured "
+                         "time zone)")
     bf.add_argument("--quiet", action="store_true", help="no progress output")
     bf.set_defaults(func=cmd_backfill)
 

@@ -1,0 +1,133 @@
+"""Defects a new user met (issue 12 item 7), one test each: real CLI runs in-process."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pseudotwin.analysis.training import check_plausible
+from pseudotwin.cli import main
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.series import write_history
+from pseudotwin.core.spec import Quantity, TwinSpec
+from pseudotwin.errors import DataError
+from pseudotwin.history.convert import SHARED_DATA_ENV, load
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(scope="module")
+def sml(tmp_path_factory) -> Path:
+    """SML2010, 2012-03-14 … 2012-03-20 (five training days and two test days)."""
+    df = load("sml2010")
+    df = df[(df["ts"] >= "2012-03-13T23:00Z") & (df["ts"] < "2012-03-20T23:00Z")]
+    p = tmp_path_factory.mktemp("sml") / "sml.csv"
+    write_history(df, p)
+    return p
+
+
+def run(*args: str) -> int:
+    return main(["--log-level", "WARNING", *args])
+
+
+def _evaluate(sml: Path, out: Path, *extra: str) -> int:
+    return run("evaluate", "--history", str(sml), "--references", "dining/temp",
+               "--target", "room/temp", "--quantity", "temperature",
+               "--train-start", "2012-03-14", "--timezone", "Europe/Madrid",
+               "--models", "triv", "--out", str(out), *extra)
+
+
+def test_plot_day_without_data_is_an_error(sml: Path, tmp_path: Path, capsys) -> None:
+    rc = _evaluate(sml, tmp_path / "o", "--plot-day", "2012-05-02")
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "--plot-day 2012-05-02: no readings of room/temp on that day" in err
+    assert "Traceback" not in err
+    assert not list(tmp_path.glob("o/*.png"))
+
+
+def test_plot_day_in_the_training_period_is_an_error(sml: Path, tmp_path: Path, capsys) -> None:
+    rc = _evaluate(sml, tmp_path / "o", "--plot-day", "2012-03-15")
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "--plot-day 2012-03-15 is not scored" in err and "2012-03-19" in err
+    assert not list(tmp_path.glob("o/*.png"))
+
+
+def test_plot_day_with_data_still_plots(sml: Path, tmp_path: Path) -> None:
+    assert _evaluate(sml, tmp_path / "o", "--plot-day", "2012-03-20") == 0
+    assert (tmp_path / "o" / "day_2012-03-20.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize(
+    "refs,target,quantity",
+    [("dining/co2", "room/co2", "temperature"),  # ≈ 200 ppm are no °C
+     ("dining/temp", "room/temp", "co2")],  # ≈ 20 °C are no ppm
+)
+def test_train_rejects_data_of_another_quantity(
+    sml: Path, tmp_path: Path, capsys, refs: str, target: str, quantity: str
+) -> None:
+    out = tmp_path / "a.json"
+    rc = run("train", "--history", str(sml), "--references", refs, "--target", target,
+             "--quantity", quantity, "--train-start", "2012-03-14", "--models", "triv",
+             "--out", str(out))
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert f"sensor {refs}: readings implausible for the quantity {quantity}" in err
+    assert "Traceback" not in err
+    assert not out.exists()
+
+
+def _frame(values: dict[str, np.ndarray]) -> pd.DataFrame:
+    ts = pd.date_range("2024-03-04", periods=len(next(iter(values.values()))), freq="15min",
+                       tz="UTC")
+    return pd.concat([pd.DataFrame({"sensor": s, "ts": ts, "value": v})
+                      for s, v in values.items()], ignore_index=True)
+
+
+def test_plausibility_tolerates_a_few_glitches_but_names_the_bad_sensor() -> None:
+    spec = TwinSpec(("a/temp",), "desk/temp", Quantity.TEMPERATURE, OperatingHours())
+    ok = np.full(1000, 21.0)
+    glitchy = ok.copy()
+    glitchy[:5] = 85.0  # a DS18B20's power-on value, 0.5 % of the readings
+    check_plausible(_frame({"a/temp": glitchy, "desk/temp": ok}), spec)
+    fahrenheit = np.full(1000, 120.0)
+    with pytest.raises(DataError, match="sensor desk/temp: .* temperature .*median 120 °C"):
+        check_plausible(_frame({"a/temp": ok, "desk/temp": fahrenheit}), spec)
+
+
+@pytest.mark.parametrize(
+    "command,option,needle",
+    [("replay", "--start INSTANT", "ISO 8601 with a UTC offset"),
+     ("replay", "--end INSTANT", "ISO 8601 with a UTC offset"),
+     ("backfill", "--from YYYY-MM-DD", "YYYY-MM-DD"),
+     ("backfill", "--to YYYY-MM-DD", "YYYY-MM-DD")],
+)
+def test_time_options_say_their_format(capsys, command: str, option: str, needle: str) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main([command, "--help"])
+    assert exc.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    after = text[text.rindex(option) + len(option):]  # the options list, not the usage
+    assert needle in after.split(" --")[0]
+
+
+def test_demo_without_shared_data_ends_in_one_clear_line(tmp_path: Path) -> None:
+    empty = tmp_path / "shared"
+    empty.mkdir()
+    p = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "demo.py"), "--out", str(tmp_path / "demo")],
+        env={**os.environ, SHARED_DATA_ENV: str(empty)}, capture_output=True, text=True,
+        timeout=120, check=False,
+    )
+    assert p.returncode == 1
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in p.stderr
+    assert "shared SML2010 data is missing" in lines[0] and SHARED_DATA_ENV in lines[0]
+    assert not (tmp_path / "demo").exists()
