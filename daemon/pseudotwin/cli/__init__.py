@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 from pseudotwin import __version__
 from pseudotwin.cli.util import EX_CONFIG
 from pseudotwin.core.spec import Quantity, TwinSpec
-from pseudotwin.errors import PseudotwinError
+from pseudotwin.errors import ConfigError, PseudotwinError
 from pseudotwin.gp.kernels import KERNEL_REGISTRY
 from pseudotwin.models.registry import ALL_MODELS, MODELS
 
@@ -134,8 +134,6 @@ def _training_history(a: argparse.Namespace,
 
         url = load_config(a.config).store
         if url is None:
-            from pseudotwin.errors import ConfigError
-
             raise ConfigError(f"{a.config}: no store configured in [service]")
     with open_store(url) as store:
         return history_from_store(store, [*a.references, a.target], hours, a.train_start,
@@ -213,7 +211,11 @@ def _serve(process: Service | Recorder) -> int:
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
-    process.start(wait_connected=None)  # never blocks: a signal is honoured at once
+    try:
+        process.start(wait_connected=None)  # never blocks: a signal is honoured at once
+    except ConfigError as exc:  # found only on start, e.g. a metrics port already taken
+        log.error("configuration error: %s", exc)
+        return EX_CONFIG
     while not done.wait(0.2):
         if process.fatal is not None:  # e.g. a wrong password: retrying will not help
             log.error("%s; exiting with status %d", process.fatal[1], process.fatal[0])
@@ -234,7 +236,6 @@ def cmd_run(a: argparse.Namespace) -> int:
     _private_files()
     from pseudotwin.edge.clock import ReplayClock, SystemClock
     from pseudotwin.edge.service import Service
-    from pseudotwin.errors import ConfigError
 
     try:
         cfg = _load_service_config(a.config)
@@ -265,7 +266,6 @@ def cmd_record(a: argparse.Namespace) -> int:
     _private_files()
     from pseudotwin.config import check_config
     from pseudotwin.edge.recorder import Recorder
-    from pseudotwin.errors import ConfigError
 
     try:
         cfg = check_config(a.config)
@@ -278,7 +278,6 @@ def cmd_record(a: argparse.Namespace) -> int:
 
 def cmd_backfill(a: argparse.Namespace) -> int:
     from pseudotwin.config import load_config
-    from pseudotwin.errors import ConfigError
     from pseudotwin.history.backfill import backfill
     from pseudotwin.history.store import open_store
 

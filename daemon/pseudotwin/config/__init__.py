@@ -19,6 +19,8 @@ TOML layout (see ``config/example.toml`` for a commented example)::
                  log_level, queue_size
     [[sensors]]  id, topic, format, ts_key, value_key, unit, min, max
     [[twins]]    id, quantity, references, target, artifact
+    [metrics]    host, port, record_port (optional: Prometheus endpoints)
+    [homeassistant]  enabled, discovery_prefix, baselines (optional: HA MQTT discovery)
 """
 
 from __future__ import annotations

@@ -16,10 +16,13 @@ from zoneinfo import ZoneInfo, ZoneInfoNotFoundError, available_timezones
 
 from pseudotwin.config.model import (
     BrokerConfig,
+    HomeAssistantConfig,
+    MetricsConfig,
     SensorConfig,
     ServiceConfig,
     TwinConfig,
     cross_problems,
+    homeassistant_problems,
     service_scalar_problems,
 )
 from pseudotwin.config.validate import (
@@ -53,7 +56,8 @@ class Loader:
     """
 
     # [bridge] and [plc] belong to `pseudotwin bridge` (edge/bridge); one file may serve both.
-    TOP_KEYS = ("broker", "service", "sensors", "twins", "bridge", "plc")
+    TOP_KEYS = ("broker", "service", "sensors", "twins", "bridge", "plc", "metrics",
+                "homeassistant")
     BROKER_KEYS = ("host", "port", "tls", "ca_file", "username", "password_env",
                    "password_file", "client_id", "keepalive")
     SERVICE_KEYS = ("timezone", "state_dir", "base_topic", "day_start", "day_end",
@@ -64,6 +68,8 @@ class Loader:
     SENSOR_REQUIRED = ("id", "topic", "unit", "min", "max")
     TWIN_KEYS = ("id", "quantity", "references", "target", "artifact")
     TWIN_REQUIRED = ("id", "quantity", "references", "artifact")
+    METRICS_KEYS = ("host", "port", "record_port")
+    HOMEASSISTANT_KEYS = ("enabled", "discovery_prefix", "baselines")
 
     SERVICE_SCALARS = ("base_topic", "publish_every_minutes", "stale_after_minutes",
                        "max_skew_seconds", "queue_size", "log_level")
@@ -129,6 +135,12 @@ class Loader:
         self.keys(doc, self.TOP_KEYS, (), "")
         broker = self.load_broker(doc)
         service = self.load_service(doc)
+        metrics = self.load_metrics(doc)
+        if service is not None and metrics is not None:
+            service["metrics"] = metrics
+        homeassistant = self.load_homeassistant(doc)
+        if service is not None and homeassistant is not None:
+            service["homeassistant"] = homeassistant
         sensors, sensors_complete, bad_ids = self.load_sensors(doc)
         twins, twins_complete = self.load_twins(doc)
         raw_base = doc["service"].get("base_topic", SERVICE_DEFAULTS["base_topic"]) \
@@ -136,6 +148,8 @@ class Loader:
         self.problems.extend(cross_problems(
             raw_base if isinstance(raw_base, str) else None, sensors, twins, bad_ids
         ))
+        if homeassistant is not None:
+            self.problems.extend(homeassistant_problems(homeassistant, [t.id for _, t in twins]))
         self.hours = service["hours"] if service is not None else None
         self.check_sections(broker, service, twins)
         if (self.problems or broker is None or service is None
@@ -159,6 +173,30 @@ class Loader:
         if "port" not in values and values.get("tls") is True:
             values["port"] = MQTT_TLS_PORT
         return self.build("broker", BrokerConfig, **values)
+
+    def load_metrics(self, doc: dict[str, Any]) -> MetricsConfig | None:
+        """The optional [metrics] table (absent: no Prometheus endpoint); None on problems."""
+        table = doc.get("metrics")
+        if table is None:
+            return MetricsConfig()
+        if not isinstance(table, dict):
+            self.add("metrics", f"expected a table [metrics], got {type_name(table)}")
+            return None
+        self.keys(table, self.METRICS_KEYS, (), "metrics")
+        values = {k: v for k, v in table.items() if k in self.METRICS_KEYS}
+        return self.build("metrics", MetricsConfig, **values)
+
+    def load_homeassistant(self, doc: dict[str, Any]) -> HomeAssistantConfig | None:
+        """The optional [homeassistant] table (absent: no discovery); None on problems."""
+        table = doc.get("homeassistant")
+        if table is None:
+            return HomeAssistantConfig()
+        if not isinstance(table, dict):
+            self.add("homeassistant", f"expected a table [homeassistant], got {type_name(table)}")
+            return None
+        self.keys(table, self.HOMEASSISTANT_KEYS, (), "homeassistant")
+        values = {k: v for k, v in table.items() if k in self.HOMEASSISTANT_KEYS}
+        return self.build("homeassistant", HomeAssistantConfig, **values)
 
     def load_service(self, doc: dict[str, Any]) -> dict[str, Any] | None:
         """The [service] table as ServiceConfig keyword arguments (without sensors/twins)."""

@@ -35,10 +35,13 @@ __all__ = [
     "QUANTITIES",
     "SENSOR_FORMATS",
     "BrokerConfig",
+    "HomeAssistantConfig",
+    "MetricsConfig",
     "SensorConfig",
     "ServiceConfig",
     "TwinConfig",
     "cross_problems",
+    "homeassistant_problems",
     "service_scalar_problems",
 ]
 
@@ -297,6 +300,75 @@ class TwinConfig:
         return (*self.references, self.target) if self.target else self.references
 
 
+@dataclass(frozen=True, kw_only=True)
+class MetricsConfig:
+    """``[metrics]``: Prometheus endpoints over HTTP (edge/prometheus.py); off by default.
+
+    host: the address the endpoints listen on ("0.0.0.0" for every interface).
+    port: the daemon's (``pseudotwin run``) port; None: no endpoint.
+    record_port: the recorder's (``pseudotwin record``) port; None: no endpoint. The two
+        commands usually read one file, so each has its own port.
+    """
+
+    host: str = "127.0.0.1"
+    port: int | None = None
+    record_port: int | None = None
+
+    def __post_init__(self) -> None:
+        found: Found = []
+        nonempty(found, "host", self.host)
+        for name in ("port", "record_port"):
+            value = getattr(self, name)
+            if value is not None and expect(found, name, value, "integer") \
+                    and not 1 <= value <= 65535:
+                found.append((name, f"must be a TCP port 1..65535, got {value}"))
+        if self.port is not None and self.port == self.record_port:
+            found.append(("record_port", "must differ from port (both may run on one host)"))
+        raise_if(found)
+
+
+@dataclass(frozen=True, kw_only=True)
+class HomeAssistantConfig:
+    """``[homeassistant]``: Home Assistant MQTT discovery (edge/homeassistant.py); off by
+    default.
+
+    enabled: publish the retained discovery messages (false, or no section: the ones published
+        before are removed).
+    discovery_prefix: Home Assistant's discovery prefix (its MQTT integration's setting).
+    baselines: also one entity per published baseline model, besides the estimate.
+    """
+
+    enabled: bool = False
+    discovery_prefix: str = "homeassistant"
+    baselines: bool = False
+
+    def __post_init__(self) -> None:
+        found: Found = []
+        expect(found, "enabled", self.enabled, "boolean")
+        expect(found, "baselines", self.baselines, "boolean")
+        if nonempty(found, "discovery_prefix", self.discovery_prefix):
+            problem = base_topic_problem(self.discovery_prefix)
+            if problem:
+                found.append(("discovery_prefix", problem))
+        raise_if(found)
+
+
+def homeassistant_problems(ha: HomeAssistantConfig, twin_ids: Collection[str]) -> list[str]:
+    """Twin ids that would share a discovery topic ('.' is not allowed there, it becomes '_')."""
+    if not ha.enabled:
+        return []
+    first: dict[str, str] = {}
+    out = []
+    for tid in twin_ids:
+        key = tid.replace(".", "_")
+        if key in first:
+            out.append(f"homeassistant: twins {first[key]!r} and {tid!r} would share one Home "
+                       "Assistant discovery topic ('.' becomes '_'); rename one")
+        else:
+            first[key] = tid
+    return out
+
+
 def service_scalar_problems(
     *,
     base_topic: object,
@@ -429,6 +501,8 @@ class ServiceConfig:
     queue_size: int = 10000
     log_level: str = "INFO"
     store: str | None = None  # history DB: SQLite file path or crate://host:4200
+    metrics: MetricsConfig = MetricsConfig()  # [metrics]: Prometheus endpoints
+    homeassistant: HomeAssistantConfig = HomeAssistantConfig()  # [homeassistant]
 
     def __post_init__(self) -> None:
         if isinstance(self.state_dir, str):
@@ -446,6 +520,10 @@ class ServiceConfig:
         if not isinstance(self.hours, OperatingHours):
             found.append(("hours", "expected OperatingHours"))
         expect(found, "state_dir", self.state_dir, "path")
+        if not isinstance(self.metrics, MetricsConfig):
+            found.append(("metrics", "expected a MetricsConfig"))
+        if not isinstance(self.homeassistant, HomeAssistantConfig):
+            found.append(("homeassistant", "expected a HomeAssistantConfig"))
         for name, mapping, cls in (("sensors", self.sensors, SensorConfig),
                                    ("twins", self.twins, TwinConfig)):
             if not isinstance(mapping, Mapping) or not all(
@@ -458,6 +536,7 @@ class ServiceConfig:
             [(f"sensors[{k!r}]", s) for k, s in self.sensors.items()],
             [(f"twins[{k!r}]", t) for k, t in self.twins.items()],
         )
+        cross += homeassistant_problems(self.homeassistant, list(self.twins))
         if cross:
             raise ConfigProblems(cross)
         object.__setattr__(self, "log_level", self.log_level.upper())

@@ -25,6 +25,7 @@ import paho.mqtt.client as mqtt
 from pseudotwin.config import SensorConfig, ServiceConfig
 from pseudotwin.edge.clock import Clock, SystemClock
 from pseudotwin.edge.mqttconn import make_client, refused_fatally
+from pseudotwin.edge.prometheus import RecorderMetrics
 from pseudotwin.edge.sdnotify import notify
 from pseudotwin.errors import ConfigError, PseudotwinError
 from pseudotwin.history.store import Store, open_store
@@ -97,7 +98,8 @@ class Recorder:
         self.retry_seconds = retry_seconds
         self.queue: queue.Queue[tuple[Any, ...]] = queue.Queue(maxsize=cfg.queue_size)
         self.spool = Spool(Path(cfg.state_dir) / "recorder-spool.jsonl")
-        self.rejections = RejectionCounter(log)
+        self.metrics = RecorderMetrics()  # served only with [metrics] record_port
+        self.rejections = RejectionCounter(log, on_reject=self.metrics.rejected_one)
         self.stop_event = threading.Event()
         self.connected = threading.Event()
         self.written = 0
@@ -114,6 +116,8 @@ class Recorder:
         self.client.on_disconnect = lambda *a: self.connected.clear()
         self.client.on_message = self._on_message
         self._worker = threading.Thread(target=self._run, name="recorder", daemon=True)
+        self.metrics.watch(queue_size=self.queue.qsize, connected=self.connected.is_set,
+                           spool=self.spool.path)
 
     # -- MQTT (network thread) --------------------------------------------------------------
     def _on_connect(self, client: mqtt.Client, userdata: Any, flags: mqtt.ConnectFlags,
@@ -185,14 +189,18 @@ class Recorder:
 
     def _write(self, readings: list[Reading]) -> bool:
         try:
-            self.written += self._store().write_readings(readings)
+            n = self._store().write_readings(readings)
+            self.written += n
+            self.metrics.stored.inc(n)
             return True
         except (PseudotwinError, OSError) as exc:
+            self.metrics.store_errors.inc()
             log.warning("history store unavailable (%s); spooling %d readings to disk",
                         exc, len(readings))
             self._drop_store()
             return False
         except Exception as exc:  # e.g. the crate client's connection errors
+            self.metrics.store_errors.inc()
             log.warning("history store write failed (%s: %s); spooling %d readings",
                         type(exc).__name__, exc, len(readings))
             self._drop_store()
@@ -236,6 +244,7 @@ class Recorder:
                 self._next_retry = time.monotonic() + self.retry_seconds
                 return False
             self.spooled += len(batch)
+            self.metrics.spooled.inc(len(batch))
             self._next_retry = min(self._next_retry or time.monotonic(),
                                    time.monotonic() + self.retry_seconds)
         for t in tokens:  # in the store or in the spool: safe to acknowledge
@@ -278,6 +287,8 @@ class Recorder:
 
     # -- life cycle -----------------------------------------------------------------------
     def start(self, wait_connected: float | None = 30.0) -> None:
+        if self.cfg.metrics.record_port is not None:
+            self.metrics.serve(self.cfg.metrics.host, self.cfg.metrics.record_port, "recorder")
         self._worker.start()
         b = self.cfg.broker
         self.client.connect_async(b.host, b.port, keepalive=b.keepalive)
@@ -298,6 +309,7 @@ class Recorder:
         self.client.loop_stop()
         if self.store is not None:
             self.store.close()
+        self.metrics.close()
         log.info("recorder stopped: %d readings written, %d spooled, %d rejected",
                  self.written, self.spooled, self.rejections.total())
 

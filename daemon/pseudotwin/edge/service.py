@@ -28,11 +28,13 @@ import paho.mqtt.client as mqtt
 
 from pseudotwin.config import SensorConfig, ServiceConfig, TwinConfig
 from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.edge import homeassistant as ha
 from pseudotwin.edge.clock import Clock, SystemClock
 from pseudotwin.edge.health import Health
 from pseudotwin.edge.journal import Journal
 from pseudotwin.edge.mqttconn import make_client, refused_fatally
 from pseudotwin.edge.outputs import estimate_payload, monitor_payload
+from pseudotwin.edge.prometheus import DaemonMetrics
 from pseudotwin.edge.sdnotify import notify, watchdog_interval
 from pseudotwin.errors import ConfigError
 from pseudotwin.live.artifact import Artifact, artifact_hash
@@ -102,6 +104,13 @@ class Service:
         self.journal = Journal(Path(cfg.state_dir) / "journal")
         self.rejections = RejectionCounter(log, LOG_REJECTIONS_PER_KEY)
         self.health = Health(self._set_status, cfg.queue_size)
+        self.metrics = DaemonMetrics(cfg.sensors, self.twins)  # served only with [metrics]
+        self.metrics.watch(queue_size=self.queue.qsize, queue_bound=cfg.queue_size,
+                           connected=self.connected.is_set, journal_dir=self.journal.folder,
+                           journal_healthy=lambda: self.health.journal_failing_since is None,
+                           fallbacks=lambda: {t: rt.twin.fallbacks
+                                              for t, rt in self.twins.items()})
+        self.rejections.on_reject = self.metrics.rejected_one
         # Readings the journal could not take, in order, not acknowledged: retried every
         # JOURNAL_RETRY_SECONDS (bounded by the broker's in-flight window; see _hold).
         self._held: list[tuple[Reading, tuple[int, int, int]]] = []
@@ -117,6 +126,7 @@ class Service:
         self._threads: list[threading.Thread] = []
         self.client = self._make_client()
         self.status_topic = f"{cfg.base_topic}/status"
+        self.discovery, self.undiscovery = self._plan_discovery()
 
     # -- MQTT (network thread: no model work here) -----------------------------------------
     def _make_client(self) -> mqtt.Client:
@@ -139,12 +149,31 @@ class Service:
         topics = [(s.topic, 1) for s in self.cfg.sensors.values()]
         client.subscribe(topics)
         client.publish(self.status_topic, self.health.status, qos=1, retain=True)
+        for topic in self.undiscovery:  # Home Assistant entities of twins no longer configured
+            client.publish(topic, b"", qos=1, retain=True)
+        for topic, body in self.discovery.items():
+            client.publish(topic, body, qos=1, retain=True)
         log.info("connected to %s:%d (session present: %s); subscribed to %d sensor topics",
                  self.cfg.broker.host, self.cfg.broker.port, flags.session_present, len(topics))
         if not self.connected.is_set() and not self._ready:
             self._ready = True
             notify("READY=1")  # only once connected: before, the daemon serves nobody
         self.connected.set()
+
+    def _plan_discovery(self) -> tuple[dict[str, bytes], list[str]]:
+        """Home Assistant discovery: (config topic → payload, config topics to clear)."""
+        hc = self.cfg.homeassistant
+        twins = [ha.TwinEntities(tid, rt.cfg.quantity, rt.twin.artifact.unit,
+                                 rt.twin.artifact.primary,
+                                 tuple(k for k in rt.twin.artifact.published
+                                       if k != rt.twin.artifact.primary))
+                 for tid, rt in self.twins.items()]
+        expire = round(max(self.cfg.stale_after, self.cfg.publish_every).total_seconds())
+        current = ha.discovery_messages(
+            twins, prefix=hc.discovery_prefix, base_topic=self.cfg.base_topic,
+            expire_after=expire, baselines=hc.baselines) if hc.enabled else {}
+        published = ha.load_published(Path(self.cfg.state_dir))
+        return current, ha.removals(published, current)
 
     def _set_status(self, status: str) -> None:
         """``<base>/status``: online | degraded (the journal fails) | offline (last will)."""
@@ -241,6 +270,7 @@ class Service:
 
     def _accept(self, r: Reading, token: tuple[int, int, int]) -> None:
         self.accepted += 1
+        self.metrics.accepted.labels(r.sensor).inc()
         try:
             self._apply(r, publish=True)
         finally:
@@ -254,6 +284,7 @@ class Service:
 
     def _handle_message(self, sensor: SensorConfig | None, topic: str, payload: bytes,
                         arrival: dt.datetime, token: tuple[int, int, int]) -> None:
+        t0, published = time.perf_counter(), self.published
         if sensor is None:
             log.warning("message on unexpected topic %s ignored", topic)
             self._ack(token)
@@ -288,6 +319,8 @@ class Service:
             self._journal_recreated = self.journal.recreated
             self.health.journal_rebuilt(self.journal.recreated)
         self._accept(r, token)
+        if self.published > published:  # the reading moved a twin: its estimates are out
+            self.metrics.latency.observe(time.perf_counter() - t0)
 
     def _apply(self, r: Reading, publish: bool) -> None:
         for rt in self.by_sensor.get(r.sensor, ()):
@@ -322,6 +355,8 @@ class Service:
             else:
                 topic = self.cfg.twin_topic(rt.cfg.id, "baseline", kind)
             self._publish(topic, estimate_payload(e, unit))
+            if kind == primary:
+                self.metrics.published(rt.cfg.id, e.quality, e.ts)
 
     def _handle_tick(self, instant: dt.datetime) -> None:
         for rt in self.twins.values():
@@ -416,7 +451,14 @@ class Service:
         return len(frame)
 
     def start(self, wait_connected: float | None = 30.0) -> None:
+        if self.cfg.metrics.port is not None:  # first: a port in use fails before anything runs
+            self.metrics.serve(self.cfg.metrics.host, self.cfg.metrics.port, "daemon")
         self.restore()
+        if self.discovery or self.undiscovery:  # remembered before they go out: see _on_connect
+            try:
+                ha.save_published(Path(self.cfg.state_dir), [*self.discovery, *self.undiscovery])
+            except OSError as exc:  # published all the same; only a later removal needs it
+                log.warning("cannot remember the Home Assistant discovery topics (%s)", exc)
         b = self.cfg.broker
         self.client.connect_async(b.host, b.port, keepalive=b.keepalive)
         self.client.loop_start()
@@ -469,6 +511,7 @@ class Service:
                 pass
         self.client.disconnect()
         self.client.loop_stop()
+        self.metrics.close()
         log.info("stopped: %d readings accepted, %d messages published, %d rejected",
                  self.accepted, self.published, self.rejections.total())
 

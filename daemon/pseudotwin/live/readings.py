@@ -29,6 +29,7 @@ import logging
 import math
 import re
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, date, datetime, timedelta
 from enum import StrEnum
@@ -229,11 +230,14 @@ def parse_payload(
 class RejectionCounter:
     """Counts rejected readings per (sensor, reason) and local day, and logs each one —
     up to ``log_limit`` per key and day, then only counts (a broken sensor must not flood
-    the log). Shared by the daemon and the recorder so both treat bad input alike."""
+    the log). Shared by the daemon and the recorder so both treat bad input alike.
+    ``on_reject(sensor, reason)`` is called for each one (the Prometheus counter)."""
 
-    def __init__(self, logger: logging.Logger, log_limit: int = 10) -> None:
+    def __init__(self, logger: logging.Logger, log_limit: int = 10,
+                 on_reject: Callable[[str, str], None] | None = None) -> None:
         self.log = logger
         self.log_limit = log_limit
+        self.on_reject = on_reject
         self.counts: Counter[tuple[str, str]] = Counter()
         self.day: date | None = None
 
@@ -247,6 +251,8 @@ class RejectionCounter:
             self.day, self.counts = day, Counter()
         key = (sensor, reason)
         self.counts[key] += 1
+        if self.on_reject is not None:
+            self.on_reject(sensor, reason)
         n = self.counts[key]
         if n <= self.log_limit:
             self.log.warning("rejected reading of %s (%s): %s", sensor, reason, message)

@@ -1,0 +1,240 @@
+"""Prometheus metrics of the daemon (``pseudotwin run``) and the recorder (``record``).
+
+Optional: ``[metrics] port`` / ``record_port`` start an HTTP endpoint (prometheus_client's
+own server, a daemon thread) that serves the text exposition format on any path
+(``/metrics`` by convention). Every :class:`DaemonMetrics`/:class:`RecorderMetrics` owns
+its own :class:`~prometheus_client.CollectorRegistry`: several daemons can run in one
+process (the tests do), and nothing of the library's global default registry (process
+metrics) is mixed in.
+
+The metric objects always exist (an increment costs about a microsecond); only the endpoint
+is optional. Counters are bumped where the event happens (the worker thread; rejections also
+through :class:`~pseudotwin.live.readings.RejectionCounter`'s hook). Queue depth, MQTT
+connection, journal size and journal health are read when scraped (``set_function``), so
+they need no hook and no thread of their own. Labels are low-cardinality: sensor and twin
+ids come from the configuration, reasons and qualities are fixed vocabularies.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+import os
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from pathlib import Path
+
+from prometheus_client import (
+    CollectorRegistry,
+    Counter,
+    Gauge,
+    Histogram,
+    disable_created_metrics,
+    start_http_server,
+)
+from prometheus_client.core import CounterMetricFamily
+from prometheus_client.registry import Collector
+
+from pseudotwin.errors import ConfigError
+from pseudotwin.live.readings import UNPROCESSABLE, Reason
+from pseudotwin.live.twin import Quality
+
+log = logging.getLogger(__name__)
+
+# No ``*_created`` sample beside every counter series: it doubles the scrape (54k → 27k
+# samples at 1,000 twins) for a timestamp Prometheus does not need. Process-wide, and this
+# process is the daemon's (or the recorder's).
+disable_created_metrics()
+
+#: Reading dequeued → its estimates handed to the MQTT client [s]: a GP update takes
+#: milliseconds, a slow one (refactorization, VARMA) tens of ms.
+LATENCY_BUCKETS = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0,
+                   2.5, 5.0)
+
+#: Every reason a rejection can carry (the ``reason`` label's vocabulary). Not pre-created
+#: per sensor: sensors × reasons series, nearly all 0, would dominate the scrape.
+REJECTION_REASONS = (*(str(r) for r in Reason), UNPROCESSABLE)
+
+
+class MetricsServer:
+    """The HTTP endpoint of one registry; :meth:`close` stops it (prometheus_client ≥ 0.17
+    returns the server and its thread)."""
+
+    def __init__(self, registry: CollectorRegistry, host: str, port: int, what: str) -> None:
+        try:
+            self._server, self._thread = start_http_server(port, addr=host, registry=registry)
+        except OSError as exc:
+            raise ConfigError(f"metrics.{'port' if what == 'daemon' else 'record_port'}: "
+                              f"cannot listen on {host}:{port} ({exc.strerror or exc})") \
+                from None
+        self.port = int(self._server.server_port)
+        log.info("%s Prometheus metrics on http://%s:%d/metrics", what, host, self.port)
+
+    def close(self) -> None:
+        self._server.shutdown()
+        self._server.server_close()
+        self._thread.join(timeout=5)
+
+
+class _Metrics:
+    rejected: Counter
+
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry(auto_describe=True)
+        self.server: MetricsServer | None = None
+
+    def serve(self, host: str, port: int, what: str) -> MetricsServer:
+        self.server = MetricsServer(self.registry, host, port, what)
+        return self.server
+
+    def close(self) -> None:
+        if self.server is not None:
+            self.server.close()
+            self.server = None
+
+    def rejected_one(self, sensor: str, reason: str) -> None:
+        """The :class:`~pseudotwin.live.readings.RejectionCounter` hook."""
+        self.rejected.labels(sensor, reason).inc()
+
+    def _rejected_counter(self, name: str) -> Counter:
+        return Counter(name, "Payloads rejected (not a valid reading), by sensor and reason "
+                             f"({', '.join(REJECTION_REASONS)}); a series appears with its "
+                             "first rejection", ["sensor", "reason"], registry=self.registry)
+
+
+def _dir_bytes(folder: Path) -> float:
+    """Total size of the regular files directly in ``folder`` (0 when it is missing)."""
+    total = 0
+    try:
+        with os.scandir(folder) as it:
+            for entry in it:
+                try:
+                    if entry.is_file(follow_symlinks=False):
+                        total += entry.stat(follow_symlinks=False).st_size
+                except OSError:
+                    continue  # rotated away while we looked
+    except OSError:
+        return 0.0
+    return float(total)
+
+
+class DaemonMetrics(_Metrics):
+    """The daemon's metrics (prefix ``pseudotwin_``)."""
+
+    def __init__(self, sensors: Iterable[str], twins: Iterable[str]) -> None:
+        super().__init__()
+        sensors, twins = list(sensors), list(twins)
+        r = self.registry
+        self.accepted = Counter(
+            "pseudotwin_readings_accepted", "Readings journaled and fed to the twins, by sensor",
+            ["sensor"], registry=r)
+        self.rejected = self._rejected_counter("pseudotwin_readings_rejected")
+        self.estimates = Counter(
+            "pseudotwin_estimates_published",
+            "Primary estimates published on <base>/<twin>/estimate, by twin and quality",
+            ["twin", "quality"], registry=r)
+        self.latency = Histogram(
+            "pseudotwin_update_latency_seconds",
+            "From a reading taken off the worker queue to its estimates handed to the MQTT "
+            "client", buckets=LATENCY_BUCKETS, registry=r)
+        self.last_estimate = Gauge(
+            "pseudotwin_last_estimate_timestamp_seconds",
+            "Time (unix seconds) of the last primary estimate published, by twin",
+            ["twin"], registry=r)
+        self.queue_depth = Gauge(
+            "pseudotwin_queue_depth", "Items waiting in the worker queue", registry=r)
+        self.queue_bound = Gauge(
+            "pseudotwin_queue_capacity", "Bound of the worker queue", registry=r)
+        self.connected = Gauge(
+            "pseudotwin_mqtt_connected", "1 while connected to the MQTT broker", registry=r)
+        self.journal_bytes = Gauge(
+            "pseudotwin_journal_size_bytes", "Size of the journal files in state_dir",
+            registry=r)
+        self.journal_healthy = Gauge(
+            "pseudotwin_journal_healthy",
+            "1 while the journal can be written (status online), 0 while degraded",
+            registry=r)
+        for s in sensors:
+            self.accepted.labels(s)
+        for t in twins:
+            for q in Quality:
+                if q != Quality.INIT:  # never published
+                    self.estimates.labels(t, str(q))
+
+    def watch(self, *, queue_size: Callable[[], int], queue_bound: int,
+              connected: Callable[[], bool], journal_dir: Path,
+              journal_healthy: Callable[[], bool],
+              fallbacks: Callable[[], Mapping[str, int]]) -> None:
+        """What is read at scrape time. ``fallbacks``: twin → numerical failures so far (the
+        twin's own counter, the monitor's ``fallbacks``)."""
+        self.registry.register(_FallbackCollector(fallbacks))
+        self.queue_depth.set_function(lambda: float(queue_size()))
+        self.queue_bound.set(queue_bound)
+        self.connected.set_function(lambda: float(connected()))
+        self.journal_bytes.set_function(lambda: _dir_bytes(journal_dir))
+        self.journal_healthy.set_function(lambda: float(journal_healthy()))
+
+    def published(self, twin: str, quality: str, ts: dt.datetime) -> None:
+        """One primary estimate handed to the MQTT client."""
+        self.estimates.labels(twin, quality).inc()
+        self.last_estimate.labels(twin).set(ts.timestamp())
+
+
+class _FallbackCollector(Collector):
+    """``pseudotwin_fallbacks_total{twin}``: numerical failures after which TRIV answered
+    (quality fallback), read from the twins when scraped."""
+
+    def __init__(self, counts: Callable[[], Mapping[str, int]]) -> None:
+        self.counts = counts
+
+    def collect(self) -> Iterator[CounterMetricFamily]:
+        fam = CounterMetricFamily(
+            "pseudotwin_fallbacks",
+            "Numerical model failures after which TRIV answered with quality fallback, by "
+            "twin", labels=["twin"])
+        for twin, n in sorted(self.counts().items()):
+            fam.add_metric([twin], n)
+        yield fam
+
+
+class RecorderMetrics(_Metrics):
+    """The recorder's metrics (prefix ``pseudotwin_recorder_``)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        r = self.registry
+        self.stored = Counter(
+            "pseudotwin_recorder_readings_stored",
+            "Readings written to the history store (spooled ones once they are in)",
+            registry=r)
+        self.spooled = Counter(
+            "pseudotwin_recorder_readings_spooled",
+            "Readings spooled to disk because the store could not take them", registry=r)
+        self.rejected = self._rejected_counter("pseudotwin_recorder_readings_rejected")
+        self.store_errors = Counter(
+            "pseudotwin_recorder_store_errors", "Failed writes to the history store",
+            registry=r)
+        self.queue_depth = Gauge(
+            "pseudotwin_recorder_queue_depth", "Items waiting in the recorder's queue",
+            registry=r)
+        self.connected = Gauge(
+            "pseudotwin_recorder_mqtt_connected", "1 while connected to the MQTT broker",
+            registry=r)
+        self.spool_bytes = Gauge(
+            "pseudotwin_recorder_spool_size_bytes", "Size of the on-disk spool (0: empty)",
+            registry=r)
+
+    def watch(self, *, queue_size: Callable[[], int], connected: Callable[[], bool],
+              spool: Path) -> None:
+        self.queue_depth.set_function(lambda: float(queue_size()))
+        self.connected.set_function(lambda: float(connected()))
+        self.spool_bytes.set_function(lambda: _file_bytes(spool))
+
+
+def _file_bytes(path: Path) -> float:
+    try:
+        return float(path.stat().st_size)
+    except OSError:
+        return 0.0
+
+
+__all__ = ["DaemonMetrics", "MetricsServer", "RecorderMetrics"]

@@ -1,0 +1,288 @@
+"""Home Assistant MQTT discovery: the config section, the payloads, and the daemon publishing
+and removing them on a real Mosquitto broker (checked against Home Assistant's documented
+MQTT sensor schema: https://www.home-assistant.io/integrations/sensor.mqtt/)."""
+
+from __future__ import annotations
+
+import json
+import queue
+import re
+import shutil
+from pathlib import Path
+
+import pytest
+
+from daemon_support import DAY, HOURS, write_config
+from pseudotwin.config import ConfigProblems, load_config
+from pseudotwin.config.model import HomeAssistantConfig
+from pseudotwin.edge import homeassistant as ha
+from pseudotwin.edge.clock import ReplayClock
+from pseudotwin.edge.service import Service
+from test_daemon import reading
+
+# Options of an MQTT sensor in Home Assistant's documentation (full names; the payloads use
+# no abbreviations), and of its device and origin blocks.
+SENSOR_OPTIONS = {
+    "availability", "availability_mode", "availability_template", "availability_topic",
+    "default_entity_id", "device", "device_class", "enabled_by_default", "encoding",
+    "entity_category", "entity_picture", "expire_after", "force_update", "icon",
+    "json_attributes_template", "json_attributes_topic", "last_reset_value_template", "name",
+    "object_id", "options", "origin", "payload_available", "payload_not_available", "platform",
+    "qos", "state_class", "state_topic", "suggested_display_precision", "unique_id",
+    "unit_of_measurement", "value_template",
+}
+DEVICE_OPTIONS = {"configuration_url", "connections", "hw_version", "identifiers",
+                  "manufacturer", "model", "model_id", "name", "serial_number",
+                  "suggested_area", "sw_version", "via_device"}
+ORIGIN_OPTIONS = {"name", "sw_version", "support_url"}
+UNITS_OF = {"temperature": {"°C", "°F", "K"}, "carbon_dioxide": {"ppm"}}
+TOPIC_LEVEL = re.compile(r"[A-Za-z0-9_-]+")
+
+
+def render_value(template: str, payload: bytes) -> str:
+    """Home Assistant's rendering of the one template form used, ``{{ value_json.KEY }}``
+    (Jinja renders Python's None as 'None', which the MQTT sensor takes as unknown)."""
+    m = re.fullmatch(r"\{\{\s*value_json\.(\w+)\s*\}\}", template)
+    assert m, template
+    return str(json.loads(payload)[m.group(1)])
+
+
+def render_availability(template: str, value: str) -> str:
+    m = re.fullmatch(r"\{\{ '(\w+)' if value == '(\w+)' else '(\w+)' \}\}", template)
+    assert m, template
+    then, test, other = m.groups()
+    return then if value == test else other
+
+
+def check_sensor_config(topic: str, body: dict, prefix: str) -> None:
+    """Valid per Home Assistant's MQTT sensor schema, as this integration uses it."""
+    levels = topic.split("/")
+    assert levels[0] == prefix and levels[1] == "sensor" and levels[-1] == "config"
+    assert len(levels) == 5 and all(TOPIC_LEVEL.fullmatch(x) for x in levels[2:4]), topic
+    assert set(body) <= SENSOR_OPTIONS, set(body) - SENSOR_OPTIONS
+    assert isinstance(body["state_topic"], str) and body["state_topic"]  # required
+    assert isinstance(body["unique_id"], str) and body["unique_id"].startswith("pseudotwin_pt_")
+    assert body["default_entity_id"] == f"sensor.{body['unique_id']}"
+    assert body["state_class"] == "measurement"
+    assert body["unit_of_measurement"] in UNITS_OF[body["device_class"]]
+    assert isinstance(body["expire_after"], int) and body["expire_after"] > 0
+    assert body["json_attributes_topic"] == body["state_topic"]
+    assert body["availability_topic"] == "pt/status"
+    assert body["qos"] in (0, 1, 2)
+    assert isinstance(body["suggested_display_precision"], int)
+    device = body["device"]
+    assert set(device) <= DEVICE_OPTIONS
+    assert isinstance(device["identifiers"], list) and device["identifiers"]
+    assert all(isinstance(x, str) for x in device["identifiers"])
+    assert device["manufacturer"] == "pseudotwin" and device["name"]
+    assert set(body["origin"]) <= ORIGIN_OPTIONS and body["origin"]["name"]
+    for status, shown in (("online", "online"), ("degraded", "online"),
+                          ("offline", "offline")):
+        assert render_availability(body["availability_template"], status) == shown
+    assert body["payload_available"] == "online"
+    assert body["payload_not_available"] == "offline"
+
+
+def ha_config(folder: Path, port: int, artifact: Path, ha_table: str,
+              extra_twin: Path | None = None, **service: object) -> Path:
+    path = write_config(folder, port, artifact, **service)
+    text = path.read_text(encoding="utf-8") + "\n" + ha_table + "\n"
+    if extra_twin is not None:
+        text += f"""
+[[twins]]
+id = "desk.two"
+references = ["dining/temp"]
+quantity = "temperature"
+artifact = "{extra_twin}"
+"""
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def start(path: Path) -> Service:
+    svc = Service(load_config(path), clock=ReplayClock(HOURS.at(DAY, 9.0), 1.0))
+    svc.start(wait_connected=15)
+    return svc
+
+
+def retained(mqtt_client, topic: str, settle: float = 1.0) -> dict[str, bytes]:
+    """What the broker keeps under ``topic`` once the daemon's publishing settled: a new
+    subscriber's retained messages, updated by what still arrives (the daemon may publish
+    just after ``start`` returns); an empty payload deletes (topic → payload)."""
+    c = mqtt_client()
+    c.subscribe(topic)
+    out: dict[str, bytes] = {}
+    while True:
+        try:
+            m = c.get(timeout=settle)
+        except queue.Empty:
+            break
+        out[m.topic] = m.payload
+    c.disconnect()
+    return {t: p for t, p in out.items() if p}
+
+
+# -- the config section -------------------------------------------------------------------
+def test_section_defaults_and_absence(tmp_path, desk_artifact) -> None:
+    cfg = load_config(write_config(tmp_path, 1883, desk_artifact))
+    assert cfg.homeassistant == HomeAssistantConfig()
+    assert cfg.homeassistant.enabled is False
+    cfg = load_config(ha_config(tmp_path, 1883, desk_artifact, "[homeassistant]\nenabled = true"))
+    assert cfg.homeassistant == HomeAssistantConfig(enabled=True)
+    assert cfg.homeassistant.discovery_prefix == "homeassistant"
+
+
+@pytest.mark.parametrize(("table", "problem"), [
+    ("enabled = true\nbaseline = true",
+     "homeassistant.baseline: unknown key (did you mean 'baselines'?)"),
+    ('enabled = "yes"', "homeassistant.enabled: expected a boolean, got a string"),
+    ("baselines = 1", "homeassistant.baselines: expected a boolean, got an integer"),
+    ('discovery_prefix = "ha/#"', "homeassistant.discovery_prefix: 'ha/#' contains a wildcard"),
+    ('discovery_prefix = "ha/"', "homeassistant.discovery_prefix: must not end with '/'"),
+    ('discovery_prefix = ""', "homeassistant.discovery_prefix: must not be empty"),
+])
+def test_section_problems_are_config_errors(tmp_path, desk_artifact, table, problem) -> None:
+    path = ha_config(tmp_path, 1883, desk_artifact, "[homeassistant]\n" + table)
+    with pytest.raises(ConfigProblems) as err:
+        load_config(path)
+    assert any(p.startswith(problem) for p in err.value.problems), err.value.problems
+
+
+def test_twins_sharing_a_discovery_topic_are_a_config_error(tmp_path, desk_artifact) -> None:
+    other = tmp_path / "two.json"
+    shutil.copy(desk_artifact, other)
+    path = ha_config(tmp_path, 1883, desk_artifact, "[homeassistant]\nenabled = true", other)
+    text = path.read_text(encoding="utf-8").replace('id = "desk"', 'id = "desk_two"')
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(ConfigProblems, match="share one Home Assistant discovery topic"):
+        load_config(path)
+    # without discovery the same twins are fine
+    path.write_text(text.replace("enabled = true", "enabled = false"), encoding="utf-8")
+    assert set(load_config(path).twins) == {"desk_two", "desk.two"}
+
+
+# -- payloads -----------------------------------------------------------------------------
+def test_payloads_per_quantity() -> None:
+    twins = [ha.TwinEntities("t.1", "temperature", "°C", "triv", ("ref", "corrgp-triv")),
+             ha.TwinEntities("c", "co2", "ppm", "corrgp-triv", ("triv",))]
+    msgs = ha.discovery_messages(twins, prefix="homeassistant", base_topic="pt",
+                                 expire_after=1800, baselines=True)
+    assert sorted(msgs) == [
+        "homeassistant/sensor/pt/c_estimate/config",
+        "homeassistant/sensor/pt/c_triv/config",
+        "homeassistant/sensor/pt/t_1_corrgp-triv/config",
+        "homeassistant/sensor/pt/t_1_estimate/config",
+        "homeassistant/sensor/pt/t_1_ref/config",
+    ]
+    for topic, raw in msgs.items():
+        check_sensor_config(topic, json.loads(raw), "homeassistant")
+    co2 = json.loads(msgs["homeassistant/sensor/pt/c_estimate/config"])
+    assert (co2["device_class"], co2["unit_of_measurement"]) == ("carbon_dioxide", "ppm")
+    assert co2["state_topic"] == "pt/c/estimate"
+    t = json.loads(msgs["homeassistant/sensor/pt/t_1_ref/config"])
+    assert (t["device_class"], t["unit_of_measurement"]) == ("temperature", "°C")
+    assert t["state_topic"] == "pt/t.1/baseline/ref"
+    assert t["device"] == json.loads(msgs["homeassistant/sensor/pt/t_1_estimate/config"])[
+        "device"]  # one device per twin
+    no_baselines = ha.discovery_messages(twins, prefix="homeassistant", base_topic="pt",
+                                         expire_after=1800, baselines=False)
+    assert sorted(no_baselines) == ["homeassistant/sensor/pt/c_estimate/config",
+                                    "homeassistant/sensor/pt/t_1_estimate/config"]
+    assert ha.removals(msgs, no_baselines) == [
+        "homeassistant/sensor/pt/c_triv/config", "homeassistant/sensor/pt/t_1_corrgp-triv/config",
+        "homeassistant/sensor/pt/t_1_ref/config"]
+
+
+def test_published_topics_are_remembered(tmp_path) -> None:
+    assert ha.load_published(tmp_path) == set()
+    ha.save_published(tmp_path / "state", ["a/b", "c/d", "a/b"])
+    assert ha.load_published(tmp_path / "state") == {"a/b", "c/d"}
+    (tmp_path / "state" / ha.STATE_FILE).write_text("{not json", encoding="utf-8")
+    assert ha.load_published(tmp_path / "state") == set()
+
+
+# -- the daemon on a real broker ----------------------------------------------------------
+def test_discovery_messages_are_retained_valid_and_describe_real_payloads(
+    tmp_path, mosquitto, mqtt_client, desk_artifact
+) -> None:
+    prefix = "ha-valid"
+    path = ha_config(tmp_path, mosquitto.port, desk_artifact,
+                     f'[homeassistant]\nenabled = true\ndiscovery_prefix = "{prefix}"\n'
+                     "baselines = true", stale_after_minutes=20)
+    svc = start(path)
+    try:
+        art = svc.twins["desk"].twin.artifact
+        configs = {t: json.loads(p) for t, p in retained(mqtt_client, f"{prefix}/#").items()}
+        kinds = [k for k in art.published if k != art.primary]
+        assert len(configs) == 1 + len(kinds) and kinds
+        for topic, body in configs.items():
+            check_sensor_config(topic, body, prefix)
+            assert body["expire_after"] == 20 * 60
+            assert body["device"]["name"] == "desk"
+        by_state = {b["state_topic"]: b for b in configs.values()}
+        assert set(by_state) == {"pt/desk/estimate", *(f"pt/desk/baseline/{k}" for k in kinds)}
+        est = by_state["pt/desk/estimate"]
+        assert (est["device_class"], est["unit_of_measurement"]) == ("temperature", "°C")
+        # the topics really carry the daemon's payloads: a reading makes estimates, and the
+        # value template gives a number, the attributes σ, quality and model
+        viewer = mqtt_client()
+        viewer.subscribe("pt/desk/#")
+        pub = mqtt_client()
+        pub.publish("house/dining/temp", reading(HOURS.at(DAY, 8.5), 20.5))
+        seen: dict[str, bytes] = {}
+        while not set(by_state) <= set(seen):
+            m = viewer.get(timeout=20)
+            if not m.retain and m.topic in by_state:
+                seen[m.topic] = m.payload
+        for state, body in by_state.items():
+            value = float(render_value(body["value_template"], seen[state]))
+            attrs = json.loads(seen[state])
+            assert attrs["value"] == pytest.approx(value)
+            assert attrs["std"] > 0 and attrs["quality"] == "ok" and attrs["unit"] == "°C"
+        assert json.loads(seen["pt/desk/estimate"])["model"] == art.primary
+        assert render_availability(est["availability_template"], "online") == "online"
+    finally:
+        svc.stop()
+
+
+def test_a_twin_leaving_the_config_is_removed_from_home_assistant(
+    tmp_path, mosquitto, mqtt_client, desk_artifact
+) -> None:
+    prefix = "ha-remove"
+    other = tmp_path / "two.json"
+    shutil.copy(desk_artifact, other)
+    table = f'[homeassistant]\nenabled = true\ndiscovery_prefix = "{prefix}"'
+    svc = start(ha_config(tmp_path, mosquitto.port, desk_artifact, table, other))
+    svc.stop()
+    before = retained(mqtt_client, f"{prefix}/#")
+    gone = f"{prefix}/sensor/pt/desk_two_estimate/config"
+    kept = f"{prefix}/sensor/pt/desk_estimate/config"
+    assert set(before) == {kept, gone}
+    assert json.loads(before[gone])["state_topic"] == "pt/desk.two/estimate"
+
+    watcher = mqtt_client()
+    watcher.subscribe(f"{prefix}/#")
+    while True:  # drop the retained copies
+        try:
+            watcher.get(timeout=0.5)
+        except queue.Empty:
+            break
+    svc = start(ha_config(tmp_path, mosquitto.port, desk_artifact, table))  # desk.two gone
+    try:
+        live: dict[str, bytes] = {}
+        while gone not in live or kept not in live:
+            m = watcher.get(timeout=15)
+            live[m.topic] = m.payload
+        assert live[gone] == b""  # the empty retained payload deletes the entity
+        check_sensor_config(kept, json.loads(live[kept]), prefix)
+        assert set(retained(mqtt_client, f"{prefix}/#")) == {kept}
+    finally:
+        svc.stop()
+
+    # the section switched off: every entity this daemon published goes
+    svc = start(ha_config(tmp_path, mosquitto.port, desk_artifact,
+                          "[homeassistant]\nenabled = false"))
+    try:
+        assert retained(mqtt_client, f"{prefix}/#") == {}
+    finally:
+        svc.stop()
