@@ -104,3 +104,33 @@ def test_arrival_order_never_changes_estimates_even_without_carry_over(art) -> N
         b.observe(REF, at(d, h), v)
     for kind, e in a.estimate(at(d, 9.5)).items():
         assert e.value == pytest.approx(b.estimate(at(d, 9.5))[kind].value, rel=1e-9), kind
+
+
+def test_a_model_failing_in_the_init_phase_publishes_nothing_before_day_start(
+    art, monkeypatch
+) -> None:
+    from pseudotwin.errors import NumericalError
+    from pseudotwin.gp.posterior import IncrementalPosterior
+
+    def broken(self, t, o, r):  # fault injection: every extension of the factor fails
+        raise NumericalError("injected")
+
+    monkeypatch.setattr(IncrementalPosterior, "add", broken)
+    d = dt.date(2012, 3, 20)
+    t = Twin(art)
+    t.observe(REF, at(d, 7.6), 20.0)
+    early = t.estimate(at(d, 7.75))
+    assert early["corrgp-triv"].quality == "init" and not early["corrgp-triv"].publishable
+    t.observe(REF, at(d, 8.0), 20.1)
+    later = t.estimate(at(d, 8.1))["corrgp-triv"]
+    assert (later.quality, later.model) == ("fallback", "triv") and later.publishable
+
+
+def test_calibration_of_a_model_without_any_held_out_error_is_finite() -> None:
+    import numpy as np
+
+    from pseudotwin.live.calibration import SigmaCalibration
+
+    c = SigmaCalibration.fit(np.array([1, 1, 2, 2]), np.array([8.0, 9.0, 8.0, 9.0]),
+                             np.zeros(4), np.zeros(4))
+    assert c.factor == 1.0 and 0.0 <= c.sigma(8.5, 0.0) < 1e-3

@@ -135,6 +135,11 @@ def train_twin(
             withheld[kind] = problem
     for kind, why in withheld.items():
         log.warning("%s is not published live: %s", kind, why)
+    if validate and len(days) >= MIN_DAYS:
+        for kind in fitted:
+            if kind not in calibration and kind not in withheld:
+                log.warning("%s has no σ calibration (it failed validation); it publishes its "
+                            "own spread, which is not calibrated", kind)
     if checked or withheld:
         checked = {**checked, "withheld": withheld}
     return Artifact(

@@ -225,7 +225,9 @@ def _choose(scores: Mapping[str, CandidateScore], pinned: str | None) -> tuple[s
     ranked = [s for s in scores.values()
               if s.candidate and not s.error and np.isfinite(s.nrmse_pct)]
     if not ranked:
-        raise DataError("no candidate model could be validated on the training days")
+        candidates = ", ".join(k for k, m in MODELS.items() if m.candidate)
+        raise DataError("no model that may be the primary could be validated on the training "
+                        f"days (candidates: {candidates}; check --models)")
     order = list(MODELS)  # the registry lists models from the simplest
     best = min(ranked, key=lambda s: s.nrmse_pct)
     tied = [s for s in ranked if s.nrmse_pct <= best.nrmse_pct * (1 + TIE_RELATIVE)]

@@ -223,7 +223,11 @@ class Service:
         # those messages are not acknowledged, so the broker delivers them again.
         while not self.stop_event.is_set():
             if self._held and time.monotonic() >= self._journal_retry_at:
-                self._retry_held()
+                try:
+                    self._retry_held()
+                except Exception:  # noqa: BLE001 — the worker must outlive a failed retry
+                    log.exception("retrying the held readings failed; trying again later")
+                    self._journal_retry_at = time.monotonic() + JOURNAL_RETRY_SECONDS
             try:
                 item = self.queue.get(timeout=JOURNAL_RETRY_SECONDS if self._held else 1.0)
             except queue.Empty:
@@ -247,6 +251,10 @@ class Service:
     def _retry_held(self) -> None:
         """Journal the held readings again, oldest first; on success apply and ack them."""
         done = 0
+        # Held before a reconnect: their acks would name other messages now, and the broker
+        # redelivers them (never acknowledged) on the new connection anyway.
+        # (QoS 0 readings are never redelivered: they stay.)
+        self._held = [(r, tok) for r, tok in self._held if tok[0] == self._gen or tok[2] == 0]
         try:
             while self._held:
                 r, token = self._held[0]

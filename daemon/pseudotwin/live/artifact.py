@@ -23,7 +23,8 @@ from pseudotwin.models.base import TwinModel
 from pseudotwin.models.registry import MODELS
 
 FORMAT = "pseudotwin-artifact"
-VERSION = 1
+# 2: σ calibration, validation, the ref model, VARMA re-levelling; version 1 still loads.
+VERSION = 2
 
 
 @dataclass(frozen=True)

@@ -93,7 +93,9 @@ class SigmaCalibration:
         # The held-out day levels are centred on the other days' mean: n − 1 dof.
         day_dof = max(n_days - 1, 1)
         nu = total**2 / (day_var**2 / day_dof + within**2 / (WITHIN_DAY_DOF * n_days) + 1e-300)
-        factor = float((stats.t.ppf(stats.norm.cdf(Z2), nu) / Z2) ** 2)
+        # No held-out error at all (the target is a copy of a reference): nothing to widen.
+        factor = float((stats.t.ppf(stats.norm.cdf(Z2), max(nu, 1.0)) / Z2) ** 2
+                       if total > 0 else 1.0)
         return cls(day_var, a, float(k), factor, n_days, bins)
 
     def to_dict(self) -> dict[str, Any]:

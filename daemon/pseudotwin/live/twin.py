@@ -282,11 +282,12 @@ class Twin:
                 triv = triv or self._triv_fallback(h)
                 value, name, quality = triv[0], "triv", Quality.FALLBACK
                 std = self._calibrated("triv", h, triv[1])
-            if quality == Quality.OK:
-                if h < self.hours.day_start:
-                    quality = Quality.INIT
-                elif self._stale(kind, ts):
-                    quality = Quality.STALE
+            # init (never published) before stale before fallback: a model that failed
+            # in the init phase must not publish early, nor hide a silent reference.
+            if h < self.hours.day_start:
+                quality = Quality.INIT
+            elif self._stale(kind, ts):
+                quality = Quality.STALE
             out[kind] = TwinEstimate(ts, float(value), float(std), name, quality, refs)
         return out
 
