@@ -43,6 +43,7 @@ from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.edge.replay import replay
 from pseudotwin.errors import PseudotwinError
 from pseudotwin.history.convert import SHARED_DATA_ENV, load
+from pseudotwin.live import metrics
 
 ROOT = Path(__file__).resolve().parent.parent
 TZ = "Europe/Madrid"
@@ -202,8 +203,8 @@ def main() -> int:
             if not pairs:
                 continue
             t, e = np.array(list(pairs.values())).T
-            nrmse = 100 * np.sqrt(np.mean((e - t) ** 2)) / np.mean(t)
-            print(f"  {tid}: {len(pairs)} estimates at true readings, NRMSE {nrmse:.2f} %, "
+            print(f"  {tid}: {len(pairs)} estimates at true readings, "
+                  f"NRMSE {metrics.nrmse_pct(t, e):.2f} %, "
                   f"max |error| {np.max(np.abs(e - t)):.2f} {TWINS[tid][3]}")
         print(f"\nconfig, artifacts, daemon log and state: {out}")
         return 0 if daemon.returncode == 0 else 1

@@ -23,6 +23,19 @@ def sml() -> pd.DataFrame:
     return load("sml2010")
 
 
+def sml_csv(folder: Path, last_day: dt.date) -> Path:
+    """SML2010 from its first training day (2012-03-14, Madrid) through ``last_day``, as a
+    canonical CSV in ``folder``: what the CLI tests feed `train` and `evaluate`."""
+    from pseudotwin.core.series import write_history
+
+    df = sml()
+    end = HOURS.at(last_day + dt.timedelta(days=1), 0.0)
+    df = df[(df["ts"] >= HOURS.at(dt.date(2012, 3, 14), 0.0)) & (df["ts"] < end)]
+    path = folder / "sml.csv"
+    write_history(df, path)
+    return path
+
+
 def day_readings(df: pd.DataFrame, day: dt.date = DAY, sensors=(REF,)) -> pd.DataFrame:
     """One local day's readings of ``sensors`` from 00:00 to 19:30, in time order."""
     start = HOURS.at(day, 0.0)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import datetime as dt
 import os
 import subprocess
 import sys
@@ -11,13 +12,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from daemon_support import sml_csv
 from pseudotwin.analysis.training import check_plausible
 from pseudotwin.cli import main
 from pseudotwin.core.horizon import OperatingHours
-from pseudotwin.core.series import write_history
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.errors import DataError
-from pseudotwin.history.convert import SHARED_DATA_ENV, load
+from pseudotwin.history.convert import SHARED_DATA_ENV
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -25,11 +26,7 @@ ROOT = Path(__file__).resolve().parent.parent
 @pytest.fixture(scope="module")
 def sml(tmp_path_factory) -> Path:
     """SML2010, 2012-03-14 … 2012-03-20 (five training days and two test days)."""
-    df = load("sml2010")
-    df = df[(df["ts"] >= "2012-03-13T23:00Z") & (df["ts"] < "2012-03-20T23:00Z")]
-    p = tmp_path_factory.mktemp("sml") / "sml.csv"
-    write_history(df, p)
-    return p
+    return sml_csv(tmp_path_factory.mktemp("sml"), dt.date(2012, 3, 20))
 
 
 def run(*args: str) -> int:

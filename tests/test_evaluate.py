@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from daemon_support import sml_csv
 from pseudotwin.analysis.evaluate import replay_estimates
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.cli import main
@@ -20,12 +21,8 @@ from pseudotwin.history.convert import load
 
 @pytest.fixture(scope="module")
 def sml(tmp_path_factory) -> Path:
-    """SML2010, 2012-03-14 … 2012-03-21 (five training days and three test days)."""
-    df = load("sml2010")
-    df = df[(df["ts"] >= "2012-03-13T23:00Z") & (df["ts"] < "2012-03-22T23:00Z")]
-    p = tmp_path_factory.mktemp("sml") / "sml.csv"
-    write_history(df, p)
-    return p
+    """SML2010, 2012-03-14 … 2012-03-22 (five training days, then test days)."""
+    return sml_csv(tmp_path_factory.mktemp("sml"), dt.date(2012, 3, 22))
 
 
 @pytest.fixture(scope="module")

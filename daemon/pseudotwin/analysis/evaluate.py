@@ -41,8 +41,8 @@ class Evaluation:
     """Outputs of one evaluation run (all frames also written as CSV)."""
 
     artifact: Artifact
-    estimates: pd.DataFrame  # ts, model, value, std, truth
-    daily: pd.DataFrame  # day, model, nrmse_pct, dmax_pct, pearson_r, n
+    estimates: pd.DataFrame  # replay.COLUMNS: ts, model, value, std, truth, quality, slope
+    daily: pd.DataFrame  # DAILY_COLUMNS
     monthly: pd.DataFrame  # month, model, nrmse_pct
     seconds: float
 
