@@ -16,6 +16,7 @@ Usage: .venv/bin/python scripts/bench_daemon.py [--twins 100] [--hours 2] [--spe
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as dt
 import json
 import os
@@ -33,7 +34,7 @@ import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 
 import pseudotwin  # noqa: F401
-from brokerutil import free_port, start_broker
+from brokerutil import die_with_parent, exit_on_signals, free_port, start_broker, stop_process
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
@@ -75,8 +76,13 @@ def main() -> int:
     ap.add_argument("--hours", type=float, default=2.0, help="day time to replay from 08:00")
     ap.add_argument("--speed", type=float, default=60.0)
     a = ap.parse_args()
+    exit_on_signals()
     hours = OperatingHours(timezone=TZ)
     tmp = Path(tempfile.mkdtemp(prefix="pseudotwin-bench-"))
+    # Unwound last to first on every way out (error, Ctrl-C, SIGTERM): clients, daemon,
+    # broker, then the folder. Nothing started here outlives the run.
+    cleanup = contextlib.ExitStack()
+    cleanup.callback(shutil.rmtree, tmp, ignore_errors=True)
     try:
         df = load("sml2010")
         spec = TwinSpec((REF,), TARGET, Quantity.TEMPERATURE, hours)
@@ -99,6 +105,7 @@ def main() -> int:
             f"stale_after_minutes = 30\nlog_level = \"WARNING\"\n\n"
             + "\n".join(sensors) + "\n" + "\n".join(twins))
         broker = start_broker(tmp, port, "max_queued_messages 100000\n")
+        cleanup.callback(stop_process, broker)
 
         # 5-minute readings of the real day, interpolated, per room offset by a few seconds
         day = df[(df["sensor"] == REF) & (df["ts"] >= hours.at(DAY, 0.0))
@@ -118,7 +125,9 @@ def main() -> int:
             [str(ROOT / ".venv" / "bin" / "pseudotwin"), "run", "--config",
              str(tmp / "config.toml"), "--replay-from", start.isoformat(),
              "--speed", str(a.speed)],
-            stdout=open(tmp / "daemon.log", "w"), stderr=subprocess.STDOUT)  # noqa: SIM115
+            stdout=open(tmp / "daemon.log", "w"), stderr=subprocess.STDOUT,  # noqa: SIM115
+            preexec_fn=die_with_parent)
+        cleanup.callback(stop_process, daemon, signal.SIGTERM, 60)
         sent: dict[tuple[int, str], float] = {}
         lat: list[float] = []
         lock = threading.Lock()
@@ -142,6 +151,7 @@ def main() -> int:
         sub.on_message = on_message
         sub.connect("127.0.0.1", port)
         sub.loop_start()
+        cleanup.callback(sub.loop_stop)
         if not online.wait(120):
             print((tmp / "daemon.log").read_text())
             return 1
@@ -150,6 +160,7 @@ def main() -> int:
         pub.max_queued_messages_set(0)
         pub.connect("127.0.0.1", port)
         pub.loop_start()
+        cleanup.callback(pub.loop_stop)
         clock = ReplayClock(start, a.speed)
         stop = threading.Event()
         wall0 = time.monotonic()
@@ -169,12 +180,7 @@ def main() -> int:
             time.sleep(0.1)
         wall = time.monotonic() - wall0
         cpu1, hwm = proc_stats(daemon.pid)
-        daemon.send_signal(signal.SIGTERM)
-        daemon.wait(60)
-        pub.loop_stop()
-        sub.loop_stop()
-        broker.terminate()
-        broker.wait(10)
+        stop_process(daemon, signal.SIGTERM, 60)  # before the figures: its exit status
         ms = np.array(lat) * 1e3
         fig = {
             "twins": a.twins, "speed": a.speed, "day_hours": a.hours,
@@ -201,7 +207,7 @@ def main() -> int:
         print(json.dumps(fig))
         return 0
     finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        cleanup.close()
 
 
 if __name__ == "__main__":

@@ -1,15 +1,58 @@
 """A Mosquitto broker for the demo and the benchmarks: on a free loopback port, in a
-temporary folder, ready when returned."""
+temporary folder, ready when returned.
+
+Nothing a script starts may outlive it (issue 11: a benchmark left its broker running):
+children get the kernel's parent-death signal (SIGTERM when the script dies, even by
+SIGKILL), :func:`stop_process` ends one for sure, and :func:`exit_on_signals` turns SIGTERM
+and SIGHUP into SystemExit so the scripts' ``finally`` blocks run.
+"""
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
+from types import FrameType
+
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+_LIBC = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+
+
+def die_with_parent() -> None:
+    """``preexec_fn`` for Popen: the child gets SIGTERM when this process dies (Linux)."""
+    _LIBC.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
+def stop_process(proc: subprocess.Popen | None, sig: int = signal.SIGTERM,
+                 timeout: float = 10.0) -> int | None:
+    """Send ``sig`` (SIGKILL after ``timeout`` s) and reap the process; its exit status."""
+    if proc is None:
+        return None
+    if proc.poll() is None:
+        proc.send_signal(sig)
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout)
+    return proc.returncode
+
+
+def exit_on_signals() -> None:
+    """SIGTERM and SIGHUP raise SystemExit, so cleanups in ``finally`` run (the default
+    action ends Python without them)."""
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        raise SystemExit(128 + signum)
+
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, on_signal)
 
 
 def free_port() -> int:
@@ -28,7 +71,7 @@ def start_broker(folder: Path, port: int, extra: str = "") -> subprocess.Popen:
     user = f"user {os.environ.get('USER', 'root')}\n" if os.geteuid() == 0 else ""
     conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\n{user}{extra}")
     proc = subprocess.Popen([exe, "-c", str(conf)], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
+                            stderr=subprocess.DEVNULL, preexec_fn=die_with_parent)
     deadline = time.monotonic() + 10
     while time.monotonic() < deadline:
         try:
@@ -36,5 +79,5 @@ def start_broker(folder: Path, port: int, extra: str = "") -> subprocess.Popen:
             return proc
         except OSError:
             time.sleep(0.05)
-    proc.kill()
+    stop_process(proc, signal.SIGKILL)
     sys.exit("the broker did not start")

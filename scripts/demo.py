@@ -40,10 +40,11 @@ from pseudotwin.analysis.training import train_twin
 from pseudotwin.config import load_config
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
+from pseudotwin.core.twinlog import twin_context
 from pseudotwin.edge.replay import replay
 from pseudotwin.errors import PseudotwinError
 from pseudotwin.history.convert import SHARED_DATA_ENV, load
-from pseudotwin.live import metrics
+from pseudotwin.live import dayscore
 
 ROOT = Path(__file__).resolve().parent.parent
 TZ = "Europe/Madrid"
@@ -66,6 +67,47 @@ state_dir = "state"
 publish_every_minutes = 60
 stale_after_minutes = 45
 {sensors}{twins}"""
+
+
+DRAIN_SECONDS = 60.0
+
+
+def _last_reading(df: pd.DataFrame, hours: OperatingHours, sensor: str, start: dt.datetime,
+                  end: dt.datetime) -> dt.datetime | None:
+    """The last reading of ``sensor`` replayed in operating hours: the daemon's last
+    reading-triggered estimates are of this instant."""
+    sel = df[(df["sensor"] == sensor) & (df["ts"] >= start) & (df["ts"] < end)]
+    _, hrs = hours.day_and_hours(sel["ts"])
+    ts = sel["ts"][hours.in_operating_hours(hrs)]
+    return ts.max().to_pydatetime() if len(ts) else None
+
+
+def _complete(received: dict[str, list[dayscore.Published]],
+              last: dict[str, dt.datetime | None]) -> bool:
+    """Every model of every twin has published its estimate of the last reading."""
+    for tid, t in last.items():
+        if t is None:
+            continue
+        models = {p.model for p in received[tid]}
+        done = {p.model for p in received[tid]
+                if p.ts == t and p.refs and max(r for _, r in p.refs) == t}
+        if not models or done != models:
+            return False
+    return True
+
+
+def _day_scores(df: pd.DataFrame, hours: OperatingHours, day: dt.date, ref: str, tgt: str,
+                received: list[dayscore.Published]) -> list[dayscore.DayScore]:
+    """Every model's and the raw reference's score on ``day``, against the desk sensor."""
+    days, hrs = hours.day_and_hours(df["ts"])
+    on_day = (days == np.datetime64(day)) & hours.in_operating_hours(hrs)
+    target = df[on_day & (df["sensor"] == tgt).to_numpy()]
+    truth = {t.to_pydatetime(): float(v) for t, v in zip(target["ts"], target["value"],
+                                                          strict=True)}
+    r = df[(df["sensor"] == ref).to_numpy() & (days <= np.datetime64(day))]
+    refs = {ref: [(t.to_pydatetime(), float(v)) for t, v in zip(r["ts"], r["value"],
+                                                                strict=True)]}
+    return dayscore.day_scores(received, truth, refs)
 
 
 def main() -> int:
@@ -91,7 +133,8 @@ def main() -> int:
     for tid, (ref, tgt, quantity, _) in TWINS.items():
         t0 = time.perf_counter()
         spec = TwinSpec((ref,), tgt, Quantity.parse(quantity), hours)
-        art = train_twin(df, spec, dt.date(2012, 3, 14), 5)
+        with twin_context(tid):
+            art = train_twin(df, spec, dt.date(2012, 3, 14), 5)
         art.save(out / "artifacts" / f"{tid}.json")
         print(f"    {tid}: {', '.join(art.models)} in {time.perf_counter() - t0:.0f} s")
 
@@ -150,28 +193,36 @@ def main() -> int:
         tz = ZoneInfo(TZ)
         print(f"{'local time':>10}  {'twin':13} {'reference':>10} {'estimate ± 2σ':>20} "
               f"{'truth':>8}  quality")
-        # keyed by instant: a grid estimate and a reading's estimate may share one
-        rows: dict[str, dict[dt.datetime, tuple[float, float]]] = {t: {} for t in TWINS}
-        monitors: dict[str, dict] = {}
+        # every estimate received, of every model: dayscore picks one per instant by content
+        received: dict[str, list[dayscore.Published]] = {t: [] for t in TWINS}
         last_print: dict[str, dt.datetime] = {}
-        while th.is_alive() or not msgs.empty():
+        # Drained until every model's estimate of the day's last reference reading is in (the
+        # daemon's worker may lag the replay), not for a fixed time: the scores need them all.
+        last = {tid: _last_reading(df, hours, ref, start, end)
+                for tid, (ref, *_) in TWINS.items()}
+        drain_until: float | None = None
+        while True:
+            if not th.is_alive():
+                drain_until = drain_until or time.monotonic() + DRAIN_SECONDS
+                if _complete(received, last) or time.monotonic() > drain_until:
+                    break
             try:
                 topic, body = msgs.get(timeout=0.5)
             except queue.Empty:
                 continue
             parts = topic.split("/")
-            if len(parts) == 3 and parts[2] == "monitor":
-                monitors[parts[1]] = body
+            if len(parts) == 4 and parts[2] == "baseline" and isinstance(body, dict) \
+                    and parts[1] in received:
+                received[parts[1]].append(dayscore.Published.from_payload(parts[3], body))
             if len(parts) != 3 or parts[2] != "estimate" or not isinstance(body, dict):
                 continue
             tid = parts[1]
             ref, tgt, _, unit = TWINS[tid]
+            received[tid].append(dayscore.Published.from_payload("estimate", body))
             ts = dt.datetime.fromisoformat(body["ts"].replace("Z", "+00:00"))
             key = pd.Timestamp(ts)
             tv = truth.get((tgt, key))
             rv = truth.get((ref, key))
-            if tv is not None:
-                rows[tid][ts] = (tv, body["value"])
             # a row every hour per twin keeps the screen readable at 900×
             if tid in last_print and ts - last_print[tid] < dt.timedelta(minutes=59):
                 continue
@@ -183,7 +234,9 @@ def main() -> int:
                   f"{(format(tv, fmt) if tv is not None else '-'):>8}  {body['quality']}",
                   flush=True)
         th.join()
-        time.sleep(2.0 / max(1.0, a.speed / 60))  # let the last estimates arrive
+        if not _complete(received, last):
+            print(f"(not every estimate of the last reading arrived within {DRAIN_SECONDS} s; "
+                  "the scores use those that did)")
         print("\n4/4 stopping the daemon (SIGTERM)", flush=True)
         daemon.send_signal(signal.SIGTERM)
         daemon.wait(timeout=60)
@@ -198,14 +251,11 @@ def main() -> int:
             except queue.Empty:
                 pass
         print(f"daemon exit status {daemon.returncode}; demo/status = {status!r}")
-        print(f"\nthe day's pseudo-measurements vs the temporary desk sensor ({a.day}):")
-        for tid, pairs in rows.items():
-            if not pairs:
-                continue
-            t, e = np.array(list(pairs.values())).T
-            print(f"  {tid}: {len(pairs)} estimates at true readings, "
-                  f"NRMSE {metrics.nrmse_pct(t, e):.2f} %, "
-                  f"max |error| {np.max(np.abs(e - t)):.2f} {TWINS[tid][3]}")
+        print(f"\nthe day's scores at the desk sensor's readings in operating hours ({a.day}; "
+              "estimate = what <twin>/estimate published, ref:<sensor> = the raw reference):")
+        for tid, (ref, tgt, _, unit) in TWINS.items():
+            print(f"{tid}:")
+            print(dayscore.table(_day_scores(df, hours, a.day, ref, tgt, received[tid]), unit))
         print(f"\nconfig, artifacts, daemon log and state: {out}")
         return 0 if daemon.returncode == 0 else 1
     finally:

@@ -320,6 +320,32 @@ def desk_artifact(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return art.save(tmp_path_factory.mktemp("artifact") / "desk.json")
 
 
+@pytest.fixture(scope="session")
+def postgres() -> Iterator[Any]:
+    """A real PostgreSQL server (tests/postgres_server.py) for the session, stopped and
+    deleted at the end. Missing binaries fail (not skip), as for Mosquitto."""
+    from postgres_server import PostgresServer, find_bindir
+
+    bindir = find_bindir()
+    if bindir is None:
+        pytest.fail("PostgreSQL (initdb, pg_ctl) is required for the PostgreSQL store tests "
+                    "but is not installed; run scripts/bootstrap.sh or `apt-get install "
+                    "postgresql`", pytrace=False)
+    server = PostgresServer(bindir)
+    try:
+        for attempt in range(3):  # a port picked free can be taken before the server binds
+            try:
+                server.start()
+                break
+            except RuntimeError:
+                if attempt == 2:
+                    raise
+                server.port = 0
+        yield server
+    finally:
+        server.destroy()
+
+
 @pytest.fixture
 def service_factory(
     mosquitto: MosquittoBroker, desk_artifact: Path, tmp_path: Path

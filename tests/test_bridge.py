@@ -499,7 +499,7 @@ def test_daemon_configuration_file_with_a_plc_section(tmp_path: Path) -> None:
     # (artifacts aside), the bridge's defaults come from it.
     text = (ROOT / "config" / "example.toml").read_text(encoding="utf-8") + "\n".join([
         "", "[plc]", 'ams_net_id = "192.168.10.20.1.1"',
-        _symbols_toml([{"symbol": "MAIN.fRoomTemp", "sensor": "room1/hmi/temp",
+        _symbols_toml([{"symbol": "MAIN.fRoomTemp", "sensor": "dining/temp",
                         "plc_type": "LREAL"}]), "",
     ])
     path = tmp_path / "room1.toml"
@@ -508,10 +508,10 @@ def test_daemon_configuration_file_with_a_plc_section(tmp_path: Path) -> None:
     assert cfg.client_id == "pseudotwin-room1-bridge"
     assert cfg.base_topic == "pseudotwin"
     assert cfg.plc.ip_address == "192.168.10.20" and cfg.plc.port == 851
-    assert cfg.sensor_of(cfg.plc.symbols[0]).topic == "building/room1/hmi/temp"
+    assert cfg.sensor_of(cfg.plc.symbols[0]).topic == "house/dining/temp"
 
-    broken = text.replace('timezone = "Europe/Berlin"', 'timezone = "Europe/Berln"')
-    path.write_text(broken.replace('sensor = "room1/hmi/temp"', 'sensor = "room1/hmi/tmp"'),
+    broken = text.replace('timezone = "Europe/Madrid"', 'timezone = "Europe/Berln"')
+    path.write_text(broken.replace('sensor = "dining/temp"', 'sensor = "room1/hmi/tmp"'),
                     encoding="utf-8")
     with pytest.raises(ConfigProblems) as caught:
         load_bridge_config(path)

@@ -128,3 +128,11 @@ def test_demo_without_shared_data_ends_in_one_clear_line(tmp_path: Path) -> None
     assert len(lines) == 1 and "Traceback" not in p.stderr
     assert "shared SML2010 data is missing" in lines[0] and SHARED_DATA_ENV in lines[0]
     assert not (tmp_path / "demo").exists()
+
+
+def test_global_log_level_before_a_delegated_subcommand(tmp_path: Path, capsys) -> None:
+    # `pseudotwin --log-level WARNING check-config F` took WARNING for the subcommand
+    missing = tmp_path / "none.toml"
+    assert main(["--log-level", "WARNING", "check-config", str(missing)]) == 2
+    err = capsys.readouterr().err
+    assert str(missing) in err and "unrecognized arguments" not in err

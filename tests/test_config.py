@@ -635,16 +635,17 @@ def test_artifact_check_exceptions_become_problems(tmp_path: Path) -> None:
 
 def test_example_config_loads() -> None:
     cfg = load_config(EXAMPLE)
-    assert set(cfg.sensors) == {"room1/hmi/temp", "room1/ceiling/temp", "room1/ceiling/co2",
-                                "room1/hmi/co2", "room1/desk/temp"}
+    # SML2010's names: the README's commissioning path trains on that house's data.
+    assert set(cfg.sensors) == {"dining/temp", "dining/co2", "room/temp", "room/co2"}
     temp, co2 = cfg.twins["room1-desk-temp"], cfg.twins["room1-desk-co2"]
     assert temp.quantity == "temperature" and co2.quantity == "co2"
-    assert set(temp.references) == {"room1/hmi/temp", "room1/ceiling/temp"}
-    assert set(co2.references) == {"room1/hmi/co2", "room1/ceiling/co2"}
+    assert (temp.references, temp.target) == (("dining/temp",), "room/temp")
+    assert (co2.references, co2.target) == (("dining/co2",), "room/co2")
     assert temp.artifact == EXAMPLE.parent / "artifacts" / "room1-desk-temp.json"
     assert cfg.state_dir == Path("/var/lib/pseudotwin")  # what the systemd unit provides
-    assert cfg.sensors["room1/hmi/temp"].format == "json"
-    assert cfg.hours.timezone == "Europe/Berlin"
+    assert cfg.sensors["dining/temp"].format == "json"
+    assert cfg.sensors["dining/co2"].format == "number"
+    assert cfg.hours.timezone == "Europe/Madrid"
 
 
 def test_example_passes_check_once_artifacts_exist(tmp_path: Path) -> None:

@@ -108,7 +108,7 @@ def test_cli_usage_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
     assert "--store" in capsys.readouterr().err
     good = tmp_path / "good.csv"
     good.write_text("sensor,ts,value\na,2016-03-01T00:00:00Z,1.5\n")
-    assert main([str(good), "--store", "postgres://db"]) == 2
+    assert main([str(good), "--store", "mysql://db"]) == 2
     assert "unsupported history store" in capsys.readouterr().err
     assert main([str(good), "--store", str(tmp_path / "no" / "such" / "dir.db")]) == 2
     assert "does not exist" in capsys.readouterr().err

@@ -16,6 +16,7 @@ import signal
 import socket
 import stat
 import subprocess
+import threading
 import time
 from pathlib import Path
 
@@ -164,12 +165,18 @@ def test_deleted_store_is_detected_and_recreated_by_the_recorder(
 # -- 6. flood: reported, bounded, and SIGTERM within seconds -------------------------------
 def test_flood_is_reported(service_factory, mosquitto, caplog) -> None:
     svc = service_factory()
-    svc.health.backlog_seconds = svc.health.report_seconds = 0.5
+    # Any backlog is a flood here; the worker is stalled (its first ack waits for the lock)
+    # until the broker's in-flight window of the flood waits in the queue behind it.
+    svc.health.backlog_seconds = svc.health.report_seconds = 0.0
     base = HOURS.at(DAY, 8.0)
     flood = [reading(base + dt.timedelta(seconds=i), 20 + (i % 7) / 10) for i in range(1500)]
     with caplog.at_level(logging.WARNING):
-        send(mosquitto.port, flood, "rel-flood")
+        with svc._lock:
+            sender = threading.Thread(target=send, args=(mosquitto.port, flood, "rel-flood"))
+            sender.start()
+            wait_for(lambda: svc.health.received >= 10, what="a backlog")
         wait_for(lambda: "flood: behind" in caplog.text, timeout=60, what="flood report")
+        sender.join(60)
     ingest = svc.health.snapshot()["ingest"]
     assert ingest["queue_max_seen"] <= svc.queue.maxsize
     assert ingest["received"] > 0

@@ -1,9 +1,10 @@
 """History store: the same behaviour tests on every backend, plus backend-specific checks.
 
 Backends: a real SQLite file; the CrateDB backend (real ``crate`` client) against
-:mod:`fake_cratedb`, a FAKE of CrateDB's HTTP ``/_sql`` endpoint; and a real CrateDB when
+:mod:`fake_cratedb`, a FAKE of CrateDB's HTTP ``/_sql`` endpoint; a real CrateDB when
 ``PSEUDOTWIN_TEST_CRATEDB=crate://host:4200`` is set (each run in its own schema, dropped
-afterwards).
+afterwards); and a real PostgreSQL server started by the ``postgres`` fixture (each test in
+a fresh database). PostgreSQL specifics are in test_store_postgres.py.
 """
 
 from __future__ import annotations
@@ -79,7 +80,7 @@ def _drop_real_schema(url: str, schema: str) -> None:
         conn.close()
 
 
-@pytest.fixture(params=["sqlite", "crate-fake", "crate-real"])
+@pytest.fixture(params=["sqlite", "crate-fake", "crate-real", "postgres"])
 def backend(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[dict]:
     """How to open the backend under test: ``kind`` and ``url`` (reopenable)."""
     kind = request.param
@@ -88,6 +89,13 @@ def backend(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[dict]:
     elif kind == "crate-fake":
         with FakeCrateDB() as server:
             yield {"kind": kind, "url": server.url, "fake": server}
+    elif kind == "postgres":
+        server = request.getfixturevalue("postgres")  # started only when a test needs it
+        db = server.create_database()
+        try:
+            yield {"kind": kind, "url": server.url(db), "server": server, "db": db}
+        finally:
+            server.drop_database(db)
     else:
         if not REAL_CRATEDB:
             pytest.skip(NO_REAL_CRATEDB)
@@ -248,6 +256,14 @@ def test_estimates_upsert_leaves_one_row_with_the_latest_value(store: Store) -> 
     assert list(got.columns) == list(store_mod.ESTIMATE_COLUMNS)
 
 
+def test_one_key_twice_in_one_call_first_reading_and_last_estimate_win(store: Store) -> None:
+    t = dt.datetime(2016, 3, 1, 8, 15, tzinfo=UTC)
+    store.write_readings([Reading("a/temp", t, 1.0), Reading("a/temp", t, 2.0)])
+    assert store.read_readings("a/temp")["value"].tolist() == [1.0]  # readings: immutable
+    store.write_estimates([_estimate(21.0, t), _estimate(22.0, t)])
+    assert store.read_estimates("desk")["value"].tolist() == [22.0]  # as if row by row
+
+
 def test_read_estimates_filters_and_keeps_nan(store: Store) -> None:
     base = dt.datetime(2016, 3, 1, 8, 0, tzinfo=UTC)
     rows = [_estimate(20.0 + i, base + dt.timedelta(minutes=15 * i)) for i in range(4)]
@@ -294,6 +310,12 @@ def test_newer_schema_version_is_refused(backend: dict) -> None:
     elif backend["kind"] == "crate-fake":
         backend["fake"].sql("UPDATE meta SET value = ? WHERE name = 'schema_version'",
                             [str(SCHEMA_VERSION + 1)])
+    elif backend["kind"] == "postgres":
+        import psycopg
+
+        with psycopg.connect(backend["url"], autocommit=True) as conn:
+            conn.execute("UPDATE pseudotwin.meta SET value = %s WHERE name = 'schema_version'",
+                         [str(SCHEMA_VERSION + 1)])
     with pytest.raises(StoreError, match=r"schema version 2, newer .* supports \(1\)"):
         open_store(backend["url"])
 
@@ -360,7 +382,7 @@ def test_open_store_urls(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Non
     with pytest.raises(StoreError, match="not a usable SQLite history DB"):
         open_store(tmp_path / "junk.db")
     with pytest.raises(ConfigError, match="unsupported"):
-        open_store("postgres://db/x")
+        open_store("mysql://db/x")
     with pytest.raises(ConfigError, match="must not contain credentials"):
         open_store("crate://admin:secret@localhost:4200")
     with pytest.raises(ConfigError, match="unknown option"):

@@ -24,6 +24,7 @@ from pseudotwin.analysis.training import train_twin
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.series import require_sensors
 from pseudotwin.core.spec import TwinSpec
+from pseudotwin.core.thinning import Thinning
 from pseudotwin.errors import DataError
 from pseudotwin.live import metrics
 from pseudotwin.live.artifact import Artifact
@@ -86,8 +87,12 @@ def evaluate(
     options: dict[str, dict[str, Any]] | None = None,
     plot_day: dt.date | None = None,
     primary: str | None = None,
+    thinning: Thinning | None = None,
 ) -> Evaluation:
-    """Train on ``train_days`` days from ``train_start``, then score every later day."""
+    """Train on ``train_days`` days from ``train_start``, then score every later day.
+
+    thinning: the window's policy for the scored days (default: one point per sensor and
+    minute, the daemon's default)."""
     t0 = time.perf_counter()
     target, hours = spec.target, spec.hours
     require_sensors(history, list(spec.sensors))
@@ -101,7 +106,7 @@ def evaluate(
     if plot_day is not None and plot_day < test_start:
         raise DataError(f"--plot-day {plot_day} is not scored: the evaluated days begin on "
                         f"{test_start}, after training")
-    est = replay_estimates(artifact, history, test_start, models)
+    est = replay_estimates(artifact, history, test_start, models, thinning=thinning)
     if est.empty:
         raise DataError(
             f"no target readings of {target} in operating hours after the training period "

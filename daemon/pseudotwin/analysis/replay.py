@@ -2,7 +2,12 @@
 in time order, exactly as the daemon receives them, and at each true target reading in
 operating hours every model's estimate from the references' readings up to that instant.
 ``evaluate`` scores the days after training with it, the validation the held-out training
-days."""
+days.
+
+A chatty target is scored once per ``min_interval`` bucket (core/thinning.py), at its last
+reading, against the mean of the bucket's readings: the truth its 1-minute means would give,
+estimated from the references' readings of the same interval (still causal: none after the
+instant), and a day's score costs what a reading a minute costs."""
 
 from __future__ import annotations
 
@@ -12,6 +17,7 @@ from collections.abc import Sequence
 import numpy as np
 import pandas as pd
 
+from pseudotwin.core.thinning import Thinning
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.twin import Twin
 
@@ -26,6 +32,7 @@ def replay_estimates(
     start: dt.date,
     models: Sequence[str] | None = None,
     end: dt.date | None = None,
+    thinning: Thinning | None = None,
 ) -> pd.DataFrame:
     """Estimates at every true target reading in operating hours of days ``start``…``end``.
 
@@ -34,10 +41,12 @@ def replay_estimates(
     primary, with its fallbacks and quality flags; nothing in the init phase); and, as
     pseudo-models ``ref:<sensor>``, the raw reference value held at that time (its daily
     Pearson r with the target is the evidence of how much a reference can tell). slope: the
-    references' |slope| [unit/h] the model's σ saw.
+    references' |slope| [unit/h] the model's σ saw. thinning: the window's policy, as the
+    daemon's configuration sets it (default one point per sensor and minute).
     """
     hours = artifact.hours
-    twin = Twin(artifact, models=models)
+    thinning = thinning or Thinning()
+    twin = Twin(artifact, models=models, thinning=thinning)
     refs = list(artifact.references)
     primary = artifact.primary
     sub = history[history["sensor"].isin([*refs, artifact.target])]
@@ -54,9 +63,20 @@ def replay_estimates(
     stamps = pd.DatetimeIndex(sub["ts"]).tz_convert("UTC")[order]
     values = sub["value"].values[order]
     scored = score[order]
+    truths = values.astype(float)
+    tgt = np.flatnonzero(sensors == artifact.target)
+    if len(tgt):  # one score per target bucket: at its last reading, against its mean
+        width = thinning.interval(artifact.target) // dt.timedelta(microseconds=1)
+        bucket = stamps[tgt].asi8 // 1000 // width  # ns → µs → buckets
+        first = np.r_[True, bucket[1:] != bucket[:-1]]
+        last = np.r_[bucket[1:] != bucket[:-1], True]
+        group = np.cumsum(first) - 1
+        mean = np.bincount(group, truths[tgt]) / np.bincount(group)
+        scored[tgt] &= last
+        truths[tgt] = mean[group]
     held: dict[str, float] = {}
     rows: list[tuple[object, ...]] = []
-    for s, ts, v, sc in zip(sensors, stamps, values, scored, strict=True):
+    for s, ts, v, sc, truth in zip(sensors, stamps, values, scored, truths, strict=True):
         t = ts.to_pydatetime()
         if s != artifact.target:
             twin.observe(s, t, float(v))
@@ -69,10 +89,10 @@ def replay_estimates(
             if not e.finite:
                 continue
             slope = twin.slope(artifact.models[kind].references_, h)
-            rows.append((t, kind, e.value, e.std, float(v), e.quality.value, slope))
+            rows.append((t, kind, e.value, e.std, truth, e.quality.value, slope))
             if kind == primary and e.publishable:
-                rows.append((t, ESTIMATE, e.value, e.std, float(v), e.quality.value, slope))
+                rows.append((t, ESTIMATE, e.value, e.std, truth, e.quality.value, slope))
         for r in refs:
             if r in held:
-                rows.append((t, REF_PREFIX + r, held[r], np.nan, float(v), "ok", np.nan))
+                rows.append((t, REF_PREFIX + r, held[r], np.nan, truth, "ok", np.nan))
     return pd.DataFrame(rows, columns=COLUMNS)

@@ -98,6 +98,24 @@ def train_twin(
     validate: bool = True,
 ) -> Artifact:
     """Train the requested models of one twin on the chosen days; returns the artifact.
+    See :func:`train_validated`."""
+    return train_validated(df, spec, train_start, train_days, models, options, primary,
+                           validate)[0]
+
+
+def train_validated(
+    df: pd.DataFrame,
+    spec: TwinSpec,
+    train_start: dt.date,
+    train_days: int = 5,
+    models: Sequence[str] = ALL_MODELS,
+    options: dict[str, dict[str, Any]] | None = None,
+    primary: str | None = None,
+    validate: bool = True,
+) -> tuple[Artifact, validation.Validation | None]:
+    """Train the requested models of one twin on the chosen days; returns the artifact
+    and the validation it came from (None when not validated), whose held-out estimates the
+    commissioning report shows.
 
     options: kind → settings of that model (see each model's ``options``). validate: hold
     out each training day to choose the primary (unless ``primary`` pins it) and calibrate
@@ -123,6 +141,7 @@ def train_twin(
         raise DataError(f"primary {primary!r} is not among the trained models")
     calibration: dict[str, SigmaCalibration] = {}
     checked: dict[str, Any] = {}
+    v: validation.Validation | None = None
     if validate and len(days) >= MIN_DAYS:
         v = validation.validate(df, spec, days, list(fitted), opts, primary)
         primary, calibration, checked = v.primary, v.calibration, v.to_dict()
@@ -150,7 +169,7 @@ def train_twin(
             "days": [str(d.day) for d in days],
             "sensors": sensors,
         },
-    )
+    ), v
 
 
 def history_from_store(

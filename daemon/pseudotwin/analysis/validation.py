@@ -28,9 +28,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pseudotwin.analysis.replay import replay_estimates
+from pseudotwin.analysis.replay import REF_PREFIX, replay_estimates
 from pseudotwin.core.series import DayReadings
 from pseudotwin.core.spec import TwinSpec
+from pseudotwin.core.twinlog import collapsed
 from pseudotwin.errors import DataError, FitError, NumericalError
 from pseudotwin.live import metrics
 from pseudotwin.live.artifact import Artifact
@@ -39,6 +40,7 @@ from pseudotwin.models.base import TrainingSet, TwinModel
 from pseudotwin.models.registry import MODELS, build
 
 log = logging.getLogger(__name__)
+_FOLD_LOGGERS = ("pseudotwin.gp.train", "pseudotwin.models.varma", "pseudotwin.live.twin", __name__)
 
 TIE_RELATIVE = 0.03
 # A monitoring baseline whose held-out NRMSE exceeds this multiple of TRIV's is not published
@@ -81,6 +83,9 @@ class Validation:
     offset_std: float = float("nan")
     seconds: float = 0.0
     withheld: dict[str, str] = field(default_factory=dict)
+    # The held-out rows (replay_estimates' columns and ``day``, the models' own std): what the
+    # commissioning report plots, so it needs no refit. Not saved in the artifact.
+    held_out: pd.DataFrame = field(default_factory=pd.DataFrame, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -152,7 +157,10 @@ def _fold(df: pd.DataFrame, spec: TwinSpec, train: Sequence[DayReadings], held: 
     days, _ = spec.hours.day_and_hours(df["ts"])
     near = (days >= np.datetime64(held - dt.timedelta(days=1))) & (days <= np.datetime64(held))
     est = replay_estimates(art, df[near], held, end=held)
-    return est[est["model"].isin(list(fitted))].assign(day=held)
+    # The fold's ``estimate`` rows follow an arbitrary primary: dropped. The raw references
+    # stay, for their own score.
+    keep = est["model"].isin(list(fitted)) | est["model"].str.startswith(REF_PREFIX)
+    return est[keep].assign(day=held)
 
 
 def validate(
@@ -171,9 +179,11 @@ def validate(
     opts = options or {}
     failures: dict[str, str] = {}
     frames = []
-    for d in days:
-        rest = [x for x in days if x.day != d.day]
-        frames.append(_fold(df, spec, rest, d.day, models, opts, failures))
+    # Each fold refits every model: the same fit warning would otherwise appear per fold.
+    with collapsed(_FOLD_LOGGERS, f"validation's {len(days)} folds"):
+        for d in days:
+            rest = [x for x in days if x.day != d.day]
+            frames.append(_fold(df, spec, rest, d.day, models, opts, failures))
     held = pd.concat([f for f in frames if not f.empty], ignore_index=True)
     offset_var = offset_variance(spec, days)
     scores: dict[str, CandidateScore] = {}
@@ -201,7 +211,7 @@ def validate(
         )
     chosen, reason = _choose(scores, primary)
     return Validation(scores, chosen, reason, calibration, float(np.sqrt(offset_var)),
-                      time.perf_counter() - t0, _withheld(scores, chosen))
+                      time.perf_counter() - t0, _withheld(scores, chosen), held)
 
 
 def _withheld(scores: Mapping[str, CandidateScore], primary: str) -> dict[str, str]:

@@ -47,6 +47,15 @@ def _csv(text: str) -> list[str]:
     return items
 
 
+def _shard(text: str) -> Any:
+    from pseudotwin.edge.fleet import Shard
+
+    try:
+        return Shard.parse(text)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def _date(text: str) -> dt.date:
     try:
         return dt.date.fromisoformat(text)
@@ -60,7 +69,8 @@ def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
         src.add_argument("--history", type=Path,
                          help="canonical history file (CSV or Parquet): sensor,ts,value")
         src.add_argument("--store", metavar="URL",
-                         help="history store: SQLite file or crate://host:4200")
+                         help="history store: SQLite file, postgresql://host/db or "
+                              "crate://host:4200")
         src.add_argument("--config", type=Path, help="use the store of this daemon config")
     else:
         p.add_argument("--history", required=True, type=Path,
@@ -141,11 +151,14 @@ def _training_history(a: argparse.Namespace,
 
 
 def cmd_train(a: argparse.Namespace) -> int:
-    from pseudotwin.analysis.training import train_twin
+    from pseudotwin.analysis.training import train_validated
+    from pseudotwin.core.twinlog import twin_context
 
     spec = _spec(a)
     df, start = _training_history(a, spec.hours)
-    art = train_twin(df, spec, start, a.train_days, a.models, _options(a), a.primary)
+    with twin_context(a.out.stem):  # the artifact's name is the twin's id by convention
+        art, checked = train_validated(df, spec, start, a.train_days, a.models, _options(a),
+                                       a.primary)
     path = art.save(a.out)
     days = ", ".join(art.training["days"])
     print(f"trained {', '.join(art.models)} on {days}; artifact written to {path}")
@@ -159,21 +172,44 @@ def cmd_train(a: argparse.Namespace) -> int:
         print(validation_table(art.validation, art.unit))
     else:
         print(f"primary: {art.primary} (not validated)")
+    if a.report is not None:
+        import time
+
+        from pseudotwin.analysis.commissioning import write_report
+
+        t0 = time.perf_counter()
+        page = write_report(a.report, art, checked, df, start, path)
+        print(f"commissioning report written to {page} ({page.stat().st_size / 1e3:.0f} kB, "
+              f"{time.perf_counter() - t0:.1f} s)")
     return 0
 
 
 def cmd_evaluate(a: argparse.Namespace) -> int:
     from pseudotwin.analysis.evaluate import evaluate, summary_table
     from pseudotwin.core.series import read_history
+    from pseudotwin.core.thinning import Thinning
+    from pseudotwin.core.twinlog import twin_context
 
     df = read_history(a.history)
-    ev = evaluate(df, _spec(a), a.train_start, a.train_days, a.models, a.out, _options(a),
-                  a.plot_day, a.primary)
+    with twin_context(a.target):  # evaluate has no twin id: its desk sensor names it
+        ev = evaluate(df, _spec(a), a.train_start, a.train_days, a.models, a.out,
+                      _options(a), a.plot_day, a.primary,
+                      thinning=Thinning(dt.timedelta(seconds=a.min_interval)))
     print(f"trained on {', '.join(ev.artifact.training['days'])}; "
           f"scored {ev.daily['day'].nunique()} day(s) in {ev.seconds:.1f} s")
     print(summary_table(ev))
     print(f"written: {a.out}/daily.csv, monthly.csv, estimates.csv, artifact.json, plots")
     return 0
+
+
+def _positive_seconds(text: str) -> float:
+    try:
+        seconds = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not 0 < seconds <= 3600:
+        raise argparse.ArgumentTypeError(f"{text} s is not in (0, 3600]")
+    return seconds
 
 
 def _aware(text: str) -> dt.datetime:
@@ -243,11 +279,25 @@ def cmd_run(a: argparse.Namespace) -> int:
         print(f"pseudotwin run: configuration error in {a.config}:\n{exc}", file=sys.stderr)
         return EX_CONFIG
     logging.getLogger().setLevel(a.log_level or cfg.log_level)
+    member = None
+    try:
+        if a.shard is not None or a.twins is not None:
+            from pseudotwin.edge.fleet import narrow
+
+            cfg, member = narrow(cfg, shard=a.shard, twins=a.twins, metrics_port=a.metrics_port)
+        elif a.metrics_port is not None:
+            import dataclasses
+
+            cfg = dataclasses.replace(cfg, metrics=dataclasses.replace(cfg.metrics,
+                                                                       port=a.metrics_port))
+    except ConfigError as exc:
+        print(f"pseudotwin run: configuration error in {a.config}:\n{exc}", file=sys.stderr)
+        return EX_CONFIG
     clock = ReplayClock(a.replay_from, a.speed) if a.replay_from else SystemClock()
     if a.replay_from:
         log.info("replay mode: clock starts at %s and runs at %g× real time",
                  a.replay_from.isoformat(), a.speed)
-    return _serve(Service(cfg, clock))
+    return _serve(Service(cfg, clock, member))
 
 
 def cmd_replay(a: argparse.Namespace) -> int:
@@ -277,17 +327,9 @@ def cmd_record(a: argparse.Namespace) -> int:
 
 
 def cmd_backfill(a: argparse.Namespace) -> int:
-    from pseudotwin.config import load_config
-    from pseudotwin.history.backfill import backfill
-    from pseudotwin.history.store import open_store
+    from pseudotwin.cli.backfill import run
 
-    cfg = load_config(a.config)
-    if cfg.store is None:
-        raise ConfigError(f"{a.config}: no store configured in [service] (store = ...)")
-    with open_store(cfg.store) as store:
-        summary = backfill(cfg, a.twin, a.start, a.end, store, progress=not a.quiet)
-    print("\n".join(summary.lines()))
-    return 0
+    return run(a)  # each day's log lines name their twin (history.backfill.run_chunk)
 
 
 def cmd_convert(argv: list[str]) -> int:
@@ -344,6 +386,14 @@ def build_parser() -> argparse.ArgumentParser:
                                    "in operating hours are chosen (and printed).")
     _add_twin_args(t, train=True)
     t.add_argument("--out", required=True, type=Path, help="artifact file to write (.json)")
+    t.add_argument("--report", type=Path, metavar="DIR",
+                   help="also write a commissioning report, DIR/<twin>.html (<twin>: the "
+                        "artifact's file name): one self-contained HTML page with the data "
+                        "found per sensor and day and whether it is enough, every candidate's "
+                        "held-out score and why the primary won, the raw reference's own "
+                        "score, the primary's typical and worst held-out days with the ±2σ "
+                        "band, and the TOML configuration for the twin. Uses what training "
+                        "computed; nothing is refit")
     t.set_defaults(func=cmd_train)
 
     e = sub.add_parser("evaluate", help="train, then score the models causally on later days",
@@ -353,6 +403,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_twin_args(e)
     e.add_argument("--out", required=True, type=Path,
                    help="output folder: daily.csv, monthly.csv, estimates.csv, plots")
+    e.add_argument("--min-interval", type=_positive_seconds, default=60.0, metavar="SECONDS",
+                   help="the window keeps at most one point per sensor and interval, the mean "
+                        "of its readings in it, and a chatty target is scored once per "
+                        "interval, as the daemon's min_interval_seconds (default 60)")
     e.add_argument("--plot-day", type=_date, help="day to plot in detail (default: median day)")
     e.set_defaults(func=cmd_evaluate)
 
@@ -366,6 +420,18 @@ def build_parser() -> argparse.ArgumentParser:
                         "(ISO 8601 with offset) instead of now")
     r.add_argument("--speed", type=float, default=1.0,
                    help="replay mode: clock speed-up factor (default 1)")
+    fleet = r.add_mutually_exclusive_group()
+    fleet.add_argument("--shard", type=_shard, metavar="I/N",
+                       help="fleet: run only shard I of N (0-based), the twins whose "
+                            "sha256(id) mod N is I, and subscribe only to their sensors; "
+                            "client id, state_dir subfolder and status topic "
+                            "(<base>/status/shard-I-of-N) become this instance's own")
+    fleet.add_argument("--twins", type=_csv, metavar="ID,ID",
+                       help="fleet: run only these twins of the configuration (as --shard, "
+                            "the instance is named after the set)")
+    r.add_argument("--metrics-port", type=int, metavar="PORT",
+                   help="serve Prometheus metrics on this port instead of [metrics] port "
+                        "(one per instance when several run on one host)")
     r.set_defaults(func=cmd_run)
 
     rp = sub.add_parser("replay", help="publish stored readings through the broker",
@@ -390,18 +456,17 @@ def build_parser() -> argparse.ArgumentParser:
     rc.add_argument("--config", required=True, type=Path, help="TOML configuration file")
     rc.set_defaults(func=cmd_record)
 
-    bf = sub.add_parser("backfill", help="write a twin's estimates for past days to the store",
+    bf = sub.add_parser("backfill", help="write twins' estimates for past days to the store",
                         description="Replay stored readings day by day through the daemon's "
                                     "twin code and write every model's estimates to the "
-                                    "estimates table. Idempotent and resumable.")
-    bf.add_argument("--config", required=True, type=Path, help="TOML configuration file")
-    bf.add_argument("--twin", required=True, help="twin id from the configuration")
-    bf.add_argument("--from", dest="start", required=True, type=_date, metavar="YYYY-MM-DD",
-                    help="first day, YYYY-MM-DD (a local day in the configured time zone)")
-    bf.add_argument("--to", dest="end", required=True, type=_date, metavar="YYYY-MM-DD",
-                    help="last day (inclusive), YYYY-MM-DD (a local day in the configured "
-                         "time zone)")
-    bf.add_argument("--quiet", action="store_true", help="no progress output")
+                                    "estimates table. Idempotent and resumable. Twins, and "
+                                    "runs of one twin's days, run in parallel processes "
+                                    "(--jobs) with the same results as one process. Exit "
+                                    "status 1 when a day failed (each failure names its "
+                                    "twin and day; other days stay written), 130 on Ctrl-C.")
+    from pseudotwin.cli.backfill import add_arguments as add_backfill_arguments
+
+    add_backfill_arguments(bf)
     bf.set_defaults(func=cmd_backfill)
 
     sub.add_parser("convert", help="convert a shared dataset into canonical CSV", add_help=False)
@@ -416,9 +481,11 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     # Subcommands with their own parsers get the rest of the line untouched.
-    first = next((i for i, x in enumerate(args) if not x.startswith("-")), None)
+    first = next((i for i, x in enumerate(args) if not x.startswith("-")
+                  and (i == 0 or args[i - 1] != "--log-level")), None)  # not its value
     if first is not None and args[first] in DELEGATED:
-        setup_logging("INFO")
+        head = args[:first]
+        setup_logging(head[head.index("--log-level") + 1] if "--log-level" in head else "INFO")
         return DELEGATED[args[first]](args[first + 1:])
     parser = build_parser()
     a = parser.parse_args(args)

@@ -22,6 +22,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("dataset", nargs="?", help="dataset name (see --list)")
     p.add_argument("--source", type=Path, help="dataset folder or file (default: shared data)")
     p.add_argument("--out", type=Path, help="output CSV file")
+    p.add_argument("--raw", action="store_true",
+                   help="keep every sample where the converter would average (room-climate-*: "
+                        "one reading every ~4 s per node instead of 1-minute means)")
     p.add_argument("--list", action="store_true", help="list the datasets and exit")
     return p
 
@@ -41,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.out is None:
             raise UsageError("--out FILE.csv is required")
         t0 = time.perf_counter()
-        summary = convert(args.dataset, args.source, args.out)
+        summary = convert(args.dataset, args.source, args.out, raw=args.raw)
         print(f"{summary.line()} ({time.perf_counter() - t0:.1f} s)")
         return 0
 

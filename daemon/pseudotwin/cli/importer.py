@@ -27,9 +27,10 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument("file", type=Path, metavar="FILE", help="canonical history CSV or Parquet")
     p.add_argument("--store", required=True, metavar="URL",
-                   help="history store: a SQLite file path, sqlite:///path, or "
-                        "crate://host:4200 (credentials from PSEUDOTWIN_CRATE_USER / "
-                        "PSEUDOTWIN_CRATE_PASSWORD)")
+                   help="history store: a SQLite file path, sqlite:///path, "
+                        "postgresql://[user@]host/db (password from PGPASSWORD or "
+                        "~/.pgpass), or crate://host:4200 (credentials from "
+                        "PSEUDOTWIN_CRATE_USER / PSEUDOTWIN_CRATE_PASSWORD)")
     return p
 
 

@@ -64,7 +64,8 @@ class Loader:
                     "init_minutes", "slot_minutes", "publish_every_minutes",
                     "stale_after_minutes", "max_skew_seconds", "log_level", "queue_size",
                     "store")
-    SENSOR_KEYS = ("id", "topic", "format", "ts_key", "value_key", "unit", "min", "max")
+    SENSOR_KEYS = ("id", "topic", "format", "ts_key", "value_key", "unit", "min", "max",
+                   "min_interval_seconds")
     SENSOR_REQUIRED = ("id", "topic", "unit", "min", "max")
     TWIN_KEYS = ("id", "quantity", "references", "target", "artifact")
     TWIN_REQUIRED = ("id", "quantity", "references", "artifact")
@@ -219,16 +220,25 @@ class Loader:
         return {"hours": hours, "state_dir": state_dir, "store": store, **scalars}
 
     def store_url(self, value: object) -> str | None:
-        """The history store: a SQLite file (relative to this file) or crate://host:4200."""
+        """The history store: a SQLite file (relative to this file), postgresql://host/db or
+        crate://host:4200."""
         if value is None:
             return None
         if not isinstance(value, str) or not value.strip():
             self.add("service.store", f"expected a SQLite path or crate:// URL, got {value!r}")
             return None
         if "://" in value:
+            if value.startswith(("postgresql://", "postgres://")):
+                # A user name may be given, a password never (PGPASSWORD or ~/.pgpass).
+                if ":" in value.split("://", 1)[1].split("/", 1)[0].rpartition("@")[0]:
+                    self.add("service.store", "a password does not belong in the store URL; "
+                                              "set PGPASSWORD or use ~/.pgpass")
+                    return None
+                return value
             if not value.startswith(("crate://", "crate+https://", "sqlite://")):
-                self.add("service.store", f"unknown store URL scheme in {value!r} "
-                                          "(a SQLite file path, sqlite:///path or crate://host:4200)")
+                self.add("service.store", f"unknown store URL scheme in {value!r} (a SQLite "
+                                          "file path, sqlite:///path, postgresql://host/db or "
+                                          "crate://host:4200)")
                 return None
             if "@" in value.split("://", 1)[1].split("/", 1)[0]:
                 self.add("service.store", "credentials do not belong in the store URL; set "

@@ -13,6 +13,7 @@ import re
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import timedelta
+from functools import cached_property
 from pathlib import Path
 from typing import Literal
 
@@ -29,6 +30,7 @@ from pseudotwin.config.validate import (
 )
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
+from pseudotwin.core.thinning import DEFAULT_MIN_INTERVAL, Thinning
 
 __all__ = [
     "LOG_LEVELS",
@@ -183,6 +185,9 @@ class SensorConfig:
         ``ts_key``; ``ts_key = ""`` means the payload carries no time and arrival time is used).
     unit: unit of the values, e.g. ``"°C"`` or ``"ppm"``.
     min, max: valid range [unit], inclusive; readings outside are rejected.
+    min_interval_seconds: the window keeps at most one point of this sensor per interval
+        [s], the mean of its readings in it (core/thinning.py); a chatty sensor then costs
+        the models what a reading a minute costs.
     """
 
     id: str
@@ -193,6 +198,7 @@ class SensorConfig:
     format: Literal["number", "json"] = "json"
     ts_key: str = "ts"
     value_key: str = "value"
+    min_interval_seconds: float = DEFAULT_MIN_INTERVAL.total_seconds()
 
     def __post_init__(self) -> None:
         found = self._problems()
@@ -218,6 +224,10 @@ class SensorConfig:
                 and self.ts_key == self.value_key):
             found.append(("ts_key", "must differ from value_key"))
         nonempty(found, "unit", self.unit)
+        if expect(found, "min_interval_seconds", self.min_interval_seconds, "number"):
+            if not 0 < self.min_interval_seconds <= 3600:
+                found.append(("min_interval_seconds",
+                              f"must be in (0, 3600] seconds, got {self.min_interval_seconds}"))
         lo_ok = expect(found, "min", self.min, "number")
         hi_ok = expect(found, "max", self.max, "number")
         if lo_ok and hi_ok:
@@ -500,7 +510,7 @@ class ServiceConfig:
     max_skew_seconds: float = 300
     queue_size: int = 10000
     log_level: str = "INFO"
-    store: str | None = None  # history DB: SQLite file path or crate://host:4200
+    store: str | None = None  # history DB: SQLite path, postgresql:// or crate:// URL
     metrics: MetricsConfig = MetricsConfig()  # [metrics]: Prometheus endpoints
     homeassistant: HomeAssistantConfig = HomeAssistantConfig()  # [homeassistant]
 
@@ -553,12 +563,19 @@ class ServiceConfig:
     def max_skew(self) -> timedelta:
         return timedelta(seconds=self.max_skew_seconds)
 
+    @property
+    def thinning(self) -> Thinning:
+        """The window's thinning policy from the sensors' ``min_interval_seconds``."""
+        return Thinning(per_sensor={
+            sid: timedelta(seconds=s.min_interval_seconds) for sid, s in self.sensors.items()})
+
+    @cached_property
+    def _sensor_by_topic(self) -> dict[str, SensorConfig]:
+        return {s.topic: s for s in self.sensors.values()}  # topics are unique (checked)
+
     def sensor_for_topic(self, topic: str) -> SensorConfig | None:
-        """The sensor subscribed on ``topic``, if any."""
-        for sensor in self.sensors.values():
-            if sensor.topic == topic:
-                return sensor
-        return None
+        """The sensor subscribed on ``topic``, if any (a dict lookup: asked per message)."""
+        return self._sensor_by_topic.get(topic)
 
     def twin_topic(self, twin: str, *suffix: str) -> str:
         """``<base_topic>/<twin>/<suffix...>``."""

@@ -8,8 +8,10 @@ calendar days.
 from __future__ import annotations
 
 import datetime as dt
+import math
 import re
 from dataclasses import dataclass
+from functools import cached_property
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
 import numpy as np
@@ -87,14 +89,32 @@ class OperatingHours:
             timezone,
         )
 
-    @property
+    # Cached: the per-reading paths (Twin.observe, a model's slot lookup) ask for these
+    # thousands of times a second; a frozen dataclass never changes them.
+    @cached_property
     def tz(self) -> ZoneInfo:
         return ZoneInfo(self.timezone)
 
-    @property
+    @cached_property
     def init_start(self) -> float:
         """Start of the init phase [h, wall clock]."""
         return self.day_start - self.init_minutes / 60.0
+
+    @cached_property
+    def _window_slot_bounds(self) -> tuple[int, int]:
+        slots = self.window_slots()
+        return int(slots[0]), len(slots)
+
+    def window_slot_index(self, hours: float) -> int:
+        """Index into :meth:`window_slots` of wall-clock ``hours`` [h], clamped to the window
+        (a scalar :meth:`slot_of` without numpy's per-call cost)."""
+        slot = min(max(math.floor(hours / self.slot_hours + 1e-9), 0), self.n_slots - 1)
+        first, count = self._window_slot_bounds
+        return min(max(slot - first, 0), count - 1)
+
+    def is_in_window(self, hours: float) -> bool:
+        """Scalar :meth:`in_window`."""
+        return self.init_start <= hours <= self.day_end
 
     @property
     def slot_hours(self) -> float:
@@ -139,6 +159,12 @@ class OperatingHours:
     def hours_of(self, ts: dt.datetime) -> float:
         loc = ts.astimezone(self.tz)
         return loc.hour + loc.minute / 60.0 + loc.second / 3600.0 + loc.microsecond / 3.6e9
+
+    def day_and_hours_of(self, ts: dt.datetime) -> tuple[dt.date, float]:
+        """:meth:`day_of` and :meth:`hours_of` with one time-zone conversion."""
+        loc = ts.astimezone(self.tz)
+        hours = loc.hour + loc.minute / 60.0 + loc.second / 3600.0 + loc.microsecond / 3.6e9
+        return loc.date(), hours
 
     def at(self, day: dt.date, hours: float) -> dt.datetime:
         """The aware instant of wall-clock ``hours`` on local ``day``.

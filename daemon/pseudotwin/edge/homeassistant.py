@@ -23,6 +23,10 @@ another prefix) gets an empty retained payload, which deletes the entity in Home
 and the retained message on the broker. Topics stay remembered, so the empty payload is sent
 again on each connect (idempotent) until a twin comes back under the same id.
 
+Fleets (fleet.py): each twin is announced by the instance that owns it, with that
+instance's status topic ``<base>/status/<instance>`` as its availability, and an instance
+never removes the topics of twins the other instances own (``removals``' ``others``).
+
 ``object_id`` is deprecated by Home Assistant (2025.10, removed 2026.4): the entity id is
 suggested with ``default_entity_id`` (``sensor.<unique_id>``) instead.
 """
@@ -101,8 +105,10 @@ def config_topic(prefix: str, base_topic: str, twin: str, kind: str = ESTIMATE) 
 
 
 def entity_config(twin: TwinEntities, kind: str, *, base_topic: str,
-                  expire_after: int) -> dict[str, Any]:
-    """The discovery payload of one sensor entity (Home Assistant's MQTT sensor schema)."""
+                  expire_after: int, availability_topic: str | None = None) -> dict[str, Any]:
+    """The discovery payload of one sensor entity (Home Assistant's MQTT sensor schema);
+    availability from ``<base>/status`` unless ``availability_topic`` (a fleet instance's own
+    status topic: fleet.py) is given."""
     state = f"{base_topic}/{twin.id}/{ESTIMATE}" if kind == ESTIMATE \
         else f"{base_topic}/{twin.id}/baseline/{kind}"
     uid = unique_id(base_topic, twin.id, kind)
@@ -116,7 +122,7 @@ def entity_config(twin: TwinEntities, kind: str, *, base_topic: str,
         "state_class": "measurement",
         "unit_of_measurement": _UNITS.get(twin.unit, twin.unit),
         "expire_after": expire_after,
-        "availability_topic": f"{base_topic}/status",
+        "availability_topic": availability_topic or f"{base_topic}/status",
         "availability_template": AVAILABILITY_TEMPLATE,
         "payload_available": "online",
         "payload_not_available": "offline",
@@ -137,22 +143,34 @@ def entity_config(twin: TwinEntities, kind: str, *, base_topic: str,
 
 
 def discovery_messages(twins: Sequence[TwinEntities], *, prefix: str, base_topic: str,
-                       expire_after: int, baselines: bool) -> dict[str, bytes]:
+                       expire_after: int, baselines: bool,
+                       availability_topic: str | None = None) -> dict[str, bytes]:
     """Config topic → retained payload (UTF-8 JSON) for every entity of ``twins``."""
     out: dict[str, bytes] = {}
     for twin in twins:
         kinds = (ESTIMATE, *(twin.baselines if baselines else ()))
         for kind in kinds:
             topic = config_topic(prefix, base_topic, twin.id, kind)
-            body = entity_config(twin, kind, base_topic=base_topic, expire_after=expire_after)
+            body = entity_config(twin, kind, base_topic=base_topic, expire_after=expire_after,
+                                 availability_topic=availability_topic)
             out[topic] = json.dumps(body, ensure_ascii=False, sort_keys=True).encode()
     return out
 
 
-def removals(published: Iterable[str], current: Mapping[str, bytes] | Iterable[str]) -> list[str]:
-    """Config topics published before that the current configuration no longer has."""
+def removals(published: Iterable[str], current: Mapping[str, bytes] | Iterable[str],
+             others: Iterable[str] = ()) -> list[str]:
+    """Config topics published before that the current configuration no longer has, except
+    those of ``others``: twins still configured but owned by another fleet instance."""
     keep = set(current)
-    return sorted(t for t in set(published) if t not in keep)
+    foreign = {slug(t) for t in others}
+    return sorted(t for t in set(published)
+                  if t not in keep and _twin_slug(t) not in foreign)
+
+
+def _twin_slug(topic: str) -> str:
+    """The twin part of a config topic's ``<twin>_<kind>`` level (no kind holds a '_')."""
+    levels = topic.split("/")
+    return levels[-2].rsplit("_", 1)[0] if len(levels) >= 2 else ""
 
 
 def load_published(state_dir: Path) -> set[str]:

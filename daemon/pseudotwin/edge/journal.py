@@ -14,7 +14,7 @@ import errno
 import json
 import logging
 import os
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import BinaryIO
 
@@ -43,27 +43,42 @@ class Journal:
         return self.folder / f"{day.isoformat()}.jsonl"
 
     def append(self, r: Reading) -> None:
-        """Write one line, or raise OSError (nothing is then owed: the caller must not ack).
+        """Write one line, or raise OSError (nothing is then owed: the caller must not ack)."""
+        self.append_many([r])
 
-        Unbuffered: the line is in the kernel before the ack and survives SIGKILL (not power
-        loss; see fsync()). After a failure the file is reopened on the next call, so a
+    def append_many(self, readings: Sequence[Reading]) -> None:
+        """Write one line per reading, one system call per UTC day's file, or raise OSError
+        (then none of them is owed: the caller acks none; lines written before a failure
+        are written again by the retry, and a replay drops such duplicates).
+        Unbuffered: the lines are in the kernel before the acks and survive SIGKILL (not
+        power loss; see fsync()). After a failure the file is reopened on the next call, so a
         transient fault (full disk, a directory briefly unwritable) ends when it clears."""
-        day = r.ts.astimezone(dt.UTC).date()
+        start = 0
+        while start < len(readings):
+            day = readings[start].ts.astimezone(dt.UTC).date()
+            end = start + 1
+            while end < len(readings) and readings[end].ts.astimezone(dt.UTC).date() == day:
+                end += 1
+            self._write_day(day, readings[start:end])
+            start = end
+
+    def _write_day(self, day: dt.date, readings: Sequence[Reading]) -> None:
         if day != self._day or self._fh is None:
             self._rotate(day)
         elif self._vanished():
             self._abandon()
             self._rotate(day)  # rebuilds the file from memory
         assert self._fh is not None
-        line = (json.dumps({"sensor": r.sensor, "ts": r.ts.isoformat(), "value": r.value})
-                + "\n").encode()
+        lines = [(json.dumps({"sensor": r.sensor, "ts": r.ts.isoformat(), "value": r.value})
+                  + "\n").encode() for r in readings]
+        block = b"".join(lines)
         try:
-            if self._fh.write(line) != len(line):
+            if self._fh.write(block) != len(block):
                 raise OSError(errno.ENOSPC, "short write to the journal")
         except OSError:
             self._abandon()  # the next append reopens (and ends a torn line first)
             raise
-        self._lines.append(line)
+        self._lines.extend(lines)
 
     def _vanished(self) -> bool:
         """True when the open file is no longer the one at its path (deleted, replaced)."""

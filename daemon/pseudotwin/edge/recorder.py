@@ -88,7 +88,8 @@ class Recorder:
                  batch_max: int = 2000, retry_seconds: float = 5.0) -> None:
         if store is None and cfg.store is None:
             raise ConfigError("service.store: the recorder needs a history store "
-                              "(a SQLite file path or crate://host:4200)")
+                              "(a SQLite file path, postgresql://host/db or "
+                              "crate://host:4200)")
         self.cfg = cfg
         self.store_url = cfg.store
         self.store = store

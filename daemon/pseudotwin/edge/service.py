@@ -19,7 +19,7 @@ import logging
 import queue
 import threading
 import time
-from collections import defaultdict
+from collections import defaultdict, deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,8 +28,10 @@ import paho.mqtt.client as mqtt
 
 from pseudotwin.config import SensorConfig, ServiceConfig, TwinConfig
 from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.twinlog import twin_context
 from pseudotwin.edge import homeassistant as ha
 from pseudotwin.edge.clock import Clock, SystemClock
+from pseudotwin.edge.fleet import FleetMember
 from pseudotwin.edge.health import Health
 from pseudotwin.edge.journal import Journal
 from pseudotwin.edge.mqttconn import make_client, refused_fatally
@@ -53,6 +55,12 @@ log = logging.getLogger(__name__)
 LOG_REJECTIONS_PER_KEY = 10  # per sensor, reason and day; the rest are only counted
 JOURNAL_RETRY_SECONDS = 2.0  # how often a failing journal is tried again
 STOP_JOIN_SECONDS = 5.0  # the worker finishes its current item within this on stop
+# Messages journaled with one write (and taken from the queue at once): the journal's cost
+# per reading falls with the batch, while a reading waits behind at most this many others.
+BATCH_MAX = 64
+# Twins whose grid work is done between two batches of readings: at 1,000 twins one tick
+# would otherwise hold every reading behind 1,000 estimates and monitors.
+TICK_CHUNK = 20
 
 
 def check_artifact(
@@ -77,8 +85,14 @@ class TwinRuntime:
 class Service:
     """Runs the configured twins against an MQTT broker until stopped."""
 
-    def __init__(self, cfg: ServiceConfig, clock: Clock | None = None) -> None:
+    def __init__(self, cfg: ServiceConfig, clock: Clock | None = None,
+                 member: FleetMember | None = None) -> None:
+        """``member``: this instance's part of a fleet, with ``cfg`` narrowed to it
+        (fleet.narrow); None for the one daemon of a site."""
         self.cfg = cfg
+        self.member = member
+        # One instance of a fleet going offline must not mark the others' twins unavailable.
+        self.status_topic = f"{cfg.base_topic}/status" + (f"/{member.name}" if member else "")
         self.clock = clock or SystemClock()
         self.hours = cfg.hours
         self.twins: dict[str, TwinRuntime] = {}
@@ -88,7 +102,7 @@ class Service:
             art = Artifact.load(tc.artifact)
             for p in check_artifact(tc, art, cfg.hours):
                 problems.append(f"twins.{tid}: {p}")
-            twin = Twin(art, stale_after=cfg.stale_after)
+            twin = Twin(art, stale_after=cfg.stale_after, thinning=cfg.thinning)
             for kind, why in art.withheld.items():
                 log.info("twin %s: %s is not published (%s)", tid, kind, why)
             monitor = TwinMonitor(tid, twin, artifact_hash(tc.artifact), cfg.hours, tc.sensors)
@@ -116,6 +130,9 @@ class Service:
         self._held: list[tuple[Reading, tuple[int, int, int]]] = []
         self._journal_retry_at = 0.0
         self._journal_recreated = 0
+        # Grid work of the current tick(s) not done yet: (instant, twin, health snapshot).
+        self._tick_work: deque[tuple[dt.datetime, TwinRuntime, dict[str, Any]]] = deque()
+        self._not_before_cache: tuple[dt.date | None, dt.datetime] = (None, dt.datetime.min)
         self._ready = False
         self.fatal: tuple[int, str] | None = None  # (exit status, why): the process must end
         self.accepted = 0
@@ -125,13 +142,11 @@ class Service:
         self._lock = threading.Lock()
         self._threads: list[threading.Thread] = []
         self.client = self._make_client()
-        self.status_topic = f"{cfg.base_topic}/status"
         self.discovery, self.undiscovery = self._plan_discovery()
 
     # -- MQTT (network thread: no model work here) -----------------------------------------
     def _make_client(self) -> mqtt.Client:
-        c = make_client(self.cfg.broker, self.cfg.broker.client_id,
-                        f"{self.cfg.base_topic}/status")
+        c = make_client(self.cfg.broker, self.cfg.broker.client_id, self.status_topic)
         c.on_connect = self._on_connect
         c.on_disconnect = self._on_disconnect
         c.on_message = self._on_message
@@ -147,7 +162,8 @@ class Service:
         with self._lock:
             self._gen += 1
         topics = [(s.topic, 1) for s in self.cfg.sensors.values()]
-        client.subscribe(topics)
+        if topics:  # a fleet instance may own no twin (paho refuses an empty list)
+            client.subscribe(topics)
         client.publish(self.status_topic, self.health.status, qos=1, retain=True)
         for topic in self.undiscovery:  # Home Assistant entities of twins no longer configured
             client.publish(topic, b"", qos=1, retain=True)
@@ -171,12 +187,16 @@ class Service:
         expire = round(max(self.cfg.stale_after, self.cfg.publish_every).total_seconds())
         current = ha.discovery_messages(
             twins, prefix=hc.discovery_prefix, base_topic=self.cfg.base_topic,
-            expire_after=expire, baselines=hc.baselines) if hc.enabled else {}
+            expire_after=expire, baselines=hc.baselines,
+            availability_topic=self.status_topic) if hc.enabled else {}
         published = ha.load_published(Path(self.cfg.state_dir))
-        return current, ha.removals(published, current)
+        # Twins of other fleet instances are not gone: their owners announce them.
+        others = self.member.others if self.member else ()
+        return current, ha.removals(published, current, others)
 
     def _set_status(self, status: str) -> None:
-        """``<base>/status``: online | degraded (the journal fails) | offline (last will)."""
+        """``<base>/status`` (a fleet instance's own: ``<base>/status/<instance>``):
+        online | degraded (the journal fails) | offline (last will)."""
         if self.client.is_connected():
             self.client.publish(self.status_topic, status, qos=1, retain=True)
 
@@ -219,7 +239,7 @@ class Service:
 
     # -- the worker -----------------------------------------------------------------------
     def _worker(self) -> None:
-        # Stops at the next item once stop_event is set, whatever the queue still holds:
+        # Stops at the next batch once stop_event is set, whatever the queue still holds:
         # those messages are not acknowledged, so the broker delivers them again.
         while not self.stop_event.is_set():
             if self._held and time.monotonic() >= self._journal_retry_at:
@@ -228,25 +248,47 @@ class Service:
                 except Exception:  # noqa: BLE001 — the worker must outlive a failed retry
                     log.exception("retrying the held readings failed; trying again later")
                     self._journal_retry_at = time.monotonic() + JOURNAL_RETRY_SECONDS
-            try:
-                item = self.queue.get(timeout=JOURNAL_RETRY_SECONDS if self._held else 1.0)
-            except queue.Empty:
-                self.heartbeat = time.monotonic()
+            wait = 0.0 if self._tick_work else JOURNAL_RETRY_SECONDS if self._held else 1.0
+            batch = self._take(wait)
+            self.heartbeat = time.monotonic()
+            if not batch and not self._tick_work:
                 self.health.idle()
                 continue
-            self.heartbeat = time.monotonic()
-            kind = item[0]
-            if kind == "stop":
-                return
-            try:
+            messages: list[tuple[Any, ...]] = []
+            for item in batch:
+                kind = item[0]
+                if kind == "stop":
+                    return
                 if kind == "msg":
-                    self._handle_message(*item[1:])
-                elif kind == "tick":
-                    self._handle_tick(item[1])
-            except Exception:  # the daemon must outlive any one bad event
-                log.exception("unexpected error while handling a %s event", kind)
-                if kind == "msg":  # rejected, counted and acknowledged: it must not come back
-                    self._ack(item[-1])
+                    messages.append(item)
+                elif kind == "tick":  # readings before it go first, as they arrived
+                    self._guarded("msg", self._handle_messages, messages)
+                    messages = []
+                    self._start_tick(item[1])
+            self._guarded("msg", self._handle_messages, messages)
+            # Then a slice of the grid work, so no reading waits behind every twin's tick.
+            self._guarded("tick", self._tick_step)
+
+    def _take(self, wait: float) -> list[tuple[Any, ...]]:
+        """The next queue items: the first within ``wait`` seconds (0: only what is there),
+        then what else is there, up to BATCH_MAX."""
+        try:
+            first = self.queue.get(timeout=wait) if wait > 0 else self.queue.get_nowait()
+        except queue.Empty:
+            return []
+        batch = [first]
+        while len(batch) < BATCH_MAX:
+            try:
+                batch.append(self.queue.get_nowait())
+            except queue.Empty:
+                break
+        return batch
+
+    def _guarded(self, kind: str, handler: Any, *args: Any) -> None:
+        try:
+            handler(*args)
+        except Exception:  # the daemon must outlive any one bad event
+            log.exception("unexpected error while handling a %s event", kind)
 
     def _retry_held(self) -> None:
         """Journal the held readings again, oldest first; on success apply and ack them."""
@@ -284,62 +326,92 @@ class Service:
         finally:
             self._ack(token)  # journaled: a restart replays it, whatever happened here
 
-    def _not_before(self, now: dt.datetime) -> dt.datetime:
+    def _not_before(self, today: dt.date) -> dt.datetime:
         # Yesterday's window start: readings redelivered after a night's outage still give
-        # today's carry-over; anything older is of no use to any window.
-        day = self.hours.day_of(now) - dt.timedelta(days=1)
-        return self.hours.at(day, self.hours.init_start)
+        # today's carry-over; anything older is of no use to any window. Cached per day:
+        # asked for every message.
+        if self._not_before_cache[0] != today:
+            start = self.hours.at(today - dt.timedelta(days=1), self.hours.init_start)
+            self._not_before_cache = (today, start)
+        return self._not_before_cache[1]
 
-    def _handle_message(self, sensor: SensorConfig | None, topic: str, payload: bytes,
-                        arrival: dt.datetime, token: tuple[int, int, int]) -> None:
-        t0, published = time.perf_counter(), self.published
-        if sensor is None:
-            log.warning("message on unexpected topic %s ignored", topic)
-            self._ack(token)
+    def _handle_messages(self, items: list[tuple[Any, ...]]) -> None:
+        """Parse a batch of messages, journal the valid readings with one write, then apply
+        and acknowledge them one by one (each ack after its line is in the kernel)."""
+        good: list[tuple[Reading, tuple[int, int, int], float]] = []
+        for i, item in enumerate(items):
+            t0 = time.perf_counter()
+            try:
+                # the rest of the batch is still waiting, as if in the queue
+                r = self._parse(*item[1:], backlog=self.queue.qsize() + len(items) - i - 1)
+            except Exception:  # noqa: BLE001 — counted, acknowledged: it must not come back
+                log.exception("unexpected error while handling a msg event")
+                r = None
+            if r is None:
+                self._ack(item[-1])
+            else:
+                good.append((r, item[-1], t0))
+        if not good:
             return
-        try:
-            r = parse_payload(sensor, payload, arrival, max_skew=self.cfg.max_skew,
-                              not_before=self._not_before(arrival))
-        except Rejected as rej:
-            self.rejections.add(sensor.id, rej, self.hours.day_of(arrival))
-            self._ack(token)
-            return
-        except Exception as exc:  # noqa: BLE001 — a parser bug must not stall the pipeline
-            log.exception("payload on %s could not be processed", topic)
-            self.rejections.add_reason(sensor.id, UNPROCESSABLE, repr(exc)[:200],
-                                       self.hours.day_of(arrival))
-            self._ack(token)
-            return
-        self.health.processed_one((arrival - r.ts).total_seconds(), self.queue.qsize())
         if self._held:  # degraded: keep the order, retry on the worker's schedule
-            self._hold(r, token)
+            for r, token, _ in good:
+                self._hold(r, token)
             return
         try:
-            self.journal.append(r)
+            self.journal.append_many([r for r, _, _ in good])
         except OSError as exc:
-            # Not acknowledged: held and retried; the broker keeps it meanwhile and
-            # redelivers it should the daemon stop first.
-            self._hold(r, token)
+            # Not acknowledged: held and retried; the broker keeps them meanwhile and
+            # redelivers them should the daemon stop first.
+            for r, token, _ in good:
+                self._hold(r, token)
             self.health.journal_failed(exc, len(self._held))
             self._journal_retry_at = time.monotonic() + JOURNAL_RETRY_SECONDS
             return
         if self.journal.recreated > self._journal_recreated:
             self._journal_recreated = self.journal.recreated
             self.health.journal_rebuilt(self.journal.recreated)
-        self._accept(r, token)
-        if self.published > published:  # the reading moved a twin: its estimates are out
-            self.metrics.latency.observe(time.perf_counter() - t0)
+        for r, token, t0 in good:
+            published = self.published
+            try:
+                self._accept(r, token)
+            except Exception:  # noqa: BLE001 — acked by _accept; the batch goes on
+                log.exception("unexpected error while applying a reading of %s", r.sensor)
+            if self.published > published:  # the reading moved a twin: its estimates are out
+                self.metrics.latency.observe(time.perf_counter() - t0)
+
+    def _parse(self, sensor: SensorConfig | None, topic: str, payload: bytes,
+               arrival: dt.datetime, token: tuple[int, int, int], *, backlog: int
+               ) -> Reading | None:
+        """The message's reading, or None (rejected and counted; the caller acks).
+        backlog: messages waiting behind this one (the health's flood detection)."""
+        if sensor is None:
+            log.warning("message on unexpected topic %s ignored", topic)
+            return None
+        day = self.hours.day_of(arrival)
+        try:
+            r = parse_payload(sensor, payload, arrival, max_skew=self.cfg.max_skew,
+                              not_before=self._not_before(day))
+        except Rejected as rej:
+            self.rejections.add(sensor.id, rej, day)
+            return None
+        except Exception as exc:  # noqa: BLE001 — a parser bug must not stall the pipeline
+            log.exception("payload on %s could not be processed", topic)
+            self.rejections.add_reason(sensor.id, UNPROCESSABLE, repr(exc)[:200], day)
+            return None
+        self.health.processed_one((arrival - r.ts).total_seconds(), backlog)
+        return r
 
     def _apply(self, r: Reading, publish: bool) -> None:
         for rt in self.by_sensor.get(r.sensor, ()):
-            try:  # one twin's failure must not keep the reading from the others
-                if r.sensor in rt.twin.references:
-                    if rt.twin.observe(r.sensor, r.ts, r.value) and publish:
-                        self._publish_estimates(rt, rt.twin.estimate(r.ts))
-                elif r.sensor == rt.cfg.target:
-                    self._score_target(rt, r)
-            except Exception:  # noqa: BLE001 — logged with its traceback; the rest goes on
-                log.exception("twin %s failed on a reading of %s", rt.cfg.id, r.sensor)
+            with twin_context(rt.cfg.id):  # the twin's log lines name it
+                try:  # one twin's failure must not keep the reading from the others
+                    if r.sensor in rt.twin.references:
+                        if rt.twin.observe(r.sensor, r.ts, r.value) and publish:
+                            self._publish_estimates(rt, rt.twin.estimate(r.ts))
+                    elif r.sensor == rt.cfg.target:
+                        self._score_target(rt, r)
+                except Exception:  # noqa: BLE001 — logged with its traceback; the rest goes on
+                    log.exception("failed on a reading of %s", r.sensor)
 
     def _score_target(self, rt: TwinRuntime, r: Reading) -> None:
         h = self.hours.hours_of(r.ts)
@@ -366,13 +438,32 @@ class Service:
             if kind == primary:
                 self.metrics.published(rt.cfg.id, e.quality, e.ts)
 
+    def _start_tick(self, instant: dt.datetime) -> None:
+        """Queue every twin's grid work for ``instant``; the worker does it TICK_CHUNK twins
+        at a time between batches of readings (one health snapshot for all of them)."""
+        health = self.health.snapshot()
+        self._tick_work.extend((instant, rt, health) for rt in self.twins.values())
+
+    def _tick_step(self) -> None:
+        for _ in range(min(TICK_CHUNK, len(self._tick_work))):
+            instant, rt, health = self._tick_work.popleft()
+            self._handle_tick_of(rt, instant, health)
+
     def _handle_tick(self, instant: dt.datetime) -> None:
-        for rt in self.twins.values():
+        """All twins' grid work for ``instant`` at once (tests, and a worker with no
+        readings waiting does the same in slices)."""
+        self._start_tick(instant)
+        while self._tick_work:
+            self._tick_step()
+
+    def _handle_tick_of(self, rt: TwinRuntime, instant: dt.datetime,
+                        health: dict[str, Any]) -> None:
+        with twin_context(rt.cfg.id):
             self._publish_estimates(rt, rt.twin.estimate(instant))
-            self._publish(self.cfg.twin_topic(rt.cfg.id, "monitor"),
-                          monitor_payload({**rt.monitor.snapshot(instant, self.rejections.counts),
-                                           "health": self.health.snapshot()}),
-                          retain=False)
+        self._publish(self.cfg.twin_topic(rt.cfg.id, "monitor"),
+                      monitor_payload({**rt.monitor.snapshot(instant, self.rejections.counts),
+                                       "health": health}),
+                      retain=False)
 
     # -- timers ---------------------------------------------------------------------------
     def _next_grid(self, after: dt.datetime) -> dt.datetime:
@@ -411,7 +502,7 @@ class Service:
         history store configured (a warm start), from the store. Returns readings replayed."""
         n = 0
         now = self.clock.now()
-        since = self._not_before(now) - dt.timedelta(days=1)
+        since = self._not_before(self.hours.day_of(now)) - dt.timedelta(days=1)
         horizon = now + self.cfg.max_skew
         today = self.hours.day_of(now)
         later_days: list[Reading] = []
@@ -487,6 +578,12 @@ class Service:
         log.info("pseudotwin started: %d twin(s), %d sensor(s)%s", len(self.twins),
                  len(self.cfg.sensors), "" if self.connected.is_set()
                  else f"; connecting to {b.host}:{b.port}")
+        if self.member is not None:
+            log.info("fleet: %s; client id %s, state %s, status %s", self.member.describe(),
+                     b.client_id, self.cfg.state_dir, self.status_topic)
+            if not self.twins:
+                log.warning("fleet: %s owns no twin; it stays connected and idle (more "
+                            "instances than twins, or an unlucky split)", self.member.label)
 
     def stop(self) -> None:
         """Stop within seconds: the worker finishes the item in hand and leaves the rest of

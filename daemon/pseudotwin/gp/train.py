@@ -20,7 +20,6 @@ import logging
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Any
 
 import GPy
@@ -30,58 +29,12 @@ from GPy.inference.latent_function_inference.posterior import PosteriorExact
 from scipy.optimize import minimize
 
 from pseudotwin.errors import FitError, NumericalError
+from pseudotwin.gp.fitdata import FitData, FitReport
 from pseudotwin.gp.kernels import LcmParams, Term, kernel_spec
 from pseudotwin.gp.stable import COND_WARN, scaled_cholesky
 
 log = logging.getLogger(__name__)
 LOG_2PI = float(np.log(2 * np.pi))
-
-
-@dataclass(frozen=True)
-class FitData:
-    """Training points of a multi-output GP, grouped in independent day blocks.
-
-    t: [N] time of day [h]; o: [N] output index; y: [N] normalized values;
-    blocks: one slice per day into the (day-sorted) arrays.
-    """
-
-    t: np.ndarray
-    o: np.ndarray
-    y: np.ndarray
-    blocks: tuple[slice, ...]
-    n_outputs: int
-
-    def __post_init__(self) -> None:
-        if not (len(self.t) == len(self.o) == len(self.y)):
-            raise ValueError("t, o, y must have one entry per point")
-        if len(self.t) == 0:
-            raise FitError("no training points")
-
-
-@dataclass
-class FitReport:
-    """Diagnostics of one fit, stored in the artifact."""
-
-    nlml: float = float("inf")
-    starts: list[dict[str, Any]] = field(default_factory=list)
-    seconds: float = 0.0
-    jitter_max: float = 0.0
-    condition_max: float = 0.0
-    n_points: int = 0
-    n_params: int = 0
-    warnings: list[str] = field(default_factory=list)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "nlml": self.nlml,
-            "starts": self.starts,
-            "seconds": round(self.seconds, 3),
-            "jitter_max": self.jitter_max,
-            "condition_max": self.condition_max,
-            "n_points": self.n_points,
-            "n_params": self.n_params,
-            "warnings": self.warnings,
-        }
 
 
 class BlockStableInference(ExactGaussianInference):

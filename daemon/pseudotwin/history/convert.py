@@ -40,6 +40,11 @@ not on a 4-s stream, and the PROVENANCE verification (correlations, offsets) was
 1-minute means, so the converter emits per node the mean Temp of each UTC minute (bucket =
 floor of AbsT to the minute, ts = bucket start; only minutes with at least one sample).
 ``X/occupancy`` is the maximum ground-truth occupant count (0–2) in that minute.
+
+``--raw`` keeps every sample instead (ts = AbsT to the millisecond; samples of one node at
+one instant averaged): a real chatty sensor for the window's thinning (DESIGN §2), its tests
+and benchmarks. The other datasets have no averaging to skip; ``--raw`` gives them as they
+are.
 """
 
 from __future__ import annotations
@@ -81,6 +86,7 @@ class Dataset:
     description: str
     sensors: tuple[str, ...]
     read: Callable[[Path], pd.DataFrame]
+    read_raw: Callable[[Path], pd.DataFrame] | None = None  # every sample, where read averages
 
 
 @dataclass(frozen=True)
@@ -326,11 +332,30 @@ def _read_room_climate_file(path: Path, location: str) -> pd.DataFrame:
     return out
 
 
-def read_room_climate(source: Path, location: str) -> pd.DataFrame:
-    raw = pd.concat(
+def _room_climate_samples(source: Path, location: str) -> pd.DataFrame:
+    return pd.concat(
         [_read_room_climate_file(p, location) for p in _files(source, "*.csv")],
         ignore_index=True,
     )
+
+
+def read_room_climate_raw(source: Path, location: str) -> pd.DataFrame:
+    """Every sample of every node (the sensors' own ~4 s rate)."""
+    raw = _room_climate_samples(source, location)
+    temp = raw.dropna(subset=["nid", "temp"]).groupby(["nid", "abst"])["temp"].mean()
+    parts = []
+    for nid, series in temp.groupby(level="nid"):
+        ts = pd.Series(pd.to_datetime(series.index.get_level_values("abst"), unit="ms", utc=True))
+        parts.append(_long(f"{location}{int(nid)}/temp", ts, series.reset_index(drop=True)))
+    occ = raw.dropna(subset=["occ"]).groupby("abst")["occ"].max()
+    if len(occ):
+        ts = pd.Series(pd.to_datetime(occ.index, unit="ms", utc=True))
+        parts.append(_long(f"{location}/occupancy", ts, occ.reset_index(drop=True)))
+    return _finish(parts, source)
+
+
+def read_room_climate(source: Path, location: str) -> pd.DataFrame:
+    raw = _room_climate_samples(source, location)
     minute = (raw["abst"].to_numpy(dtype=np.int64) // 60_000) * 60_000
     raw["minute"] = minute
     temp = raw.dropna(subset=["nid", "temp"]).groupby(["nid", "minute"])["temp"].mean()
@@ -361,6 +386,7 @@ DATASETS: dict[str, Dataset] = {
         "FAU office A 2016: 4 temp nodes in one room, A4 above the desk (1-min means)",
         ("A1/temp", "A2/temp", "A3/temp", "A4/temp", "A/occupancy"),
         partial(read_room_climate, location="A"),
+        partial(read_room_climate_raw, location="A"),
     ),
     "room-climate-b": Dataset(
         "room-climate-b",
@@ -368,6 +394,7 @@ DATASETS: dict[str, Dataset] = {
         "FAU office B 2016: 3 temp nodes in one room, B2 between the desks (1-min means)",
         ("B1/temp", "B2/temp", "B3/temp", "B/occupancy"),
         partial(read_room_climate, location="B"),
+        partial(read_room_climate_raw, location="B"),
     ),
     "appliances": Dataset(
         "appliances",
@@ -393,18 +420,20 @@ def default_source(dataset: str) -> Path:
     return shared_data_root() / find_dataset(dataset).folder
 
 
-def load(dataset: str, source: Path | None = None) -> pd.DataFrame:
-    """Convert ``dataset`` into a canonical frame without writing it."""
+def load(dataset: str, source: Path | None = None, raw: bool = False) -> pd.DataFrame:
+    """Convert ``dataset`` into a canonical frame without writing it; ``raw``: every sample
+    where the converter would average."""
     spec = find_dataset(dataset)
     src = Path(source) if source is not None else shared_data_root() / spec.folder
     if not src.exists():
         raise DataError(f"{src}: no such file or directory")
-    return spec.read(src)
+    read = spec.read_raw if raw and spec.read_raw is not None else spec.read
+    return read(src)
 
 
-def convert(dataset: str, source: Path | None, out: Path) -> ConvertSummary:
+def convert(dataset: str, source: Path | None, out: Path, raw: bool = False) -> ConvertSummary:
     """Convert ``dataset`` (``source`` or its shared-data folder) into canonical CSV ``out``."""
-    df = load(dataset, source)
+    df = load(dataset, source, raw)
     out = Path(out)
     write_history(df, out)
     present = set(df["sensor"].unique())

@@ -1,6 +1,6 @@
 """The history store: raw readings, estimates and backfill progress in one database.
 
-One small interface (:class:`Store`), two backends:
+One small interface (:class:`Store`), three backends:
 
 * **SQLite** (embedded default): one file, WAL mode so the recorder can write while a
   backfill or the daemon reads, ``busy_timeout`` so concurrent writers wait instead of
@@ -8,7 +8,9 @@ One small interface (:class:`Store`), two backends:
 * **CrateDB** through the ``crate`` client (HTTP ``/_sql``): ``TIMESTAMP WITH TIME ZONE``
   columns, tables partitioned by month (a generated column), bulk inserts with per-row
   results. CrateDB stores timestamps at millisecond resolution and transports them as epoch
-  milliseconds, which is why both backends store exactly that.
+  milliseconds, which is why every backend stores exactly that.
+* **PostgreSQL** (TimescaleDB hypertables when present) through psycopg 3: ``timestamptz``
+  columns; in :mod:`pseudotwin.history.postgres`, whose docstring lists its URL forms.
 
 :func:`open_store` picks the backend from a URL:
 
@@ -20,6 +22,8 @@ One small interface (:class:`Store`), two backends:
 ``crate://host:4200``                      CrateDB over HTTP; several nodes: ``h1:4200,h2:4200``
 ``crate+https://host:4200``                CrateDB over HTTPS
 ``crate://host:4200?schema=pt``            tables in schema ``pt`` (default ``pseudotwin``)
+``postgresql://host/db?schema=pt``         PostgreSQL (also ``postgres://``); more forms
+                                           in :mod:`pseudotwin.history.postgres`
 ========================================  ====================================================
 
 CrateDB credentials come from the environment, ``PSEUDOTWIN_CRATE_USER`` and
@@ -274,7 +278,7 @@ class Store(abc.ABC):
     sorted by ts then sensor.
     """
 
-    #: SQL of the backend, set by subclasses (``?`` parameters in both).
+    #: SQL of the backend, set by subclasses (``?`` parameters in all).
     INSERT_READING: str
     UPSERT_ESTIMATE: str
     UPSERT_PROGRESS: str
@@ -286,6 +290,11 @@ class Store(abc.ABC):
         self.schema_version = 0
 
     # --- backend primitives -------------------------------------------------------
+    def _ts_arg(self, ms: int) -> Any:
+        """A timestamp query parameter (epoch ms) as the backend's driver takes it: SQLite
+        and CrateDB compare epoch milliseconds; PostgreSQL's columns are timestamptz."""
+        return ms
+
     @abc.abstractmethod
     def _query(self, sql: str, args: Sequence[Any] = ()) -> list[Sequence[Any]]:
         """Rows of a SELECT (after making the tables' latest writes visible)."""
@@ -412,7 +421,7 @@ class Store(abc.ABC):
         sql = f"SELECT ts, value FROM readings WHERE {where} ORDER BY ts DESC LIMIT 1"
         out: dict[str, tuple[dt.datetime, float]] = {}
         for sensor in _sensor_list(sensors) or []:
-            args = [sensor, hi] + ([lo] if lo is not None else [])
+            args = [sensor, self._ts_arg(hi)] + ([self._ts_arg(lo)] if lo is not None else [])
             rows = self._locked_query(sql, args)
             if rows:
                 out[sensor] = (from_ms(rows[0][0]), float(rows[0][1]))
@@ -455,7 +464,7 @@ class Store(abc.ABC):
         rows = self._locked_query(
             f"SELECT sensor, ts, value FROM readings WHERE ts >= ? AND ts < ?{where} "
             "ORDER BY ts, sensor",
-            [lo, hi, *args],
+            [self._ts_arg(lo), self._ts_arg(hi), *args],
         )
         if not rows:
             return empty_readings()
@@ -501,9 +510,9 @@ class Store(abc.ABC):
         if model is not None:
             where, args = where + " AND model = ?", [*args, model]
         if start is not None:
-            where, args = where + " AND ts >= ?", [*args, to_ms(start)]
+            where, args = where + " AND ts >= ?", [*args, self._ts_arg(to_ms(start))]
         if end is not None:
-            where, args = where + " AND ts < ?", [*args, to_ms(end)]
+            where, args = where + " AND ts < ?", [*args, self._ts_arg(to_ms(end))]
         rows = self._locked_query(
             f"SELECT {', '.join(ESTIMATE_COLUMNS)} FROM estimates WHERE {where} "
             "ORDER BY ts, model",
@@ -831,6 +840,10 @@ def open_store(url: str | os.PathLike[str]) -> Store:
     scheme = text.split("://", 1)[0].lower() if "://" in text else ""
     if scheme in ("crate", "crate+http", "crate+https"):
         return _open_crate(text, "https" if scheme == "crate+https" else "http")
+    if scheme in ("postgresql", "postgres"):
+        from pseudotwin.history.postgres import open_postgres  # psycopg only when used
+
+        return open_postgres(text)
     if scheme == "sqlite":
         rest = text[len("sqlite://"):]
         if rest in ("", "/", "/:memory:"):
@@ -841,7 +854,7 @@ def open_store(url: str | os.PathLike[str]) -> Store:
         return SQLiteStore(rest[1:], url=text)
     if scheme:
         raise ConfigError(f"{text!r}: unsupported history store (use a SQLite file path, "
-                          "sqlite:///path or crate://host:4200)")
+                          "sqlite:///path, postgresql://host/db or crate://host:4200)")
     return SQLiteStore(text)
 
 

@@ -6,8 +6,10 @@ so a live estimate and an offline one for the same readings are identical.
 
 The twin owns the rolling horizon (DESIGN.md §2): a day's window opens at the init start with
 the last known value of each reference carried in, it closes at day end, and the next day
-starts from scratch. Model state is only ever built from the window's readings, which is
-also what a checkpoint stores.
+starts from scratch. Model state is only ever built from the window's points. Readings are
+thinned into points by one policy (core/thinning.py: at most one point per reference and
+``min_interval``, its value the mean of that interval's readings so far), so a chatty
+sensor costs the models no more than one reading a minute.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from enum import StrEnum
 import numpy as np
 
 from pseudotwin.core.series import DayReadings
+from pseudotwin.core.thinning import Action, Thinning, WindowThinner
 from pseudotwin.errors import NumericalError
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.calibration import SLOPE_WINDOW_H
@@ -74,7 +77,8 @@ class TwinEstimate:
 
 @dataclass(frozen=True)
 class WindowReading:
-    """An accepted reading of today's window: wall-clock hours [h]."""
+    """A point of today's window: wall-clock hours [h]; value is the mean of the readings
+    thinned into it (core/thinning.py)."""
 
     sensor: str
     ts: dt.datetime
@@ -89,6 +93,7 @@ class Twin:
     reported under ``"estimate"`` by the service, the others as baselines.
     stale_after: a reference silent for longer makes its estimates ``stale`` (None: never).
     max_carry: how old the carried-over value from before the init phase may be.
+    thinning: how readings become window points (default: one per sensor and minute).
     """
 
     def __init__(
@@ -97,6 +102,7 @@ class Twin:
         models: Sequence[str] | None = None,
         stale_after: dt.timedelta | None = None,
         max_carry: dt.timedelta = dt.timedelta(hours=24),
+        thinning: Thinning | None = None,
     ) -> None:
         self.artifact = artifact
         self.hours = artifact.hours
@@ -107,11 +113,12 @@ class Twin:
         self.kinds = kinds
         self.stale_after = stale_after
         self.max_carry = max_carry
+        self.thinning = thinning or Thinning()
         self.references = artifact.references
         self.day: dt.date | None = None
         self.window: list[WindowReading] = []
         self.last: dict[str, tuple[dt.datetime, float]] = {}
-        self._seen: set[tuple[str, dt.datetime]] = set()
+        self._thinner = WindowThinner(self.thinning)
         self._est: dict[str, DayEstimator] = {}
         self._broken: set[str] = set()
         # Today's window per reference in time order: sensor → ([hours], [values]).
@@ -126,7 +133,7 @@ class Twin:
         """Start ``day``'s window: fresh model state, carried-over reference values."""
         self.day = day
         self.window = []
-        self._seen = set()
+        self._thinner = WindowThinner(self.thinning)
         self._broken = set()
         self._series = {s: ([], []) for s in self.references}
         self._est = {k: self.artifact.models[k].start_day(day) for k in self.kinds}
@@ -172,9 +179,8 @@ class Twin:
 
     def _window_for(self, ts: dt.datetime) -> bool:
         """Make the window of ``ts``'s day current if ``ts`` lies in it; False otherwise."""
-        day = self.hours.day_of(ts)
-        h = self.hours.hours_of(ts)
-        if not self.hours.in_window(h):
+        day, h = self.hours.day_and_hours_of(ts)
+        if not self.hours.is_in_window(h):
             return False
         if day != self.day:
             if self.day is not None and day < self.day:
@@ -194,22 +200,40 @@ class Twin:
             self.last[sensor] = (ts, value)
         if not in_window:
             return False
-        if (sensor, ts) in self._seen:
+        action, point_ts, point_value = self._thinner.offer(sensor, ts, value)
+        if action is Action.DROP:
             return False
-        self._seen.add((sensor, ts))
         if self._broken:
             self._repair()
-        self._feed(WindowReading(sensor, ts, self.hours.hours_of(ts), value))
+        if action is Action.NEW:
+            self._feed(WindowReading(sensor, point_ts, self.hours.hours_of(point_ts), point_value))
+        else:
+            self._revise(sensor, point_ts, point_value)
         return True
+
+    def _revise(self, sensor: str, ts: dt.datetime, value: float) -> None:
+        """Give ``sensor``'s newest point (at ``ts``) the value ``value``."""
+        i = len(self.window) - 1
+        while self.window[i].sensor != sensor or self.window[i].ts != ts:
+            i -= 1  # the newest point is among the last few: one per reference and interval
+        old = self.window[i]
+        self.window[i] = WindowReading(sensor, ts, old.hours, value)
+        hs, vs = self._series[sensor]
+        j = bisect.bisect_right(hs, old.hours) - 1
+        vs[j] = value  # the newest point is the last at its time
+        for kind, est in self._est.items():
+            if kind in self._broken:
+                continue
+            try:
+                est.revise(sensor, old.hours, value)
+            except NumericalError as exc:
+                self._break(kind, exc)
 
     # -- monitoring -------------------------------------------------------------------
     def slot_values(self) -> dict[str, np.ndarray]:
         """Today's window per reference on the slot grid (sample-and-hold): sensor → [S]."""
-        series = {}
-        for s in self.references:
-            pts = sorted((r.hours, r.value) for r in self.window if r.sensor == s)
-            if pts:
-                series[s] = (np.array([p[0] for p in pts]), np.array([p[1] for p in pts]))
+        series = {s: (np.array(hs), np.array(vs))
+                  for s, (hs, vs) in self._series.items() if hs}
         day = DayReadings(self.day or dt.date.min, series)
         return {s: day.slot_values(s, self.hours) for s in self.references}
 

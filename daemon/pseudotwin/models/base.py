@@ -49,7 +49,17 @@ class DayEstimator(ABC):
 
     @abstractmethod
     def observe(self, sensor: str, hours: float, value: float) -> None:
-        """Condition on a reference reading at wall-clock ``hours`` [h]."""
+        """Condition on a reference reading (a new point) at wall-clock ``hours`` [h]."""
+
+    def revise(self, sensor: str, hours: float, value: float) -> None:
+        """Give ``sensor``'s newest point, observed at ``hours`` [h], the new ``value``.
+
+        The window's thinning (core/thinning.py) revises a point as more readings of its
+        bucket arrive. This default suits estimators that hold each sensor's latest value
+        only: the revision is an observation again. Estimators with a conditioning set
+        replace the point's value instead of adding one.
+        """
+        self.observe(sensor, hours, value)
 
     @abstractmethod
     def predict(self, hours: float) -> Estimate:

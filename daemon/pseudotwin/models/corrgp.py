@@ -16,21 +16,24 @@ target (DESIGN.md §3).
 from __future__ import annotations
 
 import datetime as dt
-from typing import Any, ClassVar
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import TwinSpec
 from pseudotwin.errors import DataError
+from pseudotwin.gp.fitdata import FitData, FitReport
 from pseudotwin.gp.kernels import DEFAULT_KERNEL, KERNEL_REGISTRY, LcmParams
 from pseudotwin.gp.posterior import IncrementalPosterior
-from pseudotwin.gp.train import FitData, FitReport, fit_lcm
 from pseudotwin.models.base import DayEstimator, Estimate, Numerics, TrainingSet, TwinModel
 from pseudotwin.models.triv import HeldValues, TrivModel, slot_matrix
 
 MIN_POINTS_PER_OUTPUT = 8
 
+
+# A reference value or an array of them: the prior mean works on either.
+F = TypeVar("F", float, np.ndarray)
 
 def _kernel_for(kernel: str | None, quantity: str) -> str:
     k = kernel or DEFAULT_KERNEL.get(quantity, "rq")
@@ -96,6 +99,8 @@ class _GpModel(TwinModel):
         self.c_ = float(np.mean(ys))
         self.s_ = float(np.std(ys)) or 1.0
         norm = FitData(fd.t, fd.o, (ys - self.c_) / self.s_, fd.blocks, fd.n_outputs)
+        from pseudotwin.gp.train import fit_lcm  # GPy: only where a model is trained
+
         self.params_, self.report_, _ = fit_lcm(
             norm, kernel, n_terms=n_terms, restarts=self.restarts,
             artificial_noise=self.artificial_noise, max_iter=self.max_iter, seed=self.seed,
@@ -182,6 +187,11 @@ class LcmDay(DayEstimator):
         if o is not None:
             self.post.add(hours, o, (value - self.model.c_) / self.model.s_)
 
+    def revise(self, sensor: str, hours: float, value: float) -> None:
+        o = self.index.get(sensor)
+        if o is not None:
+            self.post.revise(self.post.index_of(hours, o), (value - self.model.c_) / self.model.s_)
+
     def numerics(self) -> Numerics:
         return _numerics(self.post)
 
@@ -246,8 +256,9 @@ class CorrGpTriv(_GpModel):
             return 0.0
         return float(np.mean(init_deviations))
 
-    def _ref_mean(self, hours: float, shift: float) -> float:
-        return self.triv_.profile(self.references_[0], hours) + shift
+    def _ref_mean(self, profile: F, shift: float) -> F:
+        """The reference's prior mean from its profile value(s) at the readings' times."""
+        return profile + shift
 
     def start_day(self, day: dt.date) -> TrivGpDay:
         return TrivGpDay(self)
@@ -288,31 +299,66 @@ class TrivGpDay(DayEstimator):
         self.post = IncrementalPosterior(model.params_, capacity=512)
         self.held = HeldValues()
         self.values: list[float] = []  # raw reference values, in the posterior's order
-        self.init_dev: list[float] = []
-        self.earliest: tuple[float, float] | None = None  # (hours, deviation)
+        self.profile: list[float] = []  # the reference's profile at each value's time
+        self.init_dev: dict[int, float] = {}  # posterior index → init-phase deviation
+        self.earliest: tuple[float, int, float] | None = None  # (hours, index, deviation)
         self.shift = 0.0
 
-    def _residual(self, hours: float, value: float) -> float:
+    def _residual(self, profile: float, value: float) -> float:
+        """The GP residual of a reference value whose profile value is ``profile``; the prior
+        mean is the profile moved by today's shift."""
         m = self.model
-        return (value - m._ref_mean(hours, self.shift) - m.c_) / m.s_
+        return (value - m._ref_mean(profile, self.shift) - m.c_) / m.s_
+
+    def _note_deviation(self, i: int, hours: float, value: float, profile: float) -> bool:
+        """Record point i's deviation from the profile; True when today's shift moved (every
+        residual then moves with the prior mean)."""
+        m = self.model
+        dev = value - profile
+        moved = False
+        if hours < m.hours_.day_start:
+            self.init_dev[i] = dev
+            moved = True
+        if self.earliest is None or hours < self.earliest[0] or i == self.earliest[1]:
+            self.earliest = (hours, i, dev)
+            moved = moved or not self.init_dev  # the earliest counts only without init ones
+        if not moved:
+            return False
+        devs = list(self.init_dev.values()) or [self.earliest[2]]
+        new_shift = m._shift(np.array(devs))
+        if new_shift == self.shift:
+            return False
+        self.shift = new_shift
+        return True
+
+    def _reset_residuals(self) -> None:
+        m = self.model
+        values, profile = np.array(self.values), np.array(self.profile)
+        self.post.set_residuals((values - m._ref_mean(profile, self.shift) - m.c_) / m.s_)
 
     def observe(self, sensor: str, hours: float, value: float) -> None:
         if sensor != self.ref:
             return
-        m = self.model
         self.held.update(sensor, hours, value)
-        dev = value - m.triv_.profile(self.ref, hours)
-        if hours < m.hours_.day_start:
-            self.init_dev.append(dev)
-        if self.earliest is None or hours < self.earliest[0]:
-            self.earliest = (hours, dev)
-        new_shift = m._shift(np.array(self.init_dev or [self.earliest[1]]))
-        if new_shift != self.shift:
-            self.shift = new_shift
-            pairs = zip(self.post.t, self.values, strict=True)
-            self.post.set_residuals(np.array([self._residual(t, v) for t, v in pairs]))
-        self.post.add(hours, 0, self._residual(hours, value))
-        self.values.append(value)  # after add: a failed add leaves both unchanged
+        # A failed add raises here and the twin rebuilds this estimator from the window, so
+        # the deviation noted for the lost point never outlives it.
+        profile = self.model.triv_.profile(self.ref, hours)
+        if self._note_deviation(self.post.n, hours, value, profile):
+            self._reset_residuals()
+        self.post.add(hours, 0, self._residual(profile, value))
+        self.values.append(value)
+        self.profile.append(profile)
+
+    def revise(self, sensor: str, hours: float, value: float) -> None:
+        if sensor != self.ref:
+            return
+        self.held.update(sensor, hours, value)
+        i = self.post.index_of(hours, 0)
+        self.values[i] = value
+        if self._note_deviation(i, hours, value, self.profile[i]):
+            self._reset_residuals()
+        else:
+            self.post.revise(i, self._residual(self.profile[i], value))
 
     def numerics(self) -> Numerics:
         return _numerics(self.post)

@@ -70,9 +70,7 @@ class TrivModel(TwinModel):
 
     def slot_index(self, hours: float) -> int:
         """Index into the window slots [S] of wall-clock hours (clamped to the window)."""
-        slots = self.hours_.window_slots()
-        i = int(self.hours_.slot_of(hours)) - int(slots[0])
-        return min(max(i, 0), len(slots) - 1)
+        return self.hours_.window_slot_index(hours)
 
     def offset(self, m: int, hours: float) -> float:
         return float(self.offsets_[m, self.slot_index(hours)])

@@ -45,6 +45,7 @@ trend "c" keeps it at 0.3–1 K on the same days.
 
 from __future__ import annotations
 
+import bisect
 import contextlib
 import ctypes
 import datetime as dt
@@ -667,6 +668,7 @@ class VarmaDay(DayEstimator):
         self._ss = model.ssm_
         self._first = int(hours.window_slots()[0])
         self._starts = hours.window_slots() * hours.slot_hours + _SLOT_EPS  # [S] h
+        self._start_list = self._starts.tolist()  # bisect on a list: no numpy call per reading
         self._tau0 = model.trend_offset(day)
         self._col = {s: j for j, s in enumerate(model.references_)}
         self._times: dict[str, list[float]] = {s: [] for s in model.references_}
@@ -685,6 +687,7 @@ class VarmaDay(DayEstimator):
             self._weights[:-1] = 1.0 / (k - 1)
         self._raw = np.full((S, k - 1), np.nan)  # [S, M] held reference values
         self._init = hours.window_slots() * hours.slot_hours < hours.day_start  # [S]
+        self._last_init = int(np.flatnonzero(self._init).max(initial=-1))
         self.shift = 0.0  # today's level shift δ (target_mode "shifted")
 
     # -- readings ---------------------------------------------------------------------
@@ -706,18 +709,51 @@ class VarmaDay(DayEstimator):
             pos = int(np.searchsorted(times, hours, side="right"))
             times.insert(pos, hours)
             values.insert(pos, value)
-        first = int(np.searchsorted(self._starts, hours, side="left"))
-        if first >= len(self._starts):
+        self._refresh(j, hours)
+
+    def revise(self, sensor: str, hours: float, value: float) -> None:
+        j = self._col.get(sensor)
+        if j is None or not math.isfinite(value):
             return
-        idx = np.searchsorted(times, self._starts[first:], side="right") - 1
-        held = np.where(idx >= 0, np.asarray(values)[np.clip(idx, 0, None)], np.nan)
-        self._raw[first:, j] = held
-        if self.model.target_mode == "shifted":
+        times, values = self._times[sensor], self._values[sensor]
+        # The revised point is the sensor's newest: the last of its time, from the end.
+        i = len(times) - 1
+        while i >= 0 and times[i] != hours:
+            i -= 1
+        if i < 0:
+            raise KeyError(f"no reading of {sensor} at {hours} h to revise")
+        values[i] = value
+        self._refresh(j, hours)
+
+    def _refresh(self, j: int, hours: float) -> None:
+        """Update the held values of reference column j from the first slot at or after
+        ``hours`` [h] on, and invalidate the filter from the first slot that changed."""
+        sensor = self.model.references_[j]
+        times, values = self._times[sensor], self._values[sensor]
+        first = bisect.bisect_left(self._start_list, hours)
+        if first >= len(self._start_list):
+            return
+        if times[-1] == hours:
+            # The sensor's newest reading (the usual case): every later slot holds it.
+            self._raw[first:, j] = values[-1]
+        else:
+            idx = np.searchsorted(times, self._starts[first:], side="right") - 1
+            held = np.where(idx >= 0, np.asarray(values)[np.clip(idx, 0, None)], np.nan)
+            self._raw[first:, j] = held
+        # δ depends on the init slots, or else on the earliest slot with a value: only a
+        # change there can move it.
+        if self.model.target_mode == "shifted" and (
+                first <= self._last_init or not np.isfinite(self._raw[:first]).any()):
             assert self.model.shift_profile_ is not None  # checked on load
-            self.shift = day_shift(self._raw, self.model.shift_profile_, self._init)
-            first = 0  # a new δ moves every slot
+            shift = day_shift(self._raw, self.model.shift_profile_, self._init)
+            if shift != self.shift:
+                self.shift = shift
+                first = 0  # a new δ moves every slot
         m = self._raw.shape[1]
         new = self._raw[first:] - self.model.profile_[first:, :m] - self.shift  # [S', M]
+        if first >= len(self._filt):  # slots not filtered yet: nothing to invalidate
+            self._obs[first:, :m] = new
+            return
         old = self._obs[first:, :m]
         changed = (~((new == old) | (np.isnan(new) & np.isnan(old)))).any(axis=1)
         if changed.any():

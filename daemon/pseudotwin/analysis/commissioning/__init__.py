@@ -1,0 +1,47 @@
+"""The commissioning report of a freshly trained twin (``pseudotwin train --report DIR``).
+
+One self-contained HTML page for the engineer who left a desk sensor in a room for a week:
+the data found per sensor and day and whether it is enough (``coverage``), the candidates'
+held-out scores and the chosen primary, the raw reference's own score, the primary's typical
+and worst held-out days with the ±2σ band (``heldout``: the rows validation already replayed
+through the daemon's twin code, so nothing is refit), and the TOML for the twin
+(``snippet``). ``page`` renders it.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from pathlib import Path
+
+import pandas as pd
+
+from pseudotwin.analysis.commissioning.coverage import data_found
+from pseudotwin.analysis.commissioning.heldout import figures, held_out
+from pseudotwin.analysis.commissioning.page import Page, render
+from pseudotwin.analysis.commissioning.snippet import config_snippet, twin_id
+from pseudotwin.analysis.validation import Validation
+from pseudotwin.live.artifact import Artifact
+
+__all__ = ["config_snippet", "twin_id", "write_report"]
+
+
+def write_report(out_dir: Path, artifact: Artifact, validation: Validation | None,
+                 history: pd.DataFrame, first_day: dt.date, artifact_path: Path) -> Path:
+    """Write ``<out_dir>/<twin id>.html`` and return its path.
+
+    history: the readings ``train`` was given; first_day: its first candidate training day;
+    validation: what ``train_validated`` returned (None: the page says it was not validated).
+    """
+    twin = twin_id(artifact_path)
+    days = [dt.date.fromisoformat(d) for d in artifact.training.get("days", [])]
+    data = data_found(history, artifact.spec, min([first_day, *days]), days)
+    ho = held_out(artifact, validation) if validation is not None else None
+    page = Page(artifact, twin, artifact_path.resolve(), data, ho,
+                figures(ho, history) if ho is not None else [],
+                config_snippet(artifact, artifact_path, twin))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / f"{twin}.html"
+    tmp = path.with_suffix(".html.tmp")
+    tmp.write_text(render(page), encoding="utf-8")
+    tmp.replace(path)
+    return path

@@ -1,0 +1,250 @@
+"""The commissioning report as one self-contained HTML page: inline CSS, images as PNG data
+URIs, no script and nothing fetched. Every text from data or the user goes through
+:func:`html.escape`."""
+
+from __future__ import annotations
+
+import datetime as dt
+import html
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pseudotwin import __version__
+from pseudotwin.analysis.commissioning.coverage import DataFound, Level
+from pseudotwin.analysis.commissioning.heldout import HeldOut
+from pseudotwin.analysis.replay import REF_PREFIX
+from pseudotwin.live.artifact import Artifact
+from pseudotwin.live.calibration import Z2
+
+COVER2_AIM = 95.4  # % of truths a calibrated Gaussian ±2σ band holds
+
+CSS = """
+body{font-family:system-ui,sans-serif;max-width:72rem;margin:1.5rem auto;padding:0 1rem;
+color:#222;line-height:1.4}
+h1{font-size:1.6rem;margin-bottom:.2rem}h2{margin-top:2rem;border-bottom:1px solid #ccc}
+table{border-collapse:collapse;margin:.6rem 0;font-size:.9rem}
+th,td{border:1px solid #ccc;padding:.2rem .5rem;text-align:left}
+td.num{text-align:right;font-variant-numeric:tabular-nums}
+th{background:#f2f2f2}tr.primary td{font-weight:bold}
+.good{background:#e3f4e1}.thin{background:#fff3cd}.missing{background:#f8d7da}
+.verdict{padding:.6rem 1rem;margin:.5rem 0;border-left:.4rem solid #888}
+.verdict.good{border-color:#2e7d32}.verdict.thin{border-color:#b8860b}
+.verdict.missing{border-color:#c62828}
+figure{margin:1rem 0}figure img{max-width:100%;border:1px solid #ddd}
+figcaption{font-size:.85rem;color:#555}
+pre{background:#f6f6f6;padding:.8rem;overflow-x:auto;font-size:.85rem}
+.meta{color:#555;font-size:.9rem}
+"""
+
+
+class Raw(str):
+    """Trusted HTML (built here from escaped parts): not escaped again."""
+
+
+def esc(x: object) -> str:
+    return x if isinstance(x, Raw) else html.escape(str(x))
+
+
+def num(x: object, digits: int = 2) -> str:
+    """A score as shown; '—' where there is none (NaN, or null in a saved artifact)."""
+    ok = isinstance(x, int | float) and not isinstance(x, bool) and np.isfinite(x)
+    return f"{x:.{digits}f}" if ok else "—"
+
+
+def table(table_id: str, headers: Sequence[str], rows: Iterable[Sequence[object]],
+          row_class: Sequence[str] | None = None, numeric: Sequence[int] = ()) -> str:
+    """An HTML table; ``numeric``: indices of right-aligned columns."""
+    head = "".join(f"<th>{esc(h)}</th>" for h in headers)
+    body = []
+    for i, row in enumerate(rows):
+        cls = f' class="{esc(row_class[i])}"' if row_class and row_class[i] else ""
+        cells = "".join(f'<td{" class=num" if j in numeric else ""}>{esc(c)}</td>'
+                        for j, c in enumerate(row))
+        body.append(f"<tr{cls}>{cells}</tr>")
+    return (f'<table id="{esc(table_id)}"><thead><tr>{head}</tr></thead>'
+            f'<tbody>{"".join(body)}</tbody></table>')
+
+
+def verdict(level: Level, title: str, text: str) -> str:
+    return (f'<div class="verdict {level.value}"><strong>{esc(title)}</strong> '
+            f"{esc(text)}</div>")
+
+
+@dataclass(frozen=True)
+class Page:
+    """Everything the page shows."""
+
+    artifact: Artifact
+    twin: str
+    artifact_path: Path
+    data: DataFound
+    held: HeldOut | None
+    figures: list[tuple[str, str]]  # (caption, PNG data URI)
+    snippet: str
+    generated: str = ""
+
+
+def data_section(p: Page) -> str:
+    d = p.data
+    rows, classes = [], []
+    for r in d.rows:
+        rows.append((str(r.day), d.day_status(r.day), r.sensor, r.readings,
+                     f"{100 * r.coverage:.0f}", f"{r.longest_gap_min:.0f}", r.verdict))
+        classes.append(r.level.value)
+    hours = p.artifact.hours
+    return (
+        "<h2>Data found per sensor and day</h2>"
+        f"<p>Readings inside the operating hours ({esc(hours.describe())}), from the first "
+        "candidate day to the last training day. Coverage: share of the "
+        f"{hours.slot_minutes:g}-minute slots of the operating hours that hold at least one "
+        "reading (a change-of-value sensor may be quiet on a steady day and still be "
+        "fine).</p>"
+        + verdict(d.level, "Is it enough?", d.verdict())
+        + table("data", ["day", "day status", "sensor", "readings", "coverage %",
+                         "longest gap min", "verdict"], rows, classes, numeric=(3, 4, 5))
+    )
+
+
+def _note(kind: str, s: Mapping[str, Any], v: Mapping[str, Any]) -> str:
+    withheld = v.get("withheld", {})
+    if kind in withheld:
+        return f"not published live: {withheld[kind]}"
+    if s.get("error"):
+        return str(s["error"])
+    if kind == v.get("primary"):
+        return "primary: published as the estimate"
+    return "candidate" if s.get("candidate") else "monitoring baseline"
+
+
+def validation_section(p: Page) -> str:
+    a = p.artifact
+    v = a.validation
+    scores: Mapping[str, Mapping[str, Any]] = v.get("scores", {})
+    if not scores:
+        return ("<h2>Candidates and the primary</h2>"
+                + verdict(Level.MISSING, "Not validated.",
+                          f"The primary {a.primary} was not chosen on held-out days "
+                          "(fewer than three training days, or validation was off); σ is "
+                          "each model's own, not calibrated."))
+    rows, classes = [], []
+    for kind, s in scores.items():
+        rows.append((kind, num(s.get("nrmse_pct")), num(s.get("crps"), 3),
+                     num(s.get("cover2_pct"), 1), s.get("days", 0), _note(kind, s, v)))
+        classes.append("primary" if kind == a.primary else "")
+    return (
+        "<h2>Candidates and the primary</h2>"
+        f"<p>{esc(v.get('method', ''))}. Each training day is held out in turn: every model "
+        "is refit on the other days and the held-out day is replayed through the daemon's "
+        "twin code. CRPS and ±2σ coverage use the calibrated σ, on the days it was "
+        "calibrated on (a check, not a promise).</p>"
+        + verdict(Level.GOOD, f"Primary: {a.primary}.", str(v.get("reason", "")))
+        + table("validation", ["model", "held-out daily NRMSE %", f"CRPS {a.unit}",
+                               "±2σ coverage %", "days", "note"], rows, classes,
+                numeric=(1, 2, 3, 4))
+    )
+
+
+def _reference_verdict(a: Artifact, ho: HeldOut) -> tuple[Level, str]:
+    refs = ho.reference_scores().dropna(subset=["nrmse_pct"])
+    prim = ho.daily[ho.daily["model"] == a.primary]["nrmse_pct"].mean()
+    if refs.empty or not np.isfinite(prim):
+        return Level.THIN, "No held-out scores of the raw references."
+    best = refs.loc[refs["nrmse_pct"].idxmin()]
+    ref_text = (f"the best raw reference, {best['reference']}, scores "
+                f"{best['nrmse_pct']:.2f} % (median daily r {num(best['pearson_r'], 3)})")
+    if prim < best["nrmse_pct"] * 0.97:
+        gain = 100 * (1 - prim / best["nrmse_pct"])
+        return Level.GOOD, (f"The primary {a.primary} scores {prim:.2f} % held out; {ref_text}: "
+                            f"the twin is {gain:.0f} % better than reading the reference.")
+    if a.primary == "ref":
+        return Level.GOOD, (f"The primary is the raw reference held ({prim:.2f} %); "
+                            f"{ref_text}. No model beats it on held-out days: the data "
+                            "supports no more than that, and the twin publishes it honestly "
+                            "with a calibrated σ.")
+    return Level.THIN, (f"The primary {a.primary} scores {prim:.2f} % held out; {ref_text}: "
+                        "the model does not clearly beat the reference.")
+
+
+def reference_section(p: Page) -> str:
+    if p.held is None or p.held.daily.empty:
+        return ""
+    a = p.artifact
+    level, text = _reference_verdict(a, p.held)
+    rs = p.held.reference_scores()
+    rows = [(REF_PREFIX + r.reference, num(r.nrmse_pct), num(r.pearson_r, 3), r.days)
+            for r in rs.itertuples()]
+    return (
+        "<h2>The raw reference's own score</h2>"
+        "<p>Each reference's raw reading, held and compared with the desk sensor on the "
+        "training days: the floor any model has to beat. Its daily Pearson r with the desk "
+        "is the evidence of how much a model can learn from it.</p>"
+        + verdict(level, "Reference vs twin:", text)
+        + table("references", ["reference", "held-out daily NRMSE %", "median daily r",
+                               "days"], rows, numeric=(1, 2, 3))
+    )
+
+
+def days_section(p: Page) -> str:
+    if p.held is None or p.held.daily.empty:
+        return ""
+    a = p.artifact
+    d = p.held.primary_days()
+    cover = d["cover2_pct"].mean()
+    ok = np.isfinite(cover) and abs(cover - COVER2_AIM) <= 10
+    level = Level.GOOD if ok else Level.THIN
+    text = (f"the calibrated ±{Z2:g}σ band of {a.primary} held on average {num(cover, 1)} % "
+            "of a held-out day's desk readings (a calibrated band holds about "
+            f"{COVER2_AIM:g} %).")
+    refs = {r: p.held.daily[p.held.daily["model"] == REF_PREFIX + r].set_index("day")
+            for r in a.references}
+    rows = []
+    for r in d.itertuples():
+        ref_cells = [num(refs[x]["nrmse_pct"].get(r.day, np.nan)) for x in a.references]
+        rows.append((r.day, num(r.nrmse_pct), num(r.dmax_pct), num(r.pearson_r, 3),
+                     num(r.cover2_pct, 1), num(r.mean_std, 3), *ref_cells))
+    figs = "".join(
+        f'<figure><img alt="{esc(cap)}" src="{esc(uri)}"><figcaption>{esc(cap)}</figcaption>'
+        "</figure>" for cap, uri in p.figures)
+    return (
+        "<h2>Held-out training days</h2>"
+        f"<p>The primary {esc(a.primary)} on each training day, estimated by models trained "
+        "on the other days, best day first.</p>"
+        + verdict(level, "σ:", text)
+        + table("days", ["day", f"{a.primary} NRMSE %", "ΔT_max %", "r", "±2σ coverage %",
+                         f"mean σ {a.unit}",
+                         *(f"raw {x} NRMSE %" for x in a.references)], rows,
+                numeric=tuple(range(1, 6 + len(a.references))))
+        + figs
+    )
+
+
+def render(p: Page) -> str:
+    a = p.artifact
+    tr = a.training
+    generated = p.generated or dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+    meta = (
+        f"<p class=meta>Target (desk) <b>{esc(a.target)}</b> from "
+        f"{esc(', '.join(a.references))}; {esc(a.quantity.value)} [{esc(a.unit)}]; "
+        f"operating hours {esc(a.hours.describe())}. Training days: "
+        f"{esc(', '.join(tr.get('days', [])))}. Artifact: <code>{esc(p.artifact_path)}</code>. "
+        f"Generated {esc(generated)} by pseudotwin {esc(__version__)}.</p>"
+    )
+    snippet = (
+        "<h2>Configuration for the twin</h2>"
+        "<p>TOML the daemon's configuration loader accepts as it stands (check it with "
+        "<code>pseudotwin check-config FILE</code>); the comments say what to copy into an "
+        "existing configuration such as <code>config/example.toml</code>.</p>"
+        f'<pre id="config"><code>{esc(p.snippet)}</code></pre>'
+    )
+    body = (f"<h1>Commissioning report: twin {esc(p.twin)}</h1>" + meta
+            + data_section(p) + validation_section(p) + reference_section(p)
+            + days_section(p) + snippet)
+    return (
+        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
+        f"<title>pseudotwin commissioning: {esc(p.twin)}</title>"
+        f"<style>{CSS}</style></head><body>{body}</body></html>\n"
+    )

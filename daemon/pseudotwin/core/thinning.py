@@ -1,0 +1,121 @@
+"""The window's thinning policy: a bounded conditioning set, whatever a sensor's rate.
+
+Room units on KNX or BACnet often report every 2–10 s. Each conditioning point costs the
+GP posterior one Cholesky row (O(n²) per reading, O(n²) memory), so a day of such readings
+would make every update slower than the one before. The policy (DESIGN.md §2):
+
+* Time is cut into buckets of ``min_interval`` per sensor (default 1 min), aligned to the
+  UTC epoch: ``[k·Δ, (k+1)·Δ)``.
+* A sensor's window holds **at most one point per bucket**. The first reading of a bucket
+  makes the point (at that reading's time); each later reading of the same bucket revises
+  the point's value to the **mean of the bucket's readings so far**. The latest reading is
+  thus reflected at once, and a closed bucket's point is that minute's mean, which is what
+  the converters' 1-minute means are, so a chatty sensor and its 1-minute means condition
+  the models alike. Readings already at most one per bucket (1-minute means, COV sensors)
+  pass unchanged: thinning changes nothing for them.
+* A reading of an earlier bucket (out of order) makes a point of its own if that bucket has
+  none yet, and is dropped otherwise; only the newest bucket's point is revised, because a
+  revision costs the GP O(n) only while the point is among its last rows. A reading whose
+  time is already in its bucket (a duplicate) is dropped.
+
+The daemon, ``evaluate`` and ``backfill`` all thin here, inside :class:`~pseudotwin.live.twin.Twin`.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from enum import Enum
+
+__all__ = ["DEFAULT_MIN_INTERVAL", "Action", "Thinning", "WindowThinner"]
+
+#: One conditioning point per reference and minute: the resolution of the converters'
+#: means, far finer than the 15-minute slots and the GP's hour-scale lengthscales.
+DEFAULT_MIN_INTERVAL = dt.timedelta(minutes=1)
+
+_EPOCH = dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
+
+
+@dataclass(frozen=True)
+class Thinning:
+    """Per-sensor bucket widths: ``per_sensor`` overrides ``default`` (both > 0)."""
+
+    default: dt.timedelta = DEFAULT_MIN_INTERVAL
+    per_sensor: Mapping[str, dt.timedelta] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for name, width in {"default": self.default, **self.per_sensor}.items():
+            if not width > dt.timedelta(0):
+                raise ValueError(f"min_interval of {name} must be positive, got {width}")
+
+    def interval(self, sensor: str) -> dt.timedelta:
+        return self.per_sensor.get(sensor, self.default)
+
+    def describe(self) -> str:
+        """E.g. ``one point per 60 s (ref_b: 10 s)``."""
+        text = f"one point per {self.default.total_seconds():g} s"
+        if self.per_sensor:
+            extra = ", ".join(f"{s}: {w.total_seconds():g} s"
+                              for s, w in sorted(self.per_sensor.items()))
+            text += f" ({extra})"
+        return text
+
+
+class Action(Enum):
+    """What a reading does to the window: a new point, a new value of the sensor's newest
+    point, or nothing."""
+
+    NEW = "new"
+    REVISE = "revise"
+    DROP = "drop"
+
+
+@dataclass
+class _Bucket:
+    index: int
+    point_ts: dt.datetime  # the point's time: the bucket's first reading
+    stamps: set[dt.datetime]
+    total: float
+
+    @property
+    def mean(self) -> float:
+        return self.total / len(self.stamps)
+
+
+class WindowThinner:
+    """One day's bucket bookkeeping for every sensor of a window.
+
+    State per sensor: its newest bucket (readings' times and sum) and the indices of the
+    buckets that hold a point; bounded by the number of points, not of readings.
+    """
+
+    def __init__(self, policy: Thinning) -> None:
+        self.policy = policy
+        self._newest: dict[str, _Bucket] = {}
+        self._filled: dict[str, set[int]] = {}
+        self.dropped = 0  # readings that changed nothing (duplicates, late into a full bucket)
+        self.revised = 0
+
+    def offer(self, sensor: str, ts: dt.datetime, value: float
+              ) -> tuple[Action, dt.datetime, float]:
+        """The action for reading (``ts`` aware, ``value``) and the point it yields:
+        (action, point time, point value). For DROP the point is the reading itself."""
+        k = (ts - _EPOCH) // self.policy.interval(sensor)
+        newest = self._newest.get(sensor)
+        filled = self._filled.setdefault(sensor, set())
+        if newest is not None and k == newest.index:
+            if ts in newest.stamps:
+                self.dropped += 1
+                return Action.DROP, ts, value
+            newest.stamps.add(ts)
+            newest.total += value
+            self.revised += 1
+            return Action.REVISE, newest.point_ts, newest.mean
+        if k in filled:
+            self.dropped += 1
+            return Action.DROP, ts, value
+        filled.add(k)
+        if newest is None or k > newest.index:
+            self._newest[sensor] = _Bucket(k, ts, {ts}, value)
+        return Action.NEW, ts, value

@@ -1,0 +1,220 @@
+"""The commissioning report (`train --report DIR`, issue 12 item 4): trained on real SML2010
+days through the CLI, rendered in a real headless Chromium, its config snippet loaded by the
+real config loader."""
+
+from __future__ import annotations
+
+import datetime as dt
+import html
+import json
+import re
+import shutil
+import subprocess
+from html.parser import HTMLParser
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from daemon_support import HOURS, REF, TARGET, sml, sml_csv
+from pseudotwin.analysis.commissioning.coverage import Level, data_found
+from pseudotwin.cli import _artifact_check, main
+from pseudotwin.config import check_config
+from pseudotwin.core.spec import Quantity, TwinSpec
+from pseudotwin.live.artifact import Artifact
+
+TRAINING_DAYS = [dt.date(2012, 3, 14) + dt.timedelta(days=i) for i in range(5)]
+CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
+                  "--no-first-run", "--disable-background-networking",
+                  "--disable-component-update", "--disable-sync")
+# Written into the DOM once every image has loaded; --dump-dom then shows it.
+IMAGE_PROBE = ("<script>window.addEventListener('load', () => {const o = "
+               "document.createElement('pre'); o.id = 'image-probe'; o.textContent = "
+               "JSON.stringify([...document.images].map(i => [i.complete, i.naturalWidth, "
+               "i.naturalHeight])); document.body.appendChild(o);});</script>")
+
+
+def chromium() -> str:
+    for name in ("chromium", "chromium-browser"):
+        if path := shutil.which(name):
+            return path
+    if Path("/usr/bin/chromium").exists():
+        return "/usr/bin/chromium"
+    pytest.fail("Chromium not found: the commissioning report is checked in a real headless "
+                "browser; run scripts/bootstrap.sh (installs Debian's chromium package) or "
+                "apt-get install chromium")
+
+
+def rendered_dom(page: Path, profile: Path) -> str:
+    """The page's DOM after Chromium loaded it and the image probe ran."""
+    probe = page.with_name(page.stem + "-probe.html")
+    probe.write_text(page.read_text(encoding="utf-8").replace("</body>", IMAGE_PROBE + "</body>"),
+                     encoding="utf-8")
+    done = subprocess.run(
+        [chromium(), *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "--dump-dom",
+         probe.as_uri()],
+        capture_output=True, text=True, timeout=120, check=False,
+    )
+    assert done.returncode == 0 and "</html>" in done.stdout, done.stderr[-2000:]
+    return done.stdout
+
+
+class Tables(HTMLParser):
+    """Cell texts of every table with an id: id → rows (header row first)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.tables: dict[str, list[list[str]]] = {}
+        self.current: list[list[str]] | None = None
+        self.cell: list[str] | None = None
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        if tag == "table" and (tid := dict(attrs).get("id")):
+            self.current = self.tables.setdefault(tid, [])
+        elif tag == "tr" and self.current is not None:
+            self.current.append([])
+        elif tag in ("td", "th") and self.current is not None:
+            self.cell = []
+
+    def handle_endtag(self, tag: str) -> None:
+        if tag == "table":
+            self.current = None
+        elif tag in ("td", "th") and self.current is not None and self.cell is not None:
+            self.current[-1].append("".join(self.cell).strip())
+            self.cell = None
+
+    def handle_data(self, data: str) -> None:
+        if self.cell is not None:
+            self.cell.append(data)
+
+
+def tables_of(dom: str) -> dict[str, list[list[str]]]:
+    p = Tables()
+    p.feed(dom)
+    return p.tables
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """(artifact, report page) of `train --report` on SML2010's five training days."""
+    folder = tmp_path_factory.mktemp("commissioning")
+    history = sml_csv(folder, TRAINING_DAYS[-1])
+    artifact = folder / "artifacts" / "room1-desk-temp.json"
+    rc = main(["--log-level", "WARNING", "train", "--history", str(history),
+               "--references", REF, "--target", TARGET, "--quantity", "temperature",
+               "--train-start", str(TRAINING_DAYS[0]), "--timezone", "Europe/Madrid",
+               "--models", "ref,triv", "--out", str(artifact), "--report", str(folder / "r")])
+    assert rc == 0
+    return artifact, folder / "r" / "room1-desk-temp.html"
+
+
+def test_the_page_renders_in_chromium_with_its_tables_and_images(
+        trained: tuple[Path, Path], tmp_path: Path) -> None:
+    artifact, page = trained
+    art = Artifact.load(artifact)
+    dom = rendered_dom(page, tmp_path / "profile")
+    tables = tables_of(dom)
+
+    validation = tables["validation"]
+    assert validation[0][:2] == ["model", "held-out daily NRMSE %"]
+    assert [row[0] for row in validation[1:]] == list(art.validation["scores"])
+    for row in validation[1:]:
+        assert float(row[1]) == pytest.approx(art.validation["scores"][row[0]]["nrmse_pct"],
+                                              abs=0.006)
+    primary_row = next(r for r in validation[1:] if r[0] == art.primary)
+    assert primary_row[-1].startswith("primary")
+
+    data = tables["data"]
+    assert data[0][:4] == ["day", "day status", "sensor", "readings"]
+    cells = {(r[0], r[2]): r for r in data[1:]}
+    assert set(cells) == {(str(d), s) for d in TRAINING_DAYS for s in (REF, TARGET)}
+    for row in cells.values():
+        assert row[1] == "training day" and int(row[3]) > 0 and row[6] == "enough"
+
+    refs = tables["references"]
+    assert [r[0] for r in refs[1:]] == [f"ref:{REF}"]
+    assert np.isfinite(float(refs[1][1])) and -1.0 <= float(refs[1][2]) <= 1.0
+    assert len(tables["days"]) == 1 + len(TRAINING_DAYS)
+
+    found = re.search(r'<pre id="image-probe">([^<]*)</pre>', dom)
+    assert found, "the image probe did not run"
+    images = json.loads(html.unescape(found.group(1)))
+    assert len(images) >= 3  # the held-out NRMSE per day, the typical and the worst day
+    assert all(done and w > 300 and h > 200 for done, w, h in images), images
+    assert "Enough:" in dom and "Primary:" in dom
+
+
+def test_the_page_is_self_contained(trained: tuple[Path, Path]) -> None:
+    text = trained[1].read_text(encoding="utf-8")
+    sources = re.findall(r'<img[^>]*\ssrc="([^"]*)"', text)
+    assert sources and all(s.startswith("data:image/png;base64,") for s in sources)
+    assert not re.search(r'(?:src|href)\s*=\s*"?(?:https?:)?//', text)
+    assert "<script" not in text and "<link" not in text
+
+
+def test_the_held_out_days_are_the_ones_validation_scored(trained: tuple[Path, Path]) -> None:
+    """No refit: the page's per-day scores of the primary average to validation's score."""
+    artifact, page = trained
+    art = Artifact.load(artifact)
+    days = tables_of(page.read_text(encoding="utf-8"))["days"]
+    assert days[0][1] == f"{art.primary} NRMSE %"
+    per_day = [float(r[1]) for r in days[1:]]
+    assert sorted(r[0] for r in days[1:]) == [str(d) for d in TRAINING_DAYS]
+    assert per_day == sorted(per_day)  # best day first
+    assert np.mean(per_day) == pytest.approx(
+        art.validation["scores"][art.primary]["nrmse_pct"], abs=0.01)
+
+
+def test_the_config_snippet_loads_with_the_real_loader_and_fits_the_artifact(
+        trained: tuple[Path, Path], tmp_path: Path) -> None:
+    artifact, page = trained
+    found = re.search(r'<pre id="config"><code>(.*?)</code></pre>',
+                      page.read_text(encoding="utf-8"), re.S)
+    assert found
+    path = tmp_path / "twin.toml"
+    path.write_text(html.unescape(found.group(1)), encoding="utf-8")
+    cfg = check_config(path, artifact_check=_artifact_check)  # raises on any problem
+    twin = cfg.twins["room1-desk-temp"]
+    assert twin.artifact == artifact.resolve()
+    assert twin.references == (REF,) and twin.target == TARGET
+    assert cfg.hours == Artifact.load(artifact).hours
+
+
+def test_thin_and_missing_days_are_called_out() -> None:
+    df = sml()
+    spec = TwinSpec((REF,), TARGET, Quantity.TEMPERATURE, HOURS)
+    day, hrs = HOURS.day_and_hours(df["ts"])
+    thin = (df["sensor"] == TARGET) & (day == np.datetime64("2012-03-15")) & (hrs > 10)
+    gone = (df["sensor"] == REF) & (day == np.datetime64("2012-03-16"))
+    found = data_found(df[~(thin | gone)], spec, dt.date(2012, 3, 14),
+                       [dt.date(2012, 3, 14), dt.date(2012, 3, 15), dt.date(2012, 3, 17)])
+    rows = {(r.day, r.sensor): r for r in found.rows}
+    assert rows[dt.date(2012, 3, 15), TARGET].level is Level.THIN
+    assert rows[dt.date(2012, 3, 15), TARGET].coverage < 0.3
+    assert rows[dt.date(2012, 3, 16), REF].level is Level.MISSING
+    assert found.day_status(dt.date(2012, 3, 16)) == f"skipped: no data of {REF}"
+    assert found.level is Level.THIN
+    assert f"{TARGET} on 2012-03-15" in found.verdict()
+    assert data_found(df, spec, dt.date(2012, 3, 14), TRAINING_DAYS).level is Level.GOOD
+    too_few = data_found(df, spec, dt.date(2012, 3, 14), TRAINING_DAYS[:2])
+    assert too_few.level is Level.MISSING and too_few.verdict().startswith("Not enough")
+
+
+def test_train_help_explains_the_report(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "--report DIR" in out and "self-contained HTML" in out
+
+
+def test_too_few_days_to_validate_say_so(tmp_path: Path) -> None:
+    history = sml_csv(tmp_path, TRAINING_DAYS[1])
+    rc = main(["--log-level", "WARNING", "train", "--history", str(history),
+               "--references", REF, "--target", TARGET, "--quantity", "temperature",
+               "--train-start", str(TRAINING_DAYS[0]), "--train-days", "2",
+               "--timezone", "Europe/Madrid", "--models", "triv",
+               "--out", str(tmp_path / "desk.json"), "--report", str(tmp_path / "r")])
+    assert rc == 0
+    text = (tmp_path / "r" / "desk.html").read_text(encoding="utf-8")
+    assert "Not enough: 2 training day(s)" in text and "Not validated." in text
+    assert "<img" not in text and 'id="config"' in text
