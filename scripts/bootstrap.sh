@@ -20,29 +20,26 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     touch "$stamp"
 fi
 
+# apt_install PACKAGE WHY: Debian's package, when the machine lacks it.
+apt_install() {
+    echo "bootstrap: installing $1 (apt; $2)" >&2
+    SUDO=""
+    [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "$1" >/dev/null
+}
+
+# The Debian package starts a system broker on 1883; the demo and tests start their own.
 if ! command -v mosquitto >/dev/null 2>&1 && [ ! -x /usr/sbin/mosquitto ]; then
-    echo "bootstrap: installing the Mosquitto broker (apt)" >&2
-    SUDO=""
-    [ "$(id -u)" -eq 0 ] || SUDO="sudo"
-    $SUDO apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq mosquitto >/dev/null
-    # The Debian package starts a system broker on 1883; the demo and tests start their own.
+    apt_install mosquitto "the demo and the tests run a real broker"
 fi
-
+# Debian may start a system cluster on 5432; the tests initdb their own on a free port.
 if ! command -v initdb >/dev/null 2>&1 && ! ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1; then
-    echo "bootstrap: installing the PostgreSQL server (apt; the store tests start their own)" >&2
-    SUDO=""
-    [ "$(id -u)" -eq 0 ] || SUDO="sudo"
-    $SUDO apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq postgresql >/dev/null
-    # Debian may start a system cluster on 5432; the tests initdb their own on a free port.
+    apt_install postgresql "the store tests start their own PostgreSQL server"
 fi
-
 if ! command -v chromium >/dev/null 2>&1 && [ ! -x /usr/bin/chromium ]; then
-    # tests/test_commissioning.py renders the commissioning report in a real headless browser.
-    echo "bootstrap: installing Chromium (apt)" >&2
-    SUDO=""
-    [ "$(id -u)" -eq 0 ] || SUDO="sudo"
-    $SUDO apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq chromium >/dev/null
+    apt_install chromium "tests/test_commissioning.py renders the report in a headless browser"
+fi
+if ! command -v promtool >/dev/null 2>&1; then
+    apt_install prometheus "its promtool checks deploy/prometheus.yml in tests/test_deploy.py"
 fi

@@ -502,3 +502,23 @@ def test_main_usage_errors(
 ) -> None:
     assert cc.main(argv) == 2
     assert message in one_error_line(capsys)
+
+
+@needs_data
+def test_room_climate_raw_keeps_every_sample_and_its_minute_means_are_the_default(
+    converted: Converted, tmp_path: Path, capsys: pytest.CaptureFixture[str],
+) -> None:
+    _, minutes = converted["room-climate-a"]
+    out = tmp_path / "raw.csv"
+    assert cc.main(["room-climate-a", "--raw", "--out", str(out)]) == 0
+    assert "room-climate-a:" in capsys.readouterr().out
+    raw = read_history(out)
+    assert counts(raw)["A1/temp"] > 10 * counts(minutes)["A1/temp"]  # ~4-s samples
+    a1 = raw[raw["sensor"] == "A1/temp"]
+    assert (a1["ts"].dt.microsecond != 0).any()  # the samples' own milliseconds
+    by_minute = a1.groupby(a1["ts"].dt.floor("min"))["value"].mean()
+    want = minutes[minutes["sensor"] == "A1/temp"].set_index("ts")["value"]
+    np.testing.assert_allclose(by_minute.loc[want.index].to_numpy(), want.to_numpy(),
+                               atol=1e-4)  # both written as CSV with four decimals
+    # datasets without averaging give the same rows either way
+    pd.testing.assert_frame_equal(cv.load("sml2010", raw=True), cv.load("sml2010"))

@@ -449,13 +449,6 @@ class Service:
             instant, rt, health = self._tick_work.popleft()
             self._handle_tick_of(rt, instant, health)
 
-    def _handle_tick(self, instant: dt.datetime) -> None:
-        """All twins' grid work for ``instant`` at once (tests, and a worker with no
-        readings waiting does the same in slices)."""
-        self._start_tick(instant)
-        while self._tick_work:
-            self._tick_step()
-
     def _handle_tick_of(self, rt: TwinRuntime, instant: dt.datetime,
                         health: dict[str, Any]) -> None:
         with twin_context(rt.cfg.id):

@@ -46,6 +46,9 @@ class IncrementalPosterior:
 
     def __init__(self, params: LcmParams, capacity: int = 256) -> None:
         self.params = params
+        # Per output, fixed by the artifact: asked for at every update and prediction.
+        self._prior_var = [params.prior_var(o) for o in range(params.n_outputs)]
+        self._noise = [float(v) for v in params.noise]
         self.n = 0
         self.jitter = 0.0
         self.refactorizations = 0
@@ -90,7 +93,7 @@ class IncrementalPosterior:
         return self._r[: self.n]
 
     def _obs_var(self, o: int) -> float:
-        return self.params.prior_var(o) + float(self.params.noise[o])
+        return self._prior_var[o] + self._noise[o]
 
     # -- updates ----------------------------------------------------------------------
     def add(self, t: float, o: int, r: float) -> None:
@@ -173,7 +176,7 @@ class IncrementalPosterior:
     # -- prediction -------------------------------------------------------------------
     def predict(self, t: float, o: int, include_noise: bool = True) -> tuple[float, float]:
         """Posterior mean residual and variance of output o at time t [h]."""
-        var0 = self.params.prior_var(o) + (float(self.params.noise[o]) if include_noise else 0.0)
+        var0 = self._prior_var[o] + (self._noise[o] if include_noise else 0.0)
         if self.n == 0:
             return 0.0, var0
         n = self.n

@@ -4,49 +4,168 @@ Stored readings are replayed day by day through the same :class:`~pseudotwin.liv
 daemon runs, in the order the daemon would have seen them: at every reference reading, and at
 every instant of the publish grid, every model's estimate is written to the estimates table
 (upserted on twin, model, ts — a rerun rewrites, never duplicates). Each finished day is
-recorded (per artifact version), so an interrupted backfill continues after the last finished
-day, and a retrained twin is backfilled anew. One day of
-readings is in memory at a time.
+recorded (per artifact version) after its rows are written, so an interrupted backfill
+continues with the days not yet finished, and a retrained twin is backfilled anew. One day
+of readings is in memory at a time.
+
+Days are independent: a day's estimates depend only on that day's readings and on the last
+reading of each reference from before the day's init start (the carried-over value). A run
+of days (a :class:`Chunk`) therefore starts with a fresh twin seeded with exactly those
+readings from the store, which is what the twin of a serial run holds at that point; that
+is why chunks can run in any order, in any process (:mod:`pseudotwin.history.backfill_pool`)
+and give the same rows.
 """
 
 from __future__ import annotations
 
 import datetime as dt
 import logging
-import sys
+import math
 import time
+import traceback
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import TextIO
+from typing import Protocol
 
 import pandas as pd
 
-from pseudotwin.config import ServiceConfig, TwinConfig
-from pseudotwin.errors import ConfigError
+from pseudotwin.config import ServiceConfig
+from pseudotwin.core.twinlog import twin_context
+from pseudotwin.errors import ConfigError, PseudotwinError
 from pseudotwin.history.store import EstimateRow, Store
 from pseudotwin.live.artifact import Artifact, artifact_hash
 from pseudotwin.live.twin import Twin, TwinEstimate
 
 log = logging.getLogger(__name__)
 
+#: Longest run of days one chunk covers: bounds how much work one progress line stands for
+#: and how much a Ctrl-C or a failure leaves to a rerun.
+MAX_CHUNK_DAYS = 31
+
+class StopFlag(Protocol):
+    """Asked between days: a threading or multiprocessing Event."""
+
+    def is_set(self) -> bool: ...
+
+
+class BackfillError(PseudotwinError):
+    """Days of a backfill failed (each failure names its twin and day)."""
+
 
 @dataclass
 class BackfillSummary:
+    """What a backfill of one twin did."""
+
     days: int = 0
     estimates: int = 0
     skipped: dict[str, list[str]] = field(default_factory=dict)  # reason → days
     seconds: float = 0.0
 
-    def skip(self, day: dt.date, reason: str) -> None:
+    def skip(self, day: dt.date | str, reason: str) -> None:
         self.skipped.setdefault(reason, []).append(str(day))
 
     def lines(self) -> list[str]:
+        # seconds: summed over the twin's runs of days, which may have run side by side
         out = [f"backfilled {self.days} day(s), {self.estimates} estimates written "
-               f"in {self.seconds:.1f} s"]
+               f"in {self.seconds:.1f} s of work"]
         for reason, days in self.skipped.items():
+            days = sorted(days)
             shown = ", ".join(days[:10]) + (f" … (+{len(days) - 10})" if len(days) > 10 else "")
             out.append(f"skipped {len(days)} day(s), {reason}: {shown}")
         return out
+
+
+@dataclass(frozen=True)
+class TwinJob:
+    """One twin's backfill: its artifact version and the days still to do."""
+
+    twin_id: str
+    artifact_path: str
+    digest: str
+    todo: tuple[dt.date, ...]
+    done: tuple[dt.date, ...]  # already finished with this artifact version
+
+    @property
+    def progress_key(self) -> str:
+        # Progress belongs to an artifact version: after a retrain every day is due again.
+        return f"{self.twin_id}@{self.digest[:16]}"
+
+
+@dataclass(frozen=True)
+class Chunk:
+    """A run of days of one twin, processed by one fresh twin (days ascending)."""
+
+    job: TwinJob
+    days: tuple[dt.date, ...]
+
+    def label(self) -> str:
+        first, last = self.days[0], self.days[-1]
+        return f"{self.job.twin_id} {first}" + (f" … {last}" if last != first else "")
+
+
+@dataclass
+class ChunkResult:
+    """What one chunk did. ``failed`` (day, message) stops the chunk at that day;
+    ``stopped`` means it was asked to stop (Ctrl-C) before its last day."""
+
+    chunk: Chunk
+    days: int = 0
+    estimates: int = 0
+    empty: list[dt.date] = field(default_factory=list)
+    failed: tuple[dt.date, str] | None = None
+    detail: str = ""  # the failure's traceback, for --log-level DEBUG
+    stopped: bool = False
+    seconds: float = 0.0
+
+    @property
+    def unfinished(self) -> int:
+        """Days of the chunk neither done nor empty (failed or not attempted)."""
+        return len(self.chunk.days) - self.days - len(self.empty)
+
+    def failure_line(self) -> str:
+        assert self.failed is not None
+        day, msg = self.failed
+        rest = self.unfinished - 1
+        later = f"; {rest} later day(s) of its chunk not attempted" if rest else ""
+        return f"twin {self.chunk.job.twin_id}, day {day}: {msg}{later}"
+
+
+def plan(cfg: ServiceConfig, twin_ids: list[str], start: dt.date, end: dt.date,
+         store: Store) -> list[TwinJob]:
+    """The jobs of ``twin_ids`` over local days start … end, with the days already done
+    (of each twin's current artifact version) taken out. Checks twins, dates and artifacts
+    before any work starts."""
+    unknown = [t for t in twin_ids if t not in cfg.twins]
+    if unknown:
+        raise ConfigError(f"no twin {', '.join(repr(t) for t in unknown)} in the configuration "
+                          f"(twins: {', '.join(cfg.twins)})")
+    if not twin_ids:
+        raise ConfigError("the configuration has no twins to backfill")
+    if end < start:
+        raise ConfigError(f"--to {end} is before --from {start}")
+    days = [start + dt.timedelta(days=i) for i in range((end - start).days + 1)]
+    jobs = []
+    for twin_id in dict.fromkeys(twin_ids):
+        path = cfg.twins[twin_id].artifact
+        Artifact.load(path)  # a broken artifact fails here, before any twin starts
+        digest = artifact_hash(path)
+        job = TwinJob(twin_id, str(path), digest, (), ())
+        done = store.done_days(job.progress_key)
+        jobs.append(TwinJob(twin_id, str(path), digest,
+                            tuple(d for d in days if d not in done),
+                            tuple(d for d in days if d in done)))
+    return jobs
+
+
+def chunk_size(total_days: int, workers: int) -> int:
+    """Days per chunk: about four chunks per worker so the last ones balance the load,
+    at most :data:`MAX_CHUNK_DAYS`."""
+    return max(1, min(MAX_CHUNK_DAYS, math.ceil(total_days / (4 * max(workers, 1)))))
+
+
+def chunks(jobs: list[TwinJob], size: int) -> list[Chunk]:
+    return [Chunk(job, job.todo[i:i + size])
+            for job in jobs for i in range(0, len(job.todo), size)]
 
 
 def grid_instants(cfg: ServiceConfig, day: dt.date) -> list[dt.datetime]:
@@ -77,104 +196,68 @@ def _publishable(ests: dict[str, TwinEstimate]) -> Iterator[tuple[str, TwinEstim
     return ((kind, e) for kind, e in ests.items() if e.publishable)
 
 
-class Progress:
-    """A progress bar on a terminal, plain lines otherwise (logs, CI, systemd)."""
-
-    def __init__(self, total: int, stream: TextIO = sys.stderr) -> None:
-        self.total = max(total, 1)
-        self.stream = stream
-        self.tty = hasattr(stream, "isatty") and stream.isatty()
-        self.t0 = time.monotonic()
-        self.last_line = 0.0
-
-    def update(self, done: int, day: dt.date, estimates: int) -> None:
-        frac = done / self.total
-        rate = done / max(time.monotonic() - self.t0, 1e-9)
-        if self.tty:
-            bar = "#" * int(30 * frac)
-            self.stream.write(f"\r[{bar:<30}] {done}/{self.total} days  {day}  "
-                              f"{estimates} estimates  {rate:.1f} days/s ")
-            self.stream.flush()
-        elif time.monotonic() - self.last_line >= 5 or done == self.total:
-            self.last_line = time.monotonic()
-            self.stream.write(f"backfill: {done}/{self.total} days ({frac:.0%}), at {day}, "
-                              f"{estimates} estimates, {rate:.2f} days/s\n")
-            self.stream.flush()
-
-    def close(self) -> None:
-        if self.tty:
-            self.stream.write("\n")
+def day_rows(cfg: ServiceConfig, job: TwinJob, twin: Twin, day: dt.date,
+             frame: pd.DataFrame) -> list[EstimateRow]:
+    """The rows of one day: one per (model, instant); a grid instant that coincides with a
+    reading gives the same estimate twice, and the store would only overwrite it."""
+    rows: dict[tuple[str, dt.datetime], EstimateRow] = {}
+    for kind, e in day_estimates(twin, frame, grid_instants(cfg, day)):
+        rows[(kind, e.ts)] = EstimateRow.from_estimate(job.twin_id, kind, e, job.digest)
+    return list(rows.values())
 
 
-def backfill(
-    cfg: ServiceConfig,
-    twin_id: str,
-    start: dt.date,
-    end: dt.date,
-    store: Store,
-    progress: bool = True,
-    batch_rows: int = 20_000,
-) -> BackfillSummary:
-    """Backfill ``twin_id`` for local days start … end (inclusive)."""
-    if twin_id not in cfg.twins:
-        raise ConfigError(f"no twin {twin_id!r} in the configuration "
-                          f"(twins: {', '.join(cfg.twins)})")
-    if end < start:
-        raise ConfigError(f"--to {end} is before --from {start}")
-    tc: TwinConfig = cfg.twins[twin_id]
-    art = Artifact.load(tc.artifact)
-    digest = artifact_hash(tc.artifact)
-    hours = art.hours
-    refs = list(art.references)
-    summary = BackfillSummary()
+def run_chunk(cfg: ServiceConfig, chunk: Chunk, store: Store, artifact: Artifact,
+              stop: StopFlag | None = None) -> ChunkResult:
+    """Backfill the days of ``chunk``: write each day's rows, then mark the day done.
+
+    Checks ``stop`` between days (a day is finished or not started, never half marked).
+    A failing day ends the chunk; the failure names the day.
+    """
     t0 = time.perf_counter()
-    # Progress belongs to an artifact version: after a retrain every day is due again.
-    progress_key = f"{twin_id}@{digest[:16]}"
-    done = store.done_days(progress_key)
-    days = [start + dt.timedelta(days=i) for i in range((end - start).days + 1)]
-    todo = [d for d in days if d not in done]
-    for d in days:
-        if d in done:
-            summary.skip(d, "already backfilled")
-    bar = Progress(len(todo)) if progress else None
+    job = chunk.job
+    res = ChunkResult(chunk)
+    refs = list(artifact.references)
+    hours = artifact.hours
     twin: Twin | None = None
     prev: dt.date | None = None
-    for i, (day, frame) in enumerate(_iter_todo(store, refs, todo, hours.timezone)):
-        if twin is None or prev != day - dt.timedelta(days=1):
-            # A fresh twin (first day, or after a gap of finished days): seed the carry-over
-            # with the last stored readings before the day, as the daemon would hold them.
-            twin = Twin(art, stale_after=cfg.stale_after)
-            init = hours.at(day, hours.init_start)
-            for s, (ts, v) in store.last_readings_before(refs, init).items():
-                twin.observe(s, ts, v)
-        prev = day
-        if frame.empty:
-            summary.skip(day, "no reference readings")
-            store.mark_day_done(progress_key, day, 0)
-            continue
-        # One row per (model, instant): a grid instant that coincides with a reading gives
-        # the same estimate twice, and the store would only overwrite it.
-        rows: dict[tuple[str, dt.datetime], EstimateRow] = {}
-        for kind, e in day_estimates(twin, frame, grid_instants(cfg, day)):
-            rows[(kind, e.ts)] = EstimateRow.from_estimate(twin_id, kind, e, digest)
-        batch = list(rows.values())
-        n = 0
-        for k in range(0, len(batch), batch_rows):
-            n += store.write_estimates(batch[k:k + batch_rows])
-        store.mark_day_done(progress_key, day, n)
-        summary.days += 1
-        summary.estimates += n
-        if bar:
-            bar.update(i + 1, day, summary.estimates)
-    if bar:
-        bar.close()
-    summary.seconds = time.perf_counter() - t0
-    return summary
+    day = chunk.days[0]
+    with twin_context(job.twin_id):  # its log lines (a model's fallback, say) name it
+        try:
+            for day, frame in _iter_todo(store, refs, list(chunk.days), hours.timezone):
+                if stop is not None and stop.is_set():
+                    res.stopped = True
+                    break
+                if twin is None or prev != day - dt.timedelta(days=1):
+                    # A fresh twin (first day, or after a gap of finished days): seed the
+                    # carry-over with the last stored readings before the day, as the
+                    # daemon (and a serial backfill's twin) would hold them.
+                    twin = Twin(artifact, stale_after=cfg.stale_after, thinning=cfg.thinning)
+                    init = hours.at(day, hours.init_start)
+                    for s, (ts, v) in store.last_readings_before(refs, init).items():
+                        twin.observe(s, ts, v)
+                prev = day
+                if frame.empty:
+                    res.empty.append(day)
+                    store.mark_day_done(job.progress_key, day, 0)
+                    continue
+                n = store.write_estimates(day_rows(cfg, job, twin, day, frame))
+                store.mark_day_done(job.progress_key, day, n)
+                res.days += 1
+                res.estimates += n
+        except KeyboardInterrupt:
+            # In this process (--jobs 1): the day in progress is not marked done (its rows,
+            # if written, are rewritten by the rerun); the caller reports the interruption.
+            res.stopped = True
+        except Exception as exc:  # noqa: BLE001 - reported with its twin and day
+            res.failed = (day, f"{type(exc).__name__}: {exc}")
+            res.detail = traceback.format_exc()
+    res.seconds = time.perf_counter() - t0
+    return res
 
 
 def _iter_todo(store: Store, sensors: list[str], days: list[dt.date],
                tz: str) -> Iterator[tuple[dt.date, pd.DataFrame]]:
-    """Stream the days still to do, one store query per contiguous run of days."""
+    """Stream the days still to do, one store query per day."""
     if not days:
         return
     run = [days[0]]
@@ -185,3 +268,20 @@ def _iter_todo(store: Store, sensors: list[str], days: list[dt.date],
         yield from store.iter_days(sensors, run[0], run[-1], tz)
         if d is not None:
             run = [d]
+
+
+def backfill(
+    cfg: ServiceConfig,
+    twin_id: str,
+    start: dt.date,
+    end: dt.date,
+    store: Store,
+    progress: bool = True,
+) -> BackfillSummary:
+    """Backfill ``twin_id`` for local days start … end (inclusive), in this process."""
+    from pseudotwin.history.backfill_pool import backfill_twins
+
+    run = backfill_twins(cfg, [twin_id], start, end, store, jobs=1, progress=progress)
+    if run.failures:
+        raise BackfillError("; ".join(r.failure_line() for r in run.failures))
+    return run.twins[twin_id]

@@ -339,35 +339,32 @@ def _room_climate_samples(source: Path, location: str) -> pd.DataFrame:
     )
 
 
-def read_room_climate_raw(source: Path, location: str) -> pd.DataFrame:
-    """Every sample of every node (the sensors' own ~4 s rate)."""
-    raw = _room_climate_samples(source, location)
-    temp = raw.dropna(subset=["nid", "temp"]).groupby(["nid", "abst"])["temp"].mean()
+def _room_climate_frame(raw: pd.DataFrame, key: str, source: Path, location: str) -> pd.DataFrame:
+    """Per node the mean Temp, and the maximum occupancy, of each value of column ``key``
+    (epoch ms: the sample's own time, or its minute)."""
+    temp = raw.dropna(subset=["nid", "temp"]).groupby(["nid", key])["temp"].mean()
     parts = []
     for nid, series in temp.groupby(level="nid"):
-        ts = pd.Series(pd.to_datetime(series.index.get_level_values("abst"), unit="ms", utc=True))
+        ts = pd.Series(pd.to_datetime(series.index.get_level_values(key), unit="ms", utc=True))
         parts.append(_long(f"{location}{int(nid)}/temp", ts, series.reset_index(drop=True)))
-    occ = raw.dropna(subset=["occ"]).groupby("abst")["occ"].max()
+    occ = raw.dropna(subset=["occ"]).groupby(key)["occ"].max()
     if len(occ):
         ts = pd.Series(pd.to_datetime(occ.index, unit="ms", utc=True))
         parts.append(_long(f"{location}/occupancy", ts, occ.reset_index(drop=True)))
     return _finish(parts, source)
+
+
+def read_room_climate_raw(source: Path, location: str) -> pd.DataFrame:
+    """Every sample of every node (the sensors' own ~4 s rate; one instant's samples of a
+    node averaged)."""
+    return _room_climate_frame(_room_climate_samples(source, location), "abst", source,
+                               location)
 
 
 def read_room_climate(source: Path, location: str) -> pd.DataFrame:
     raw = _room_climate_samples(source, location)
-    minute = (raw["abst"].to_numpy(dtype=np.int64) // 60_000) * 60_000
-    raw["minute"] = minute
-    temp = raw.dropna(subset=["nid", "temp"]).groupby(["nid", "minute"])["temp"].mean()
-    parts = []
-    for nid, series in temp.groupby(level="nid"):
-        ts = pd.Series(pd.to_datetime(series.index.get_level_values("minute"), unit="ms", utc=True))
-        parts.append(_long(f"{location}{int(nid)}/temp", ts, series.reset_index(drop=True)))
-    occ = raw.dropna(subset=["occ"]).groupby("minute")["occ"].max()
-    if len(occ):
-        ts = pd.Series(pd.to_datetime(occ.index, unit="ms", utc=True))
-        parts.append(_long(f"{location}/occupancy", ts, occ.reset_index(drop=True)))
-    return _finish(parts, source)
+    raw["minute"] = (raw["abst"].to_numpy(dtype=np.int64) // 60_000) * 60_000
+    return _room_climate_frame(raw, "minute", source, location)
 
 
 # ---------------------------------------------------------------------------- registry

@@ -16,6 +16,7 @@ target (DESIGN.md §3).
 from __future__ import annotations
 
 import datetime as dt
+import math
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -200,7 +201,7 @@ class LcmDay(DayEstimator):
         if self.post.n == 0:
             return Estimate(float("nan"), float("nan"))
         mu, var = self.post.predict(hours, len(m.references_))
-        return Estimate(m.c_ + m.s_ * mu, m.s_ * float(np.sqrt(var)))
+        return Estimate(m.c_ + m.s_ * mu, m.s_ * math.sqrt(var))
 
 
 class CorrGpTriv(_GpModel):
@@ -370,4 +371,4 @@ class TrivGpDay(DayEstimator):
             return Estimate(float("nan"), float("nan"))
         mu, var = self.post.predict(hours, 1)
         value = m.triv_.offset(0, hours) + ref + m.c_ + m.s_ * mu
-        return Estimate(float(value), m.s_ * float(np.sqrt(var)))
+        return Estimate(float(value), m.s_ * math.sqrt(var))
