@@ -8,6 +8,10 @@ live day's raw samples (~5 s per node, converted with ``--raw``) of references A
 interpolated onto a 2-s grid from the init start to day end (held flat before the first and
 after the last sample), then fed reading by reading through ``Twin.observe``, timed per call.
 
+Then the same twin replays every day after training through ``replay_estimates`` (what
+``evaluate`` scores), once from the 1-minute means and once from the raw samples: CPU time and
+mean daily NRMSE per model of both (the thinning's faithfulness, training held fixed).
+
 Prints a table, and as its last line one JSON object with the figures.
 Usage: .venv/bin/python scripts/bench_chatty.py [--day 2016-03-22] [--every 2]
 """
@@ -25,6 +29,8 @@ import numpy as np
 import pandas as pd
 
 import pseudotwin  # noqa: F401  (one BLAS thread, before numpy is used)
+from pseudotwin.analysis.evaluate import daily_scores
+from pseudotwin.analysis.replay import replay_estimates
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
@@ -101,6 +107,16 @@ def main() -> int:
         est_ms.append((time.perf_counter_ns() - c0) / 1e6)
     nums = twin.numerics()
 
+    start = dt.date.fromisoformat(art.training["end"]) + dt.timedelta(days=1)
+    replays = {}
+    for name, frame in (("minute", minute), ("raw", raw)):
+        c0 = time.process_time()
+        est = replay_estimates(art, frame, start)
+        cpu = time.process_time() - c0
+        means = daily_scores(est, HOURS).groupby("model")["nrmse_pct"].mean()
+        replays[name] = {"cpu_s": round(cpu, 2),
+                         "nrmse_pct": {k: round(float(v), 4) for k, v in means.items()}}
+
     fig = {
         "day": a.day.isoformat(),
         "every_s": a.every,
@@ -117,6 +133,11 @@ def main() -> int:
         "traced_peak_mb": round(peak_bytes / 1e6, 2),
         "train_seconds": round(train_s, 1),
         "models": list(art.models),
+        "replay_minute_cpu_s": replays["minute"]["cpu_s"],
+        "replay_raw_cpu_s": replays["raw"]["cpu_s"],
+        "replay_nrmse_pct": {k: {"minute": replays["minute"]["nrmse_pct"].get(k),
+                                 "raw": replays["raw"]["nrmse_pct"].get(k)}
+                             for k in replays["minute"]["nrmse_pct"]},
     }
     print(f"chatty sensor: {len(readings)} readings ({len(REFS)} references every "
           f"{a.every:g} s, {HOURS.describe()}) on {a.day}, models {', '.join(art.models)}")
@@ -125,6 +146,11 @@ def main() -> int:
                 "observe_max_ms", "last_hour_p50_ms", "last_hour_p99_ms",
                 "estimate_all_models_p50_ms", "feed_seconds", "traced_peak_mb"):
         print(f"{key:<34} {fig[key]:>12}")
+    print(f"\nreplay of the days after training (the twin above), CPU: 1-minute means "
+          f"{fig['replay_minute_cpu_s']} s, raw samples {fig['replay_raw_cpu_s']} s")
+    print(f"{'model':<16} {'NRMSE % 1-min':>14} {'NRMSE % raw':>12}")
+    for k, v in fig["replay_nrmse_pct"].items():
+        print(f"{k:<16} {v['minute']:>14} {v['raw']:>12}")
     print(json.dumps(fig))
     return 0
 

@@ -99,7 +99,8 @@ def test_live_estimates_equal_evaluate(service_factory, mosquitto, desk_artifact
         e = live[key]
         assert e["value"] == round(row["value"], 6), key
         assert e["std"] == round(row["std"], 6), key
-        assert e["quality"] == row["quality"] == "ok"
+        # DAY is partly unlike the training days (live/envelope.py): both say so alike
+        assert e["quality"] == row["quality"] and e["quality"] in ("ok", "uncertain"), key
         checked += 1
     assert checked == len(topics) * n_pub
     # the monitor scored the live desk sensor, and nothing went to the init phase
@@ -164,7 +165,8 @@ def test_silent_reference_turns_stale_and_recovers(service_factory, mosquitto) -
                           publish_every_minutes=15)
     viewer = Viewer(mosquitto.port, "pt/desk/estimate")
     pub = publisher(mosquitto.port, "stale-bridge")
-    pub.publish("house/dining/temp", reading(svc.clock.now(), 20.0), qos=1).wait_for_publish(10)
+    # 17 °C: like the training mornings (else `uncertain`)
+    pub.publish("house/dining/temp", reading(svc.clock.now(), 17.0), qos=1).wait_for_publish(10)
     wait_for(lambda: any(e["quality"] == "stale" for e in viewer.on("/estimate")),
              timeout=30, what="a stale estimate")
     stale = [e for e in viewer.on("/estimate") if e["quality"] == "stale"][0]
@@ -173,7 +175,7 @@ def test_silent_reference_turns_stale_and_recovers(service_factory, mosquitto) -
     gap = (dt.datetime.fromisoformat(stale["ts"]) - dt.datetime.fromisoformat(first["ts"]))
     assert gap > dt.timedelta(minutes=30)
     back = svc.clock.now()
-    pub.publish("house/dining/temp", reading(back, 20.4), qos=1).wait_for_publish(10)
+    pub.publish("house/dining/temp", reading(back, 17.4), qos=1).wait_for_publish(10)
     wait_for(lambda: any(e["quality"] == "ok" and dt.datetime.fromisoformat(e["ts"]) >= back
                          for e in viewer.on("/estimate")), what="ok again")
     pub.loop_stop()
@@ -199,7 +201,8 @@ def test_numerical_failure_publishes_triv_fallback_then_recovers(
     for i, h in enumerate((8.0, 8.25, 8.5)):
         if i == 1:
             fail.set()
-        pub.publish("house/dining/temp", reading(HOURS.at(DAY, h), 20 + i / 10), qos=1)
+        # 17 °C: like the training mornings (else `uncertain`)
+        pub.publish("house/dining/temp", reading(HOURS.at(DAY, h), 17 + i / 10), qos=1)
         wait_for(lambda n=i: len(viewer.on("/estimate")) > n, what=f"estimate {i}")
     e = viewer.on("/estimate")
     assert (e[0]["quality"], e[0]["model"]) == ("ok", "corrgp-triv")

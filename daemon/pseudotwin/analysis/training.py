@@ -20,6 +20,7 @@ from pseudotwin.errors import DataError
 from pseudotwin.history.store import Store
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.calibration import SigmaCalibration
+from pseudotwin.live.envelope import Envelope
 from pseudotwin.models.base import TrainingSet, TwinModel
 from pseudotwin.models.registry import ALL_MODELS, build, model_class
 
@@ -163,6 +164,7 @@ def train_validated(
         checked = {**checked, "withheld": withheld}
     return Artifact(
         spec, fitted, primary, calibration=calibration, validation=checked,
+        envelope=Envelope.fit(ts),
         training={
             "start": str(days[0].day),
             "end": str(days[-1].day),

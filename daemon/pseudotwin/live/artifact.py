@@ -19,12 +19,14 @@ from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import OfTwin, Quantity, TwinSpec
 from pseudotwin.errors import ArtifactError, ConfigError
 from pseudotwin.live.calibration import SigmaCalibration
+from pseudotwin.live.envelope import Envelope
 from pseudotwin.models.base import TwinModel
 from pseudotwin.models.registry import MODELS
 
 FORMAT = "pseudotwin-artifact"
 # 2: σ calibration, validation, the ref model, VARMA re-levelling; version 1 still loads.
-VERSION = 2
+# 3: the training envelope (live/envelope.py); older versions load without one.
+VERSION = 3
 
 
 @dataclass(frozen=True)
@@ -36,6 +38,8 @@ class Artifact(OfTwin):
     calibration: kind → the σ of its estimates, from the training days (older artifacts
     have none: their models' own spread is published).
     validation: the candidates' leave-one-day-out scores and why the primary won.
+    envelope: the references' training ranges behind quality ``uncertain`` (older artifacts
+    have none: their estimates are never uncertain).
     """
 
     spec: TwinSpec
@@ -45,6 +49,7 @@ class Artifact(OfTwin):
     created: str = ""
     calibration: dict[str, SigmaCalibration] = field(default_factory=dict)
     validation: dict[str, Any] = field(default_factory=dict)
+    envelope: Envelope | None = None
 
     def __post_init__(self) -> None:
         if self.primary not in self.models:
@@ -73,6 +78,7 @@ class Artifact(OfTwin):
             "models": {kind: m.to_dict() for kind, m in self.models.items()},
             "calibration": {kind: c.to_dict() for kind, c in self.calibration.items()},
             "validation": self.validation,
+            **({"envelope": self.envelope.to_dict()} if self.envelope else {}),
         }
 
     def save(self, path: str | Path) -> Path:
@@ -112,8 +118,10 @@ class Artifact(OfTwin):
                 str(kind): SigmaCalibration.from_dict(c)
                 for kind, c in d.get("calibration", {}).items() if kind in models
             }
+            envelope = (Envelope.from_dict(d["envelope"], spec.hours)
+                        if d.get("envelope") is not None else None)
             return cls(spec, models, str(twin["primary"]), d.get("training", {}),
-                       d.get("created", ""), calibration, d.get("validation", {}))
+                       d.get("created", ""), calibration, d.get("validation", {}), envelope)
         except ArtifactError:
             raise
         except ConfigError as exc:

@@ -61,6 +61,9 @@ class TwinMonitor:
             "rejected": {f"{s}:{why}": n for (s, why), n in (rejected or {}).items()
                          if s in self.sensors},
             "refs_pearson_r": ref_correlations(tw),
+            # The self-aware indication (DESIGN.md §6): why the estimate is `uncertain` now.
+            "uncertain": ({"since": tw.uncertain_since, "why": list(tw.uncertain_why)}
+                          if tw.uncertain_since is not None else None),
         }
         out.update(tw.numerics())
         if self.pairs:

@@ -29,6 +29,7 @@ from pseudotwin.core.thinning import Action, Thinning, WindowThinner
 from pseudotwin.errors import NumericalError
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.calibration import SLOPE_WINDOW_H
+from pseudotwin.live.envelope import WIDEN
 from pseudotwin.models.base import DayEstimator, TwinModel
 
 log = logging.getLogger(__name__)
@@ -40,7 +41,12 @@ class Quality(StrEnum):
     ok: the model answered from fresh references; init: the init phase before day start
     (never published); stale: a reference it needs has been silent longer than
     ``stale_after``; fallback: the model failed numerically and a simpler one answered;
-    uncertain: the twin sees a situation unlike its training and widened σ.
+    uncertain: a reference it needs is outside its training range (level, deviation from its
+    daily profile, or speed; live/envelope.py), so σ is widened by ``envelope.WIDEN`` and
+    :attr:`TwinEstimate.why` says why.
+
+    One estimate has one quality; precedence init > stale > fallback > uncertain > ok: the
+    init phase is never published, a silent reference or a failed model is the bigger news.
     """
 
     OK = "ok"
@@ -54,7 +60,8 @@ class TwinEstimate:
     """One model's estimate of the target at ``ts``.
 
     value, std: [°C] or [ppm]; model: what produced the value (``triv`` on fallback,
-    ``var-fallback`` when VARMAX did not converge); refs: sensor → time of its last reading.
+    ``var-fallback`` when VARMAX did not converge); refs: sensor → time of its last reading;
+    why: what is unlike training when the quality is ``uncertain``.
     """
 
     ts: dt.datetime
@@ -63,6 +70,7 @@ class TwinEstimate:
     model: str
     quality: Quality
     refs: dict[str, dt.datetime | None] = field(default_factory=dict)
+    why: tuple[str, ...] = ()
 
     @property
     def finite(self) -> bool:
@@ -124,6 +132,9 @@ class Twin:
         # Today's window per reference in time order: sensor → ([hours], [values]).
         self._series: dict[str, tuple[list[float], list[float]]] = {}
         self.fallbacks = 0
+        # The primary's current uncertain spell: since when, and why (for <twin>/monitor).
+        self.uncertain_since: dt.datetime | None = None
+        self.uncertain_why: tuple[str, ...] = ()
 
     # -- the window -------------------------------------------------------------------
     def _needs(self, kind: str) -> tuple[str, ...]:
@@ -137,6 +148,7 @@ class Twin:
         self._broken = set()
         self._series = {s: ([], []) for s in self.references}
         self._est = {k: self.artifact.models[k].start_day(day) for k in self.kinds}
+        self.uncertain_since, self.uncertain_why = None, ()
         init_ts = self.hours.at(day, self.hours.init_start)
         for s in self.references:
             last = self.last.get(s)
@@ -269,17 +281,21 @@ class Twin:
             i0 = max(bisect.bisect_right(hs, hours - SLOPE_WINDOW_H) - 1, 0)
             span = max(hs[i1] - hs[i0], SLOPE_WINDOW_H)
             found.append(abs(vs[i1] - vs[i0]) / span)
-        return float(np.mean(found)) if found else 0.0
+        return sum(found) / len(found) if found else 0.0  # plain floats: per estimate
 
-    def _calibrated(self, kind: str, hours: float, std: float) -> float:
+    def _calibrated(self, kind: str, hours: float, std: float,
+                    slopes: dict[tuple[str, ...], float]) -> float:
         """The σ of ``kind``'s estimate: its training-day calibration where the artifact has
-        one (older artifacts: the model's own spread)."""
+        one (older artifacts: the model's own spread). slopes: the references' slopes at
+        ``hours`` found so far in this estimate (models share references)."""
         calib = self.artifact.calibration.get(kind)
         if calib is None:
             return std
         model = self.artifact.models.get(kind) or self._fallback_model()
-        refs = model.references_ if model is not None else self.references
-        return calib.sigma(hours, self.slope(refs, hours))
+        refs = model.references_ if model is not None else tuple(self.references)
+        if refs not in slopes:
+            slopes[refs] = self.slope(refs, hours)
+        return calib.sigma(hours, slopes[refs])
 
     def estimate(self, ts: dt.datetime) -> dict[str, TwinEstimate]:
         """Every model's estimate at ``ts`` from the window's readings up to now.
@@ -291,6 +307,8 @@ class Twin:
         h = self.hours.hours_of(ts)
         out: dict[str, TwinEstimate] = {}
         triv = None
+        slopes: dict[tuple[str, ...], float] = {}
+        unlike: dict[str, list[str]] = {}  # reference → why it is unlike training, at h
         for kind in self.kinds:
             refs = {s: (self.last[s][0] if s in self.last else None) for s in self._needs(kind)}
             name = self.artifact.models[kind].model_name
@@ -299,21 +317,45 @@ class Twin:
                 if kind in self._broken:
                     raise NumericalError("model state lost")
                 e = self._est[kind].predict(h)
-                value, std = e.value, self._calibrated(kind, h, e.std)
+                value, std = e.value, self._calibrated(kind, h, e.std, slopes)
             except NumericalError as exc:
                 if kind not in self._broken:
                     self._break(kind, exc)
                 triv = triv or self._triv_fallback(h)
                 value, name, quality = triv[0], "triv", Quality.FALLBACK
-                std = self._calibrated("triv", h, triv[1])
+                std = self._calibrated("triv", h, triv[1], slopes)
             # init (never published) before stale before fallback: a model that failed
             # in the init phase must not publish early, nor hide a silent reference.
+            why: tuple[str, ...] = ()
             if h < self.hours.day_start:
                 quality = Quality.INIT
             elif self._stale(kind, ts):
                 quality = Quality.STALE
-            out[kind] = TwinEstimate(ts, float(value), float(std), name, quality, refs)
+            elif quality is Quality.OK:
+                why = self._unlike_training(self._needs(kind), h, unlike)
+                if why:
+                    quality, std = Quality.UNCERTAIN, std * WIDEN
+            if kind == self.artifact.primary:
+                self.uncertain_why = why
+                self.uncertain_since = (self.uncertain_since or ts) if why else None
+            out[kind] = TwinEstimate(ts, float(value), float(std), name, quality, refs, why)
         return out
+
+    def _unlike_training(self, sensors: Sequence[str], h: float,
+                         cache: dict[str, list[str]]) -> tuple[str, ...]:
+        """Why the latest values of ``sensors`` at ``h`` are unlike the training days (empty:
+        like them, or the artifact records no training ranges)."""
+        env = self.artifact.envelope
+        if env is None:
+            return ()
+        for s in sensors:
+            if s in cache or s not in env.refs:
+                continue
+            hs, vs = self._series.get(s, ([], []))
+            i = bisect.bisect_right(hs, h) - 1
+            cache[s] = [] if i < 0 else env.refs[s].why(s, self.hours, h, vs[i],
+                                                        self.slope([s], h))
+        return tuple(w for s in sensors for w in cache.get(s, []))
 
     def _fallback_model(self) -> TwinModel | None:
         """TRIV of the artifact, or else the first simpler model a model offers."""

@@ -21,6 +21,7 @@ from pseudotwin.analysis.report.tables import (
     fmt,
     md_table,
     monthly_md,
+    selfaware_md,
     summary_md,
     validation_md,
 )
@@ -278,6 +279,7 @@ def _section(res: RunResult) -> list[str]:
     lines += ["### Validation on the training days", "", validation_md(res), "",
               "### Summary", "", summary_md(res), "",
               "### Calibration (all scored readings)", "", calibration_md(res), "",
+              "### Self-aware indication", "", selfaware_md(res), "",
               "### Verdict", "", verdict_md(res), ""]
     if spec.long_term:
         lines += ["### Seasons: zero-mean LCM vs TRIV-mean Corr-GP", "", seasonal_md(res), ""]

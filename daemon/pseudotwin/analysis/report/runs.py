@@ -23,6 +23,7 @@ from pseudotwin.analysis.evaluate import (
     evaluate,
     write_outputs,
 )
+from pseudotwin.analysis.selfaware import training_share
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.history.convert import load
@@ -126,6 +127,7 @@ class RunResult:
     estimates: pd.DataFrame  # ts, model, value, std, truth, quality (all models)
     seconds: float
     notes: list[str] = field(default_factory=list)
+    train_uncertain: float = float("nan")  # share of `uncertain` replaying the training days
 
     @property
     def primary_ref(self) -> str:
@@ -195,7 +197,9 @@ def run_one(spec: RunSpec, history: pd.DataFrame, out_root: Path,
     for (model, q), n in quality.items():
         if q != "ok" and not str(model).startswith(REF_PREFIX):
             notes.append(f"{n} estimate(s) of {model} had quality `{q}`")
-    return RunResult(spec, ev, daily, monthly, estimates, time.perf_counter() - t0, notes)
+    train_uncertain = training_share(ev.artifact, history)
+    return RunResult(spec, ev, daily, monthly, estimates, time.perf_counter() - t0, notes,
+                     train_uncertain)
 
 
 def run_all(specs: Sequence[RunSpec], out_root: Path,

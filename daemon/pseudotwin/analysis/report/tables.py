@@ -11,6 +11,7 @@ import pandas as pd
 
 from pseudotwin.analysis.evaluate import ESTIMATE, REF_PREFIX
 from pseudotwin.analysis.report.runs import BASE, GP, MODEL_ORDER, RunResult
+from pseudotwin.analysis.selfaware import selfaware
 from pseudotwin.live import metrics
 
 
@@ -87,6 +88,20 @@ def calibration_md(res: RunResult) -> str:
                      fmt(s.rmse, 3), fmt(ratio), fmt(s.crps, 3), str(s.n)])
     return md_table(["model", "±1σ coverage %", "±2σ coverage %", f"mean σ [{unit}]",
                    f"RMSE [{unit}]", "mean σ / RMSE", f"mean CRPS [{unit}]", "n"], rows)
+
+
+def selfaware_md(res: RunResult) -> str:
+    """The published estimate's ``ok`` vs ``uncertain`` readings (live/envelope.py): how often
+    it fires on the test and the training days, MAE and ±2σ coverage of each."""
+    sa = selfaware(res.ev.estimates, res.train_uncertain)
+    unit = res.ev.artifact.unit
+    return md_table(
+        ["uncertain % (test)", "uncertain % (training days)", f"MAE ok [{unit}]",
+         f"MAE uncertain [{unit}]", "MAE ratio", "±2σ coverage ok %",
+         "±2σ coverage uncertain %", "n ok", "n uncertain"],
+        [[fmt(100 * sa.share, 1), fmt(100 * sa.train_share, 1), fmt(sa.mae_ok, 3),
+          fmt(sa.mae_uncertain, 3), fmt(sa.mae_ratio), fmt(sa.cover2_ok, 1),
+          fmt(sa.cover2_uncertain, 1), str(sa.n_ok), str(sa.n_uncertain)]], left=0)
 
 
 def monthly_md(res: RunResult) -> str:

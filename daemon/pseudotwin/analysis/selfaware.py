@@ -1,0 +1,74 @@
+"""Scores of the self-aware indication (quality ``uncertain``, live/envelope.py): does the twin
+know when today is unlike training? Its ``uncertain`` estimates should err more than its
+``ok`` ones, it should hardly fire on the training days themselves, and ±2σ should cover
+the truth for both (the widened σ of ``uncertain`` included)."""
+
+from __future__ import annotations
+
+import datetime as dt
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from pseudotwin.analysis.replay import ESTIMATE, replay_estimates
+from pseudotwin.live.artifact import Artifact
+from pseudotwin.live.twin import Quality
+
+
+@dataclass(frozen=True)
+class SelfAware:
+    """Over a run's published (``estimate``) rows: n of ``ok`` and ``uncertain``, the share
+    of ``uncertain`` among both, MAE [unit] and ±2σ coverage [%] of each; train_share: share of
+    ``uncertain`` when the training days are replayed (NaN: not measured)."""
+
+    n_ok: int
+    n_uncertain: int
+    mae_ok: float
+    mae_uncertain: float
+    cover2_ok: float
+    cover2_uncertain: float
+    train_share: float = float("nan")
+
+    @property
+    def share(self) -> float:
+        n = self.n_ok + self.n_uncertain
+        return self.n_uncertain / n if n else float("nan")
+
+    @property
+    def mae_ratio(self) -> float:
+        """MAE of uncertain / MAE of ok (the issue's figure: ≥ 2 where it fires)."""
+        return self.mae_uncertain / self.mae_ok if self.mae_ok > 0 else float("nan")
+
+
+def _mae_cover(rows: pd.DataFrame) -> tuple[float, float]:
+    if rows.empty:
+        return float("nan"), float("nan")
+    err = (rows["value"] - rows["truth"]).abs().to_numpy()
+    return float(np.mean(err)), float(100 * np.mean(err <= 2 * rows["std"].to_numpy()))
+
+
+def selfaware(estimates: pd.DataFrame, train_share: float = float("nan")) -> SelfAware:
+    """From replay rows (replay.COLUMNS), their ``estimate`` model only."""
+    e = estimates[estimates["model"] == ESTIMATE]
+    ok = e[e["quality"] == Quality.OK.value]
+    unc = e[e["quality"] == Quality.UNCERTAIN.value]
+    (mae_ok, cover_ok), (mae_unc, cover_unc) = _mae_cover(ok), _mae_cover(unc)
+    return SelfAware(len(ok), len(unc), mae_ok, mae_unc, cover_ok, cover_unc, train_share)
+
+
+def training_share(artifact: Artifact, history: pd.DataFrame) -> float:
+    """Share of ``uncertain`` among the published estimates when the artifact's own training
+    days are replayed through a Twin (the primary only, to keep it cheap)."""
+    days = [dt.date.fromisoformat(d) for d in artifact.training.get("days", [])]
+    if not days:
+        return float("nan")
+    est = replay_estimates(artifact, history, days[0], models=[artifact.primary], end=days[-1])
+    if est.empty:
+        return float("nan")
+    local_day, _ = artifact.hours.day_and_hours(est["ts"])
+    trained = np.isin(local_day.astype("datetime64[D]"), np.array(days, dtype="datetime64[D]"))
+    e = est[(est["model"] == ESTIMATE).to_numpy() & trained]
+    if e.empty:
+        return float("nan")
+    return float(np.mean(e["quality"] == Quality.UNCERTAIN.value))

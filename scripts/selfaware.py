@@ -1,0 +1,69 @@
+"""Measure the self-aware indication (quality ``uncertain``) on the report's shared runs
+without regenerating docs/results.md: per run, how often it fires on the test days and on the
+training days, MAE and ±2σ coverage of ``ok`` vs ``uncertain`` published estimates.
+
+Prints a Markdown table and, last, one JSON line.
+
+    .venv/bin/python scripts/selfaware.py [--runs NAME,...] [--models ref,triv,corrgp-triv]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+
+from pseudotwin.analysis.evaluate import evaluate
+from pseudotwin.analysis.report.runs import RUN_NAMES, RUNS
+from pseudotwin.analysis.selfaware import selfaware, training_share
+from pseudotwin.history.convert import load
+
+
+def _f(x: float, nd: int = 2) -> str:
+    return "—" if not math.isfinite(x) else f"{x:.{nd}f}"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--runs", default=",".join(RUN_NAMES),
+                    help="comma-separated runs of the report (default: all, "
+                         f"{', '.join(RUN_NAMES)})")
+    ap.add_argument("--models", default="ref,triv,corrgp-triv",
+                    help="models trained (validation picks the primary among them; default "
+                         "%(default)s, the cheap ones)")
+    a = ap.parse_args()
+    wanted = [r.strip() for r in a.runs.split(",") if r.strip()]
+    unknown = sorted(set(wanted) - set(RUN_NAMES))
+    if unknown:
+        ap.error(f"unknown run(s) {', '.join(unknown)}; known: {', '.join(RUN_NAMES)}")
+    models = tuple(m.strip() for m in a.models.split(",") if m.strip())
+    rows = []
+    for spec in (r for r in RUNS if r.name in wanted):
+        t0 = time.perf_counter()
+        history = load(spec.dataset)
+        ev = evaluate(history, spec.twin, spec.train_start, spec.train_days, models)
+        sa = selfaware(ev.estimates, training_share(ev.artifact, history))
+        rows.append({"run": spec.name, "primary": ev.artifact.primary,
+                     "test_pct": 100 * sa.share, "train_pct": 100 * sa.train_share,
+                     "mae_ok": sa.mae_ok, "mae_uncertain": sa.mae_uncertain,
+                     "mae_ratio": sa.mae_ratio, "cover2_ok": sa.cover2_ok,
+                     "cover2_uncertain": sa.cover2_uncertain, "n_ok": sa.n_ok,
+                     "n_uncertain": sa.n_uncertain,
+                     "seconds": round(time.perf_counter() - t0, 1)})
+        print(f"# {spec.name} done in {rows[-1]['seconds']} s", flush=True)
+    print("| run | primary | uncertain % test | uncertain % training | MAE ok | MAE uncertain "
+          "| ratio | ±2σ cov ok % | ±2σ cov uncertain % | n ok | n uncertain |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for r in rows:
+        print(f"| {r['run']} | {r['primary']} | {_f(r['test_pct'], 1)} | {_f(r['train_pct'], 1)} "
+              f"| {_f(r['mae_ok'], 3)} | {_f(r['mae_uncertain'], 3)} | {_f(r['mae_ratio'])} "
+              f"| {_f(r['cover2_ok'], 1)} | {_f(r['cover2_uncertain'], 1)} | {r['n_ok']} "
+              f"| {r['n_uncertain']} |")
+    print(json.dumps({"selfaware": [{k: (None if isinstance(v, float) and not math.isfinite(v)
+                                         else v) for k, v in r.items()} for r in rows]}))
+
+
+if __name__ == "__main__":
+    main()
