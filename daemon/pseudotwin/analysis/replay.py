@@ -67,7 +67,7 @@ def replay_estimates(
     tgt = np.flatnonzero(sensors == artifact.target)
     if len(tgt):  # one score per target bucket: at its last reading, against its mean
         width = thinning.interval(artifact.target) // dt.timedelta(microseconds=1)
-        bucket = stamps[tgt].asi8 // 1000 // width  # ns → µs → buckets
+        bucket = stamps[tgt].as_unit("us").asi8 // width  # µs → buckets
         first = np.r_[True, bucket[1:] != bucket[:-1]]
         last = np.r_[bucket[1:] != bucket[:-1], True]
         group = np.cumsum(first) - 1

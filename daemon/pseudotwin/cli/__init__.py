@@ -207,8 +207,8 @@ def _positive_seconds(text: str) -> float:
         seconds = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
-    if not 0 < seconds <= 3600:
-        raise argparse.ArgumentTypeError(f"{text} s is not in (0, 3600]")
+    if not 0.001 <= seconds <= 3600:  # as a sensor's min_interval_seconds
+        raise argparse.ArgumentTypeError(f"{text} s is not in 0.001..3600")
     return seconds
 
 

@@ -225,9 +225,10 @@ class SensorConfig:
             found.append(("ts_key", "must differ from value_key"))
         nonempty(found, "unit", self.unit)
         if expect(found, "min_interval_seconds", self.min_interval_seconds, "number"):
-            if not 0 < self.min_interval_seconds <= 3600:
+            if not 0.001 <= self.min_interval_seconds <= 3600:
                 found.append(("min_interval_seconds",
-                              f"must be in (0, 3600] seconds, got {self.min_interval_seconds}"))
+                              f"must be in 0.001..3600 seconds, got "
+                              f"{self.min_interval_seconds}"))
         lo_ok = expect(found, "min", self.min, "number")
         hi_ok = expect(found, "max", self.max, "number")
         if lo_ok and hi_ok:

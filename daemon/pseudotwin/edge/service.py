@@ -130,8 +130,10 @@ class Service:
         self._held: list[tuple[Reading, tuple[int, int, int]]] = []
         self._journal_retry_at = 0.0
         self._journal_recreated = 0
-        # Grid work of the current tick(s) not done yet: (instant, twin, health snapshot).
-        self._tick_work: deque[tuple[dt.datetime, TwinRuntime, dict[str, Any]]] = deque()
+        # Grid work of the current tick(s) not done yet: the twins in the order to do them,
+        # and per twin its pending (instant, health snapshot).
+        self._tick_work: deque[TwinRuntime] = deque()
+        self._tick_due: dict[str, list[tuple[dt.datetime, dict[str, Any]]]] = {}
         self._not_before_cache: tuple[dt.date | None, dt.datetime] = (None, dt.datetime.min)
         self._ready = False
         self.fatal: tuple[int, str] | None = None  # (exit status, why): the process must end
@@ -359,7 +361,7 @@ class Service:
             return
         try:
             self.journal.append_many([r for r, _, _ in good])
-        except OSError as exc:
+        except (OSError, ValueError) as exc:  # ValueError: a file closed under the worker
             # Not acknowledged: held and retried; the broker keeps them meanwhile and
             # redelivers them should the daemon stop first.
             for r, token, _ in good:
@@ -403,6 +405,8 @@ class Service:
 
     def _apply(self, r: Reading, publish: bool) -> None:
         for rt in self.by_sensor.get(r.sensor, ()):
+            if rt.cfg.id in self._tick_due:  # the tick came first: its estimates go first
+                self._guarded("tick", self._run_due, rt)
             with twin_context(rt.cfg.id):  # the twin's log lines name it
                 try:  # one twin's failure must not keep the reading from the others
                     if r.sensor in rt.twin.references:
@@ -440,13 +444,21 @@ class Service:
 
     def _start_tick(self, instant: dt.datetime) -> None:
         """Queue every twin's grid work for ``instant``; the worker does it TICK_CHUNK twins
-        at a time between batches of readings (one health snapshot for all of them)."""
+        at a time between batches of readings (one health snapshot for all of them), and a
+        twin's own before any later reading reaches it (see _apply): the estimate at the
+        instant sees exactly the readings that arrived before the tick."""
         health = self.health.snapshot()
-        self._tick_work.extend((instant, rt, health) for rt in self.twins.values())
+        for rt in self.twins.values():
+            self._tick_due.setdefault(rt.cfg.id, []).append((instant, health))
+            self._tick_work.append(rt)
 
     def _tick_step(self) -> None:
         for _ in range(min(TICK_CHUNK, len(self._tick_work))):
-            instant, rt, health = self._tick_work.popleft()
+            self._run_due(self._tick_work.popleft())
+
+    def _run_due(self, rt: TwinRuntime) -> None:
+        """The twin's pending grid work (none when a reading already ran it)."""
+        for instant, health in self._tick_due.pop(rt.cfg.id, ()):
             self._handle_tick_of(rt, instant, health)
 
     def _handle_tick_of(self, rt: TwinRuntime, instant: dt.datetime,

@@ -59,6 +59,10 @@ def solve_packed_lower(packed: np.ndarray, n: int, b: np.ndarray) -> np.ndarray:
     """
     if n == 0:
         return np.zeros(0)
+    # BLAS reads and writes without bounds: check what it will touch.
+    if b.shape != (n,) or packed.ndim != 1 or packed.size < n * (n + 1) // 2:
+        raise ValueError(f"solve_packed_lower: b {b.shape} and packed {packed.shape} do not "
+                         f"fit n = {n}")
     if _dtpsv is None or not packed.flags.c_contiguous or packed.dtype != np.float64:
         return solve_triangular(_unpacked(packed, n), b, lower=True, check_finite=False)
     x = np.array(b, dtype=np.float64, copy=True)

@@ -177,17 +177,19 @@ def _run_pool(cfg: ServiceConfig, work: list[Chunk], store_url: str, run: RunSum
                              initializer=_init_worker,
                              initargs=(cfg, store_url, stop, level)) as pool:
         futures: dict[Future[ChunkResult], Chunk] = {pool.submit(_work, c): c for c in work}
+        collected: set[Future[ChunkResult]] = set()
         try:
             for fut in as_completed(futures):
                 _collect(fut, futures[fut], run, bar)
+                collected.add(fut)
         except KeyboardInterrupt:
             run.interrupted = True
             stop.set()
             for fut in futures:
                 fut.cancel()
-            # Running chunks end after their current day; keep what they finished.
+            # Running chunks end after their current day; keep what they finished (once).
             for fut in futures:
-                if not fut.cancelled():
+                if not fut.cancelled() and fut not in collected:
                     _collect(fut, futures[fut], run, bar)
 
 

@@ -238,7 +238,9 @@ class Twin:
                 continue
             try:
                 est.revise(sensor, old.hours, value)
-            except NumericalError as exc:
+            except (NumericalError, KeyError) as exc:
+                # KeyError: the estimator lost the point (never expected); rebuilt from the
+                # window at the next reading like a numerical failure.
                 self._break(kind, exc)
 
     # -- monitoring -------------------------------------------------------------------
