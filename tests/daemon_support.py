@@ -6,6 +6,7 @@ import datetime as dt
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
 
@@ -97,3 +98,20 @@ def wait_for(pred: Callable[[], object], timeout: float = 30.0, what: str = "con
             return
         time.sleep(0.02)
     raise AssertionError(f"timed out waiting for {what() if callable(what) else what}")
+
+
+def uninterrupted_estimates(artifact: Path, readings: pd.DataFrame, kind: str = "corrgp-triv"
+                            ) -> dict[str, Any]:
+    """What a daemon that never stopped publishes for ``readings`` of REF (in order): one
+    twin fed every reading; ISO-Z timestamp → its ``kind`` estimate (init phase included)."""
+    from pseudotwin.live.artifact import Artifact
+    from pseudotwin.live.twin import Twin
+
+    twin = Twin(Artifact.load(artifact))
+    expected = {}
+    for _, r in readings.iterrows():
+        t = r["ts"].to_pydatetime()
+        if twin.observe(REF, t, float(r["value"])):
+            expected[t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")] = \
+                twin.estimate(t)[kind]
+    return expected

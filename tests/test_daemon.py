@@ -275,3 +275,37 @@ def test_restart_restores_the_window_from_the_journal(mosquitto, desk_artifact,
     t = HOURS.at(DAY, 11.0)
     assert ta.estimate(t) == tb.estimate(t)
     b.journal.close()
+
+
+def test_a_grid_estimate_sees_only_readings_that_arrived_before_its_tick(
+    service_factory, mosquitto
+) -> None:
+    """Grid work is spread between readings (many twins' ticks must not hold a reading up),
+    yet a later reading never reaches a twin before that twin's pending tick estimate."""
+    svc = service_factory(HOURS.at(DAY, 10.0), 1.0)
+    viewer = Viewer(mosquitto.port, "pt/desk/estimate")
+    pub = publisher(mosquitto.port, "tick-bridge")
+    topic = "house/dining/temp"
+    before = HOURS.at(DAY, 9.9)
+    pub.publish(topic, reading(before, 17.0), qos=1).wait_for_publish(10)
+    wait_for(lambda: svc.accepted == 1, what="the first reading")
+    tick = HOURS.at(DAY, 10.0)
+    later = tick + dt.timedelta(seconds=30)
+    # The worker stalls on its next ack, so the second reading, the tick and a later reading
+    # are queued in that order behind it.
+    with svc._lock:
+        pub.publish(topic, reading(before + dt.timedelta(minutes=1), 17.1), qos=1)
+        wait_for(lambda: svc.health.received == 2, what="the second reading received")
+        svc.queue.put(("tick", tick))
+        pub.publish(topic, reading(later, 17.3), qos=1)
+        wait_for(lambda: svc.health.received == 3, what="the later reading received")
+    stamp = lambda t: t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")  # noqa: E731
+    wait_for(lambda: any(e["ts"] == stamp(later) for e in viewer.on("/estimate")),
+             what="the later reading's estimate")
+    at_tick = [e for e in viewer.on("/estimate") if e["ts"] == stamp(tick)]
+    assert len(at_tick) == 1
+    assert at_tick[0]["refs"][REF] == stamp(before + dt.timedelta(minutes=1))
+    order = [e["ts"] for e in viewer.on("/estimate")]
+    assert order.index(stamp(tick)) < order.index(stamp(later))
+    pub.loop_stop()
+    viewer.close()

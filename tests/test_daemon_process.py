@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import datetime as dt
 import os
 import signal
 import socket
@@ -12,9 +11,15 @@ from pathlib import Path
 
 import pytest
 
-from daemon_support import DAY, HOURS, REF, day_readings, sml, wait_for, write_config
-from pseudotwin.live.artifact import Artifact
-from pseudotwin.live.twin import Twin
+from daemon_support import (
+    DAY,
+    HOURS,
+    day_readings,
+    sml,
+    uninterrupted_estimates,
+    wait_for,
+    write_config,
+)
 from test_daemon import Viewer, publisher, reading
 
 EXE = [sys.executable, "-m", "pseudotwin.cli"]
@@ -64,14 +69,8 @@ def test_sigkill_mid_day_then_resume_publishes_what_a_daemon_that_never_stopped_
                               f"{in_hours(readings)}):\n{log.read_text()[-2000:]}")
         assert "restored state from" in log.read_text()
         # what a daemon that never stopped publishes: one twin fed every reading in order
-        twin = Twin(Artifact.load(desk_artifact))
-        expected = {}
-        for _, r in readings.iterrows():
-            t = r["ts"].to_pydatetime()
-            if twin.observe(REF, t, float(r["value"])):
-                e = twin.estimate(t)["corrgp-triv"]
-                if e.quality != "init":
-                    expected[t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")] = e
+        expected = {ts: e for ts, e in uninterrupted_estimates(desk_artifact, readings).items()
+                    if e.quality != "init"}
         got = {e["ts"]: e for e in viewer.on("/estimate")}
         assert set(got) == set(expected)
         for ts, e in expected.items():

@@ -14,15 +14,13 @@ from pathlib import Path
 
 import pytest
 
-from daemon_support import DAY, HOURS, REF, TZ, day_readings, sml, wait_for
+from daemon_support import DAY, HOURS, REF, TZ, day_readings, sml, uninterrupted_estimates, wait_for
 from pseudotwin.config import ServiceConfig, load_config
 from pseudotwin.edge import homeassistant as ha
 from pseudotwin.edge.clock import ReplayClock
 from pseudotwin.edge.fleet import FleetMember, Shard, narrow, shard_of
 from pseudotwin.edge.service import Service
 from pseudotwin.errors import ConfigError
-from pseudotwin.live.artifact import Artifact
-from pseudotwin.live.twin import Twin
 from test_daemon import Viewer, publisher, reading
 
 IDS = ["office-1", "office-2", "office-3", "office-4", "office-5", "office-6", "lab", "hall"]
@@ -232,13 +230,7 @@ def test_two_sharded_daemons_publish_every_twin_once_and_lose_nothing_on_a_resta
         # instance 0 got none of them, nor the reading of the sensor no twin reads
         assert a.accepted == a.health.received == 2 * len(readings)
         # exactly once per twin and reading, and what a daemon that never stopped publishes
-        twin = Twin(Artifact.load(desk_artifact))
-        expected = {}
-        for _, r in readings.iterrows():
-            t = r["ts"].to_pydatetime()
-            if twin.observe(REF, t, float(r["value"])):
-                e = twin.estimate(t)["corrgp-triv"]
-                expected[t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")] = e
+        expected = uninterrupted_estimates(desk_artifact, readings)
         for t in mine[1]:
             with viewer.lock:
                 live = {b["ts"]: b for tp, b in viewer.msgs if tp == f"pt/{t}/estimate"}
