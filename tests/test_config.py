@@ -455,6 +455,14 @@ def test_dataclasses_validate_on_direct_construction() -> None:
     assert has(info.value.problems, "max", "greater than min")
     with pytest.raises(ConfigProblems, match="port: must be in 1..65535"):
         BrokerConfig(host="h", port=70000)
+    # a bucket that rounds to no time at all would fail only when the twins start
+    with pytest.raises(ConfigProblems, match=r"min_interval_seconds: must be in 0.001..3600"):
+        SensorConfig(id="s", topic="a/b", unit="°C", min=0, max=40, min_interval_seconds=1e-7)
+    per_sensor = ServiceConfig(
+        broker=BrokerConfig(host="h"), hours=OperatingHours(), state_dir=Path("/tmp/s"),
+        sensors={"s": SensorConfig(id="s", topic="a/b", unit="°C", min=0, max=40,
+                                   min_interval_seconds=10)}, twins={}).thinning
+    assert per_sensor.interval("s").total_seconds() == 10
     with pytest.raises(ConfigProblems, match="target: sensor 'a' is also a reference"):
         TwinConfig(id="t", references=("a",), target="a", artifact=Path("x"),
                    quantity="temperature")

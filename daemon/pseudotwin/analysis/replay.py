@@ -66,8 +66,7 @@ def replay_estimates(
     truths = values.astype(float)
     tgt = np.flatnonzero(sensors == artifact.target)
     if len(tgt):  # one score per target bucket: at its last reading, against its mean
-        width = thinning.interval(artifact.target) // dt.timedelta(microseconds=1)
-        bucket = stamps[tgt].as_unit("us").asi8 // width  # µs → buckets
+        bucket = thinning.buckets(artifact.target, stamps[tgt])
         first = np.r_[True, bucket[1:] != bucket[:-1]]
         last = np.r_[bucket[1:] != bucket[:-1], True]
         group = np.cumsum(first) - 1

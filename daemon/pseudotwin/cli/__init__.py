@@ -207,8 +207,11 @@ def _positive_seconds(text: str) -> float:
         seconds = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
-    if not 0.001 <= seconds <= 3600:  # as a sensor's min_interval_seconds
-        raise argparse.ArgumentTypeError(f"{text} s is not in 0.001..3600")
+    from pseudotwin.core.thinning import MIN_INTERVAL_SECONDS
+
+    lo, hi = MIN_INTERVAL_SECONDS  # as a sensor's min_interval_seconds
+    if not lo <= seconds <= hi:
+        raise argparse.ArgumentTypeError(f"{text} s is not in {lo:g}..{hi:g}")
     return seconds
 
 

@@ -30,7 +30,7 @@ from pseudotwin.config.validate import (
 )
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
-from pseudotwin.core.thinning import DEFAULT_MIN_INTERVAL, Thinning
+from pseudotwin.core.thinning import DEFAULT_MIN_INTERVAL, MIN_INTERVAL_SECONDS, Thinning
 
 __all__ = [
     "LOG_LEVELS",
@@ -225,9 +225,10 @@ class SensorConfig:
             found.append(("ts_key", "must differ from value_key"))
         nonempty(found, "unit", self.unit)
         if expect(found, "min_interval_seconds", self.min_interval_seconds, "number"):
-            if not 0.001 <= self.min_interval_seconds <= 3600:
+            lo, hi = MIN_INTERVAL_SECONDS
+            if not lo <= self.min_interval_seconds <= hi:
                 found.append(("min_interval_seconds",
-                              f"must be in 0.001..3600 seconds, got "
+                              f"must be in {lo:g}..{hi:g} seconds, got "
                               f"{self.min_interval_seconds}"))
         lo_ok = expect(found, "min", self.min, "number")
         hi_ok = expect(found, "max", self.max, "number")

@@ -28,11 +28,18 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import Enum
 
-__all__ = ["DEFAULT_MIN_INTERVAL", "Action", "Thinning", "WindowThinner"]
+import numpy as np
+import pandas as pd
+
+__all__ = ["DEFAULT_MIN_INTERVAL", "MIN_INTERVAL_SECONDS", "Action", "Thinning",
+           "WindowThinner"]
 
 #: One conditioning point per reference and minute: the resolution of the converters'
 #: means, far finer than the 15-minute slots and the GP's hour-scale lengthscales.
 DEFAULT_MIN_INTERVAL = dt.timedelta(minutes=1)
+#: The bucket widths a configuration or the CLI may ask for [s]: below a millisecond a
+#: timedelta rounds to nothing; above an hour a point would hide the day's course.
+MIN_INTERVAL_SECONDS = (0.001, 3600.0)
 
 _EPOCH = dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
 
@@ -51,6 +58,11 @@ class Thinning:
 
     def interval(self, sensor: str) -> dt.timedelta:
         return self.per_sensor.get(sensor, self.default)
+
+    def buckets(self, sensor: str, stamps: pd.DatetimeIndex) -> np.ndarray:
+        """The bucket of each of ``sensor``'s (aware) times: [N] (WindowThinner's, vectorized)."""
+        width = self.interval(sensor) // dt.timedelta(microseconds=1)
+        return np.asarray(stamps.as_unit("us").asi8 // width)
 
     def describe(self) -> str:
         """E.g. ``one point per 60 s (ref_b: 10 s)``."""
