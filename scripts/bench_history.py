@@ -181,6 +181,7 @@ def main() -> int:
                     help="a trained dining/temp artifact to use instead of training one")
     a = ap.parse_args()
     exit_on_signals()  # SIGTERM/SIGHUP: the finally blocks stop what was started
+    load_start = os.getloadavg()[0]  # the machine may be shared: say how busy it was
     tmp = Path(tempfile.mkdtemp(prefix="pseudotwin-bench-history-"))
     try:
         if a.artifact:
@@ -227,16 +228,21 @@ def main() -> int:
             "fleet_cpu_s": round(many["cpu_s"], 1),
             "fleet_days_per_s": round(many["days"] / many["s"], 2),
             "load_avg_1min": round(os.getloadavg()[0], 2),
+            "load_avg_1min_start": round(load_start, 2),
+            "backfill_cpu_s_per_day": round(one["cpu_s"] / one["days"], 3),
+            "fleet_cpu_s_per_day": round(many["cpu_s"] / many["days"], 3),
         }
         rows = [("1 twin, --jobs 1", one), (f"1 twin, --jobs {a.jobs}", par),
                 (f"{a.twins} twins, --jobs {a.jobs}", many)]
         print(f"backfill, {a.months} months of 1-min readings ({len(readings)} readings, "
-              f"{days} days per twin); load average now {fig['load_avg_1min']}")
+              f"{days} days per twin); load average {load_start:.2f} at the start, "
+              f"{fig['load_avg_1min']} now")
         print(f"{'run':<22} {'days':>6} {'estimates':>10} {'wall s':>8} {'CPU s':>8} "
-              f"{'days/s':>7}")
+              f"{'days/s':>7} {'CPU s/day':>9}")
         for label, r in rows:
             print(f"{label:<22} {r['days']:>6} {r['estimates']:>10} {r['s']:>8.1f} "
-                  f"{r['cpu_s']:>8.1f} {r['days'] / r['s']:>7.2f}")
+                  f"{r['cpu_s']:>8.1f} {r['days'] / r['s']:>7.2f} "
+                  f"{r['cpu_s'] / r['days']:>9.3f}")
         print(f"parallel rows equal the serial ones: {equal}; peak RSS of the serial backfill "
               f"{fig['backfill_peak_rss_mb']} MB")
         print(f"recorder: {n} readings in {rec_s:.1f} s = {fig['recorder_readings_per_s']:.0f} "

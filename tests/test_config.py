@@ -282,6 +282,8 @@ BAD: list[tuple[str, Mutation, str, str]] = [
     ("queue-zero", set_("service", "queue_size", 0), "service.queue_size", "at least 1"),
     ("queue-float", set_("service", "queue_size", 1.5), "service.queue_size", "integer"),
     ("log-level", set_("service", "log_level", "VERBOSE"), "service.log_level", "one of"),
+    ("baselines-cadence", set_("service", "baselines", "sometimes"), "service.baselines",
+     "one of grid, reading"),
     ("base-wildcard", set_("service", "base_topic", "pt/+/x"), "service.base_topic", "wildcard"),
     ("base-hash", set_("service", "base_topic", "pt/#"), "service.base_topic", "wildcard"),
     ("base-empty", set_("service", "base_topic", ""), "service.base_topic", "empty"),

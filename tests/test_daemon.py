@@ -74,7 +74,7 @@ def test_live_estimates_equal_evaluate(service_factory, mosquitto, desk_artifact
     end = HOURS.at(DAY, 19.25)
     speed = 4000.0
     viewer = Viewer(mosquitto.port)
-    svc = service_factory(start, speed)
+    svc = service_factory(start, speed, baselines="reading")  # every model at every reading
     n = replay(svc.cfg, df[df["sensor"].isin([REF, TARGET])], start, end, speed)
     refs_in_day = day_readings(df)
     n_pub = int(((refs_in_day["ts"] >= HOURS.at(DAY, 8.0)) & (refs_in_day["ts"] < end)).sum())
@@ -307,5 +307,32 @@ def test_a_grid_estimate_sees_only_readings_that_arrived_before_its_tick(
     assert at_tick[0]["refs"][REF] == stamp(before + dt.timedelta(minutes=1))
     order = [e["ts"] for e in viewer.on("/estimate")]
     assert order.index(stamp(tick)) < order.index(stamp(later))
+    pub.loop_stop()
+    viewer.close()
+
+
+def test_baselines_are_published_on_the_grid_only_by_default(
+    service_factory, mosquitto, desk_artifact
+) -> None:
+    """A reading publishes the primary estimate; the baselines (monitoring) follow the grid."""
+    svc = service_factory(HOURS.at(DAY, 10.0), 1.0)
+    assert svc.cfg.baselines == "grid"
+    art = Artifact.load(desk_artifact)
+    baselines = [k for k in art.published if k != art.primary]
+    assert baselines
+    viewer = Viewer(mosquitto.port, "pt/desk/#")
+    pub = publisher(mosquitto.port, "grid-bridge")
+    stamp = lambda t: t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")  # noqa: E731
+    first = HOURS.at(DAY, 9.9)
+    pub.publish("house/dining/temp", reading(first, 17.0), qos=1).wait_for_publish(10)
+    wait_for(lambda: any(e["ts"] == stamp(first) for e in viewer.on("/estimate")),
+             what="the reading's estimate")
+    tick = HOURS.at(DAY, 10.0)
+    svc.queue.put(("tick", tick))
+    wait_for(lambda: all(any(e["ts"] == stamp(tick) for e in viewer.on(f"/baseline/{k}"))
+                         for k in baselines), what="every baseline at the tick")
+    assert any(e["ts"] == stamp(tick) for e in viewer.on("/estimate"))
+    for k in baselines:
+        assert [e["ts"] for e in viewer.on(f"/baseline/{k}")] == [stamp(tick)], k
     pub.loop_stop()
     viewer.close()

@@ -208,7 +208,8 @@ def test_discovery_messages_are_retained_valid_and_describe_real_payloads(
     prefix = "ha-valid"
     path = ha_config(tmp_path, mosquitto.port, desk_artifact,
                      f'[homeassistant]\nenabled = true\ndiscovery_prefix = "{prefix}"\n'
-                     "baselines = true", stale_after_minutes=20)
+                     "baselines = true", stale_after_minutes=20,
+                     baselines="reading")  # a reading then shows every entity's payload
     svc = start(path)
     try:
         art = svc.twins["desk"].twin.artifact

@@ -300,6 +300,7 @@ def _varma_with_ma(fallback: VarmaModel) -> VarmaModel:
     d["param_names"] = names
     d["order"] = [4, 4]
     d["model_name"] = "varma"
+    del d["state_space"]  # the fallback's matrices: rebuilt from the new params
     return VarmaModel.from_dict(d, TwinSpec((REF,), TARGET, Quantity.TEMPERATURE, HOURS))
 
 
@@ -344,6 +345,58 @@ def test_round_trip_gives_identical_predictions(
     a, b = feed_all(model, day), feed_all(back, day)
     probe = np.linspace(7.0, 19.0, 97)
     assert [a.predict(float(h)) for h in probe] == [b.predict(float(h)) for h in probe]
+
+
+@pytest.mark.parametrize("which", ["varma", "fallback"])
+def test_stored_matrices_equal_those_rebuilt_from_params(
+    which: str, request: pytest.FixtureRequest, test_days: dict[dt.date, DayReadings]
+) -> None:
+    """The artifact's state_space (what the daemon loads, without statsmodels) is the model
+    its params define (what an older artifact gives)."""
+    model = request.getfixturevalue(which)
+    d = json.loads(json.dumps(model.to_dict()))
+    spec = TwinSpec((REF,), TARGET, Quantity.TEMPERATURE, HOURS)
+    stored = VarmaModel.from_dict(d, spec)
+    del d["state_space"]
+    rebuilt = VarmaModel.from_dict(d, spec)
+    day = test_days[TEST_DAYS[2]]
+    a, b = feed_all(stored, day), feed_all(rebuilt, day)
+    probe = np.linspace(7.0, 19.0, 49)
+    # BLAS may round the Lyapunov solve differently between fit and load: 1e-9, not bits
+    np.testing.assert_allclose([a.predict(float(h)).value for h in probe],
+                               [b.predict(float(h)).value for h in probe], rtol=0, atol=1e-9)
+    np.testing.assert_allclose([a.predict(float(h)).std for h in probe],
+                               [b.predict(float(h)).std for h in probe], rtol=0, atol=1e-9)
+
+
+def test_stored_matrices_are_checked(fallback: VarmaModel) -> None:
+    from pseudotwin.errors import ArtifactError
+
+    spec = TwinSpec((REF,), TARGET, Quantity.TEMPERATURE, HOURS)
+    d = json.loads(json.dumps(fallback.to_dict()))
+    d["state_space"]["transition"] = d["state_space"]["transition"][:-1]
+    with pytest.raises(ArtifactError, match="state_space .* has shape"):
+        VarmaModel.from_dict(d, spec)
+    d = json.loads(json.dumps(fallback.to_dict()))
+    d["state_space"]["obs_cov"][0][0] = math.inf
+    with pytest.raises(ArtifactError, match="non-finite"):
+        VarmaModel.from_dict(d, spec)
+
+
+def test_the_daemon_loads_an_artifact_without_statsmodels(
+    desk_artifact: Path,
+) -> None:
+    """statsmodels (~50 MB) is for fitting: loading a twin for live use does not import it."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from pseudotwin.live.artifact import Artifact; "
+            "from pseudotwin.live.twin import Twin; import pseudotwin.edge.service; "
+            f"Twin(Artifact.load({str(desk_artifact)!r})); "
+            "print(sorted(m for m in ('statsmodels', 'scipy.stats', 'GPy') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout
+    assert out.strip() == "[]"
 
 
 def test_from_dict_rejects_a_different_slot_grid(fallback: VarmaModel) -> None:

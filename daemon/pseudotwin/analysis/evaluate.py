@@ -88,11 +88,12 @@ def evaluate(
     plot_day: dt.date | None = None,
     primary: str | None = None,
     thinning: Thinning | None = None,
+    stale_after: dt.timedelta | None = None,
 ) -> Evaluation:
     """Train on ``train_days`` days from ``train_start``, then score every later day.
 
     thinning: the window's policy for the scored days (default: one point per sensor and
-    minute, the daemon's default)."""
+    minute, the daemon's default); stale_after: the daemon's (replay_estimates)."""
     t0 = time.perf_counter()
     target, hours = spec.target, spec.hours
     require_sensors(history, list(spec.sensors))
@@ -106,7 +107,8 @@ def evaluate(
     if plot_day is not None and plot_day < test_start:
         raise DataError(f"--plot-day {plot_day} is not scored: the evaluated days begin on "
                         f"{test_start}, after training")
-    est = replay_estimates(artifact, history, test_start, models, thinning=thinning)
+    est = replay_estimates(artifact, history, test_start, models, thinning=thinning,
+                           stale_after=stale_after)
     if est.empty:
         raise DataError(
             f"no target readings of {target} in operating hours after the training period "

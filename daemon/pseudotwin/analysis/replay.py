@@ -33,6 +33,7 @@ def replay_estimates(
     models: Sequence[str] | None = None,
     end: dt.date | None = None,
     thinning: Thinning | None = None,
+    stale_after: dt.timedelta | None = None,
 ) -> pd.DataFrame:
     """Estimates at every true target reading in operating hours of days ``start``…``end``.
 
@@ -42,11 +43,13 @@ def replay_estimates(
     pseudo-models ``ref:<sensor>``, the raw reference value held at that time (its daily
     Pearson r with the target is the evidence of how much a reference can tell). slope: the
     references' |slope| [unit/h] the model's σ saw. thinning: the window's policy, as the
-    daemon's configuration sets it (default one point per sensor and minute).
+    daemon's configuration sets it (default one point per sensor and minute). stale_after:
+    the daemon's, to score what it publishes while a reference is silent (quality ``stale``,
+    or a failover's ``fallback``); default None: a silent reference's last value is held.
     """
     hours = artifact.hours
     thinning = thinning or Thinning()
-    twin = Twin(artifact, models=models, thinning=thinning)
+    twin = Twin(artifact, models=models, thinning=thinning, stale_after=stale_after)
     refs = list(artifact.references)
     primary = artifact.primary
     sub = history[history["sensor"].isin([*refs, artifact.target])]

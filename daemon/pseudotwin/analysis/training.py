@@ -12,6 +12,7 @@ import numpy as np
 import pandas as pd
 
 from pseudotwin.analysis import validation
+from pseudotwin.analysis.failover import train_failover
 from pseudotwin.analysis.validation import MIN_DAYS
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.series import DayReadings, require_sensors, split_days
@@ -122,6 +123,8 @@ def train_validated(
     out each training day to choose the primary (unless ``primary`` pins it) and calibrate
     every model's σ (:mod:`pseudotwin.analysis.validation`); without it, or with fewer than
     three days, the primary is ``primary`` or the first candidate and σ is each model's own.
+    Validated twins with several references also get a failover per reference the primary
+    reads (:mod:`pseudotwin.analysis.failover`).
     """
     for kind in models:
         model_class(kind)  # an unknown kind fails before any training
@@ -162,9 +165,12 @@ def train_validated(
                             "own spread, which is not calibrated", kind)
     if checked or withheld:
         checked = {**checked, "withheld": withheld}
+    # Failover needs validated σ, like the primary it stands in for.
+    failover = (train_failover(df, spec, days, fitted[primary].references_, options=opts)
+                if v is not None else {})
     return Artifact(
         spec, fitted, primary, calibration=calibration, validation=checked,
-        envelope=Envelope.fit(ts),
+        envelope=Envelope.fit(ts), failover=failover,
         training={
             "start": str(days[0].day),
             "end": str(days[-1].day),

@@ -172,6 +172,9 @@ def cmd_train(a: argparse.Namespace) -> int:
         print(validation_table(art.validation, art.unit))
     else:
         print(f"primary: {art.primary} (not validated)")
+    for lost, f in art.failover.items():
+        print(f"  failover without {lost}: {f.kind} on {', '.join(f.model.references_)} "
+              f"(held-out {f.nrmse_pct:.2f} %)")
     if a.report is not None:
         import time
 
@@ -194,7 +197,9 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     with twin_context(a.target):  # evaluate has no twin id: its desk sensor names it
         ev = evaluate(df, _spec(a), a.train_start, a.train_days, a.models, a.out,
                       _options(a), a.plot_day, a.primary,
-                      thinning=Thinning(dt.timedelta(seconds=a.min_interval)))
+                      thinning=Thinning(dt.timedelta(seconds=a.min_interval)),
+                      stale_after=(dt.timedelta(minutes=a.stale_after)
+                                   if a.stale_after is not None else None))
     print(f"trained on {', '.join(ev.artifact.training['days'])}; "
           f"scored {ev.daily['day'].nunique()} day(s) in {ev.seconds:.1f} s")
     print(summary_table(ev))
@@ -213,6 +218,16 @@ def _positive_seconds(text: str) -> float:
     if not lo <= seconds <= hi:
         raise argparse.ArgumentTypeError(f"{text} s is not in {lo:g}..{hi:g}")
     return seconds
+
+
+def _positive_minutes(text: str) -> float:
+    try:
+        minutes = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of minutes") from None
+    if not minutes > 0 or minutes == float("inf"):
+        raise argparse.ArgumentTypeError(f"{text} min is not a positive number of minutes")
+    return minutes
 
 
 def _aware(text: str) -> dt.datetime:
@@ -239,6 +254,7 @@ def _load_service_config(path: Path) -> ServiceConfig:
 
 def _serve(process: Service | Recorder) -> int:
     """Start a long-running process (daemon, recorder) and stop it on SIGTERM/SIGINT."""
+    import gc
     import signal
     import threading
 
@@ -250,6 +266,10 @@ def _serve(process: Service | Recorder) -> int:
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
+    # The loaded twins live as long as the process: out of the cyclic GC's way, whose full
+    # passes over a thousand twins' objects otherwise stop every thread for ~0.7 s.
+    gc.collect()
+    gc.freeze()
     try:
         process.start(wait_connected=None)  # never blocks: a signal is honoured at once
     except ConfigError as exc:  # found only on start, e.g. a metrics port already taken
@@ -410,6 +430,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the window keeps at most one point per sensor and interval, the mean "
                         "of its readings in it, and a chatty target is scored once per "
                         "interval, as the daemon's min_interval_seconds (default 60)")
+    e.add_argument("--stale-after", type=_positive_minutes, metavar="MINUTES",
+                   help="score what the daemon with this stale_after_minutes publishes: a "
+                        "reference silent longer makes the estimate stale, or a failover "
+                        "answers without it (default: never stale, a silent reference's last "
+                        "value is held)")
     e.add_argument("--plot-day", type=_date, help="day to plot in detail (default: median day)")
     e.set_defaults(func=cmd_evaluate)
 

@@ -48,6 +48,9 @@ __all__ = [
 ]
 
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+# When the baselines are published: on the publishing grid only, or also at every reading
+# that moves the twin (as the primary estimate always is).
+BASELINE_CADENCES = ("grid", "reading")
 SENSOR_FORMATS = ("number", "json")
 QUANTITIES = ("temperature", "co2")
 
@@ -389,6 +392,7 @@ def service_scalar_problems(
     max_skew_seconds: object,
     queue_size: object,
     log_level: object,
+    baselines: object = "grid",
 ) -> Found:
     found: Found = []
     if expect(found, "base_topic", base_topic, "string"):
@@ -423,6 +427,9 @@ def service_scalar_problems(
         if log_level.upper() not in LOG_LEVELS:
             found.append(("log_level",
                           f"must be one of {', '.join(LOG_LEVELS)}, got {log_level!r}"))
+    if baselines not in BASELINE_CADENCES:
+        found.append(("baselines", f"must be one of {', '.join(BASELINE_CADENCES)}, "
+                                   f"got {baselines!r}"))
     return found
 
 
@@ -499,6 +506,9 @@ class ServiceConfig:
     max_skew_seconds: how far a reading's timestamp may lie in the future [s].
     state_dir: where the daemon keeps its state (window snapshots, counters).
     queue_size: bound of the queue between the MQTT thread and the twins (readings).
+    baselines: when the baseline models are published: "grid" (on the publishing grid
+        only: they are for monitoring, and at every reading they would quintuple the
+        messages) or "reading" (also at every reading that moves the twin).
     """
 
     broker: BrokerConfig
@@ -512,6 +522,7 @@ class ServiceConfig:
     max_skew_seconds: float = 300
     queue_size: int = 10000
     log_level: str = "INFO"
+    baselines: str = "grid"
     store: str | None = None  # history DB: SQLite path, postgresql:// or crate:// URL
     metrics: MetricsConfig = MetricsConfig()  # [metrics]: Prometheus endpoints
     homeassistant: HomeAssistantConfig = HomeAssistantConfig()  # [homeassistant]
@@ -526,6 +537,7 @@ class ServiceConfig:
             max_skew_seconds=self.max_skew_seconds,
             queue_size=self.queue_size,
             log_level=self.log_level,
+            baselines=self.baselines,
         )
         if not isinstance(self.broker, BrokerConfig):
             found.append(("broker", "expected a BrokerConfig"))
@@ -565,11 +577,20 @@ class ServiceConfig:
     def max_skew(self) -> timedelta:
         return timedelta(seconds=self.max_skew_seconds)
 
-    @property
+    def per_reading_kinds(self, primary: str) -> tuple[str, ...] | None:
+        """The models published (daemon) or stored (backfill) at a reading that moves a twin
+        whose primary is ``primary``: the primary only, unless ``baselines = "reading"``
+        (None: all of them). The baselines always go out on the grid."""
+        return None if self.baselines == "reading" else (primary,)
+
+    @cached_property
     def thinning(self) -> Thinning:
-        """The window's thinning policy from the sensors' ``min_interval_seconds``."""
+        """The window's thinning policy from the sensors' ``min_interval_seconds`` (one
+        object shared by every twin: a per-twin copy of a thousand sensors' table would cost
+        a thousand twins ~100 MB)."""
         return Thinning(per_sensor={
-            sid: timedelta(seconds=s.min_interval_seconds) for sid, s in self.sensors.items()})
+            sid: width for sid, s in self.sensors.items()
+            if (width := timedelta(seconds=s.min_interval_seconds)) != DEFAULT_MIN_INTERVAL})
 
     @cached_property
     def _sensor_by_topic(self) -> dict[str, SensorConfig]:

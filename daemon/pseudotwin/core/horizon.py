@@ -136,6 +136,10 @@ class OperatingHours:
         idx = np.floor(np.asarray(hours, dtype=float) / self.slot_hours + 1e-9).astype(int)
         return np.clip(idx, 0, self.n_slots - 1)
 
+    def slot_index_of(self, hours: float) -> int:
+        """Scalar :meth:`slot_of` (the same arithmetic, without numpy's per-call cost)."""
+        return min(max(math.floor(hours / self.slot_hours + 1e-9), 0), self.n_slots - 1)
+
     # -- timestamps -------------------------------------------------------------------
     def local(self, ts: pd.Series | pd.DatetimeIndex) -> pd.DatetimeIndex:
         idx = pd.DatetimeIndex(ts)

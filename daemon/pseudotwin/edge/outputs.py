@@ -19,7 +19,8 @@ def _num(x: float, digits: int = 6) -> float | None:
 
 
 def estimate_payload(e: TwinEstimate, unit: str) -> bytes:
-    """``{"ts", "value", "std", "unit", "model", "quality", "refs"}``."""
+    """``{"ts", "value", "std", "unit", "model", "quality", "refs", "lost"}``; ``lost``: the
+    silent references a failover answered without (empty otherwise)."""
     return json.dumps({
         "ts": iso(e.ts),
         "value": _num(e.value),
@@ -28,6 +29,7 @@ def estimate_payload(e: TwinEstimate, unit: str) -> bytes:
         "model": e.model,
         "quality": e.quality,
         "refs": {s: iso(t) for s, t in e.refs.items()},
+        "lost": list(e.lost),
     }, ensure_ascii=False).encode()
 
 

@@ -61,6 +61,15 @@ BATCH_MAX = 64
 # Twins whose grid work is done between two batches of readings: at 1,000 twins one tick
 # would otherwise hold every reading behind 1,000 estimates and monitors.
 TICK_CHUNK = 20
+# Grid work waits while this many of the daemon's QoS 1 messages wait for the broker's
+# PUBACK: paho sends in order, so a reading's estimate then queues behind at most these,
+# not behind the 6,000 messages of a thousand twins' tick.
+TICK_BACKLOG = 200
+# ... for at most this long per chunk [s]: a broker that stops acknowledging must not stop
+# the grid (the messages stay queued in paho and go out on reconnect).
+TICK_MAX_PAUSE = 0.1
+# How long the worker waits for readings while grid work waits [s].
+TICK_POLL = 0.005
 
 
 def check_artifact(
@@ -134,6 +143,11 @@ class Service:
         # and per twin its pending (instant, health snapshot).
         self._tick_work: deque[TwinRuntime] = deque()
         self._tick_due: dict[str, list[tuple[dt.datetime, dict[str, Any]]]] = {}
+        self._paced_since: float | None = None
+        # QoS 1 messages handed to paho / acknowledged by the broker (see TICK_BACKLOG).
+        self._sent = 0
+        self._confirmed = 0
+        self._sent_lock = threading.Lock()
         self._not_before_cache: tuple[dt.date | None, dt.datetime] = (None, dt.datetime.min)
         self._ready = False
         self.fatal: tuple[int, str] | None = None  # (exit status, why): the process must end
@@ -152,6 +166,7 @@ class Service:
         c.on_connect = self._on_connect
         c.on_disconnect = self._on_disconnect
         c.on_message = self._on_message
+        c.on_publish = self._on_publish
         return c
 
     def _on_connect(self, client: mqtt.Client, userdata: Any, flags: mqtt.ConnectFlags,
@@ -166,11 +181,11 @@ class Service:
         topics = [(s.topic, 1) for s in self.cfg.sensors.values()]
         if topics:  # a fleet instance may own no twin (paho refuses an empty list)
             client.subscribe(topics)
-        client.publish(self.status_topic, self.health.status, qos=1, retain=True)
+        self._send(self.status_topic, self.health.status)
         for topic in self.undiscovery:  # Home Assistant entities of twins no longer configured
-            client.publish(topic, b"", qos=1, retain=True)
+            self._send(topic, b"")
         for topic, body in self.discovery.items():
-            client.publish(topic, body, qos=1, retain=True)
+            self._send(topic, body)
         log.info("connected to %s:%d (session present: %s); subscribed to %d sensor topics",
                  self.cfg.broker.host, self.cfg.broker.port, flags.session_present, len(topics))
         if not self.connected.is_set() and not self._ready:
@@ -200,7 +215,7 @@ class Service:
         """``<base>/status`` (a fleet instance's own: ``<base>/status/<instance>``):
         online | degraded (the journal fails) | offline (last will)."""
         if self.client.is_connected():
-            self.client.publish(self.status_topic, status, qos=1, retain=True)
+            self._send(self.status_topic, status)
 
     def _on_disconnect(self, client: mqtt.Client, userdata: Any, flags: Any,
                        reason_code: Any, properties: Any) -> None:
@@ -235,9 +250,38 @@ class Service:
             if qos > 0 and gen == self._gen:
                 self.client.ack(mid, qos)
 
+    def _send(self, topic: str, payload: bytes | str, retain: bool = True
+              ) -> mqtt.MQTTMessageInfo:
+        """Every message of the daemon: QoS 1, counted until the broker acknowledges it."""
+        with self._sent_lock:  # from the worker and the network thread
+            self._sent += 1
+        return self.client.publish(topic, payload, qos=1, retain=retain)
+
+    def _on_publish(self, client: mqtt.Client, userdata: Any, mid: int, reason_code: Any,
+                    properties: Any) -> None:
+        self._confirmed += 1  # only the network thread writes it
+
+    def unconfirmed(self) -> int:
+        """Messages sent and not yet acknowledged by the broker."""
+        return max(self._sent - self._confirmed, 0)
+
     def _publish(self, topic: str, payload: bytes, retain: bool = True) -> None:
-        self.client.publish(topic, payload, qos=1, retain=retain)
+        self._send(topic, payload, retain)
         self.published += 1
+
+    def _tick_paced(self) -> bool:
+        """Whether the pending grid work waits for the broker to take what was sent (see
+        TICK_BACKLOG); at most TICK_MAX_PAUSE at a time."""
+        if not self._tick_work or self.unconfirmed() < TICK_BACKLOG:
+            self._paced_since = None
+            return False
+        now = time.monotonic()
+        if self._paced_since is None:
+            self._paced_since = now
+        elif now - self._paced_since >= TICK_MAX_PAUSE:
+            self._paced_since = now  # one chunk anyway, then wait again
+            return False
+        return True
 
     # -- the worker -----------------------------------------------------------------------
     def _worker(self) -> None:
@@ -250,7 +294,9 @@ class Service:
                 except Exception:  # noqa: BLE001 — the worker must outlive a failed retry
                     log.exception("retrying the held readings failed; trying again later")
                     self._journal_retry_at = time.monotonic() + JOURNAL_RETRY_SECONDS
-            wait = 0.0 if self._tick_work else JOURNAL_RETRY_SECONDS if self._held else 1.0
+            paced = self._tick_paced()
+            wait = (TICK_POLL if paced else 0.0) if self._tick_work \
+                else JOURNAL_RETRY_SECONDS if self._held else 1.0
             batch = self._take(wait)
             self.heartbeat = time.monotonic()
             if not batch and not self._tick_work:
@@ -269,7 +315,8 @@ class Service:
                     self._start_tick(item[1])
             self._guarded("msg", self._handle_messages, messages)
             # Then a slice of the grid work, so no reading waits behind every twin's tick.
-            self._guarded("tick", self._tick_step)
+            if not paced:
+                self._guarded("tick", self._tick_step)
 
     def _take(self, wait: float) -> list[tuple[Any, ...]]:
         """The next queue items: the first within ``wait`` seconds (0: only what is there),
@@ -411,7 +458,8 @@ class Service:
                 try:  # one twin's failure must not keep the reading from the others
                     if r.sensor in rt.twin.references:
                         if rt.twin.observe(r.sensor, r.ts, r.value) and publish:
-                            self._publish_estimates(rt, rt.twin.estimate(r.ts))
+                            kinds = self.cfg.per_reading_kinds(rt.twin.artifact.primary)
+                            self._publish_estimates(rt, rt.twin.estimate(r.ts, kinds=kinds))
                     elif r.sensor == rt.cfg.target:
                         self._score_target(rt, r)
                 except Exception:  # noqa: BLE001 — logged with its traceback; the rest goes on
@@ -421,7 +469,8 @@ class Service:
         h = self.hours.hours_of(r.ts)
         if not self.hours.in_operating_hours(h):
             return
-        est = rt.twin.estimate(r.ts).get(rt.twin.artifact.primary)
+        primary = rt.twin.artifact.primary
+        est = rt.twin.estimate(r.ts, kinds=(primary,)).get(primary)
         if est is not None and est.finite:
             rt.monitor.roll(self.hours.day_of(r.ts))
             rt.monitor.record_truth(r.value, est.value)
@@ -614,7 +663,7 @@ class Service:
         except OSError as exc:
             log.error("closing the journal failed (%s)", exc)
         if self.client.is_connected():
-            info = self.client.publish(self.status_topic, "offline", qos=1, retain=True)
+            info = self._send(self.status_topic, "offline")
             try:
                 info.wait_for_publish(timeout=2)  # behind queued estimates: bounded
             except (RuntimeError, ValueError):

@@ -11,6 +11,8 @@ are simply appended.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.linalg import solve_triangular
 
@@ -98,12 +100,12 @@ class IncrementalPosterior:
     # -- updates ----------------------------------------------------------------------
     def add(self, t: float, o: int, r: float) -> None:
         """Condition on one more observation (t [h], output o, residual r)."""
-        if not np.isfinite(r) or not np.isfinite(t):
+        if not (math.isfinite(r) and math.isfinite(t)):  # scalars: math, not numpy's overhead
             raise NumericalError(f"non-finite observation t={t} r={r}")
         n = self.n
         if n == len(self._t):
             self._alloc(2 * n)
-        d_new = np.sqrt(self._obs_var(o))
+        d_new = math.sqrt(self._obs_var(o))
         self._t[n], self._o[n], self._r[n], self._d[n] = t, o, r, d_new
         if n == 0:
             pivot2 = 1.0 + self.jitter
@@ -114,14 +116,16 @@ class IncrementalPosterior:
             row = solve_packed_lower(self._P, n, s)
             pivot2 = 1.0 + self.jitter - float(row @ row)
         self.n = n + 1
-        if not (pivot2 > PIVOT_MIN) or not np.all(np.isfinite(row)):
+        # A non-finite entry of row makes row @ row, hence pivot2, NaN or -inf: the one
+        # comparison catches it without a pass over the row.
+        if not (pivot2 > PIVOT_MIN):
             try:
                 self._refactorize()
             except NumericalError:
                 self.n = n  # leave the posterior as it was: without this observation
                 raise
             return
-        piv = np.sqrt(pivot2)
+        piv = math.sqrt(pivot2)
         start = _packed(n)
         self._P[start: start + n] = row
         self._P[start + n] = piv
@@ -184,6 +188,6 @@ class IncrementalPosterior:
         v = solve_packed_lower(self._P, n, k / self._d[:n])
         mean = float(v @ self._a[:n])
         var = var0 - float(v @ v)
-        if not (np.isfinite(mean) and np.isfinite(var)):
+        if not (math.isfinite(mean) and math.isfinite(var)):
             raise NumericalError("posterior is not finite")
         return mean, max(var, 0.0)

@@ -23,10 +23,12 @@ from scipy.linalg import cython_blas, solve_triangular
 __all__ = ["solve_packed_lower"]
 
 _P_INT = ctypes.POINTER(ctypes.c_int)
-_P_DOUBLE = ctypes.POINTER(ctypes.c_double)
-# dtpsv(uplo, trans, diag, n, ap, x, incx)
+# dtpsv(uplo, trans, diag, n, ap, x, incx). The arrays go as plain addresses
+# (``ndarray.ctypes.data``): ``data_as`` builds a pointer object per call, which cost more
+# than the solve itself at small n.
 _DTPSV = ctypes.CFUNCTYPE(None, ctypes.c_char_p, ctypes.c_char_p, ctypes.c_char_p,
-                          _P_INT, _P_DOUBLE, _P_DOUBLE, _P_INT)
+                          _P_INT, ctypes.c_void_p, ctypes.c_void_p, _P_INT)
+_INC = ctypes.c_int(1)  # read only by BLAS
 
 
 def _load_dtpsv() -> Callable[..., None] | None:
@@ -66,7 +68,6 @@ def solve_packed_lower(packed: np.ndarray, n: int, b: np.ndarray) -> np.ndarray:
     if _dtpsv is None or not packed.flags.c_contiguous or packed.dtype != np.float64:
         return solve_triangular(_unpacked(packed, n), b, lower=True, check_finite=False)
     x = np.array(b, dtype=np.float64, copy=True)
-    size, inc = ctypes.c_int(n), ctypes.c_int(1)
-    _dtpsv(b"U", b"T", b"N", ctypes.byref(size), packed.ctypes.data_as(_P_DOUBLE),
-           x.ctypes.data_as(_P_DOUBLE), ctypes.byref(inc))
+    _dtpsv(b"U", b"T", b"N", ctypes.byref(ctypes.c_int(n)), packed.ctypes.data,
+           x.ctypes.data, ctypes.byref(_INC))
     return x

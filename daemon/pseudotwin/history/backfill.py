@@ -1,9 +1,11 @@
 """``pseudotwin backfill``: the daemon's estimates for past days, from the history store.
 
 Stored readings are replayed day by day through the same :class:`~pseudotwin.live.twin.Twin` the
-daemon runs, in the order the daemon would have seen them: at every reference reading, and at
-every instant of the publish grid, every model's estimate is written to the estimates table
-(upserted on twin, model, ts — a rerun rewrites, never duplicates). Each finished day is
+daemon runs, in the order the daemon would have seen them, and what the daemon would have
+published is written to the estimates table: at every reference reading that moves the twin
+the primary model's estimate (every model's with ``[service] baselines = "reading"``), at
+every instant of the publish grid every model's (upserted on twin, model, ts — a rerun
+rewrites, never duplicates). Each finished day is
 recorded (per artifact version) after its rows are written, so an interrupted backfill
 continues with the days not yet finished, and a retrained twin is backfilled anew. One day
 of readings is in memory at a time.
@@ -23,7 +25,7 @@ import logging
 import math
 import time
 import traceback
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -174,22 +176,48 @@ def grid_instants(cfg: ServiceConfig, day: dt.date) -> list[dt.datetime]:
 
 
 def day_estimates(
-    twin: Twin, readings: pd.DataFrame, grid: list[dt.datetime]
+    twin: Twin, readings: pd.DataFrame, grid: list[dt.datetime],
+    per_reading: Sequence[str] | None = None,
 ) -> Iterator[tuple[str, TwinEstimate]]:
     """Feed one day's readings (time order) and yield (kind, estimate) as the daemon would
-    publish them: after each accepted reference reading, and at each grid instant (after the
-    readings up to it). Init-phase and empty estimates are not published, so not yielded."""
+    publish them: ``per_reading``'s (None: every model's) after each accepted reference
+    reading, and every model's at each grid instant (after the readings up to it).
+    Init-phase and empty estimates are not published, so not yielded.
+
+    A grid instant that is also the time of the reading just estimated (1-minute readings
+    on a 15-minute grid: every instant) would give the very same estimates again, since
+    nothing has reached the twin in between: only the models not estimated at the reading
+    are computed there.
+    """
     gi = 0
-    rows = zip(readings["sensor"], readings["ts"], readings["value"], strict=True)
-    for sensor, ts, value in rows:
-        t = ts.to_pydatetime()
+    # The instant of the last estimate when nothing has reached the twin since (else None).
+    fresh: dt.datetime | None = None
+    # Plain Python values up front: pandas' per-row boxing costs more than the loop itself.
+    rows = zip(readings["sensor"].tolist(), pd.DatetimeIndex(readings["ts"]).to_pydatetime(),
+               readings["value"].tolist(), strict=True)
+    for sensor, t, value in rows:
         while gi < len(grid) and grid[gi] < t:
-            yield from _publishable(twin.estimate(grid[gi]))
+            yield from _publishable(_at_grid(twin, grid[gi], fresh, per_reading))
             gi += 1
+        # A rejected reading may still move the twin (its staleness clock): no reuse then.
+        fresh = None
         if twin.observe(sensor, t, float(value)):
-            yield from _publishable(twin.estimate(t))
+            yield from _publishable(twin.estimate(t, kinds=per_reading))
+            fresh = t
     for g in grid[gi:]:
-        yield from _publishable(twin.estimate(g))
+        yield from _publishable(_at_grid(twin, g, fresh, per_reading))
+
+
+def _at_grid(twin: Twin, g: dt.datetime, fresh: dt.datetime | None,
+             per_reading: Sequence[str] | None) -> dict[str, TwinEstimate]:
+    """Every model's estimate at grid instant ``g``, but those already estimated at ``g``
+    (``fresh``: nothing moved the twin since)."""
+    if g != fresh:
+        return twin.estimate(g)
+    if per_reading is None:
+        return {}
+    rest = [k for k in twin.kinds if k not in per_reading]
+    return twin.estimate(g, kinds=rest) if rest else {}
 
 
 def _publishable(ests: dict[str, TwinEstimate]) -> Iterator[tuple[str, TwinEstimate]]:
@@ -198,10 +226,10 @@ def _publishable(ests: dict[str, TwinEstimate]) -> Iterator[tuple[str, TwinEstim
 
 def day_rows(cfg: ServiceConfig, job: TwinJob, twin: Twin, day: dt.date,
              frame: pd.DataFrame) -> list[EstimateRow]:
-    """The rows of one day: one per (model, instant); a grid instant that coincides with a
-    reading gives the same estimate twice, and the store would only overwrite it."""
+    """The rows of one day: one per (model, instant)."""
     rows: dict[tuple[str, dt.datetime], EstimateRow] = {}
-    for kind, e in day_estimates(twin, frame, grid_instants(cfg, day)):
+    for kind, e in day_estimates(twin, frame, grid_instants(cfg, day),
+                                 cfg.per_reading_kinds(twin.artifact.primary)):
         rows[(kind, e.ts)] = EstimateRow.from_estimate(job.twin_id, kind, e, job.digest)
     return list(rows.values())
 

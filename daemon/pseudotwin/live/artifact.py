@@ -20,13 +20,15 @@ from pseudotwin.core.spec import OfTwin, Quantity, TwinSpec
 from pseudotwin.errors import ArtifactError, ConfigError
 from pseudotwin.live.calibration import SigmaCalibration
 from pseudotwin.live.envelope import Envelope
+from pseudotwin.live.failover import Failover
 from pseudotwin.models.base import TwinModel
 from pseudotwin.models.registry import MODELS
 
 FORMAT = "pseudotwin-artifact"
 # 2: σ calibration, validation, the ref model, VARMA re-levelling; version 1 still loads.
 # 3: the training envelope (live/envelope.py); older versions load without one.
-VERSION = 3
+# 4: reference failover (live/failover.py); older versions load without any.
+VERSION = 4
 
 
 @dataclass(frozen=True)
@@ -40,6 +42,8 @@ class Artifact(OfTwin):
     validation: the candidates' leave-one-day-out scores and why the primary won.
     envelope: the references' training ranges behind quality ``uncertain`` (older artifacts
     have none: their estimates are never uncertain).
+    failover: lost reference → the validated candidate that answers without it (older
+    artifacts and single-reference twins have none: a silent reference makes them stale).
     """
 
     spec: TwinSpec
@@ -50,6 +54,7 @@ class Artifact(OfTwin):
     calibration: dict[str, SigmaCalibration] = field(default_factory=dict)
     validation: dict[str, Any] = field(default_factory=dict)
     envelope: Envelope | None = None
+    failover: dict[str, Failover] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.primary not in self.models:
@@ -79,6 +84,8 @@ class Artifact(OfTwin):
             "calibration": {kind: c.to_dict() for kind, c in self.calibration.items()},
             "validation": self.validation,
             **({"envelope": self.envelope.to_dict()} if self.envelope else {}),
+            **({"failover": {r: f.to_dict() for r, f in self.failover.items()}}
+               if self.failover else {}),
         }
 
     def save(self, path: str | Path) -> Path:
@@ -120,8 +127,11 @@ class Artifact(OfTwin):
             }
             envelope = (Envelope.from_dict(d["envelope"], spec.hours)
                         if d.get("envelope") is not None else None)
+            failover = {str(r): Failover.from_dict(str(r), f, spec)
+                        for r, f in (d.get("failover") or {}).items()}
             return cls(spec, models, str(twin["primary"]), d.get("training", {}),
-                       d.get("created", ""), calibration, d.get("validation", {}), envelope)
+                       d.get("created", ""), calibration, d.get("validation", {}), envelope,
+                       failover)
         except ArtifactError:
             raise
         except ConfigError as exc:

@@ -28,7 +28,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats
 from scipy.optimize import nnls
 
 BIN_HOURS = 1.0  # width of the time-of-day bins of the within-day spread [h]
@@ -94,6 +93,8 @@ class SigmaCalibration:
         day_dof = max(n_days - 1, 1)
         nu = total**2 / (day_var**2 / day_dof + within**2 / (WITHIN_DAY_DOF * n_days) + 1e-300)
         # No held-out error at all (the target is a copy of a reference): nothing to widen.
+        from scipy import stats  # training only: the daemon need not load scipy.stats
+
         factor = float((stats.t.ppf(stats.norm.cdf(Z2), max(nu, 1.0)) / Z2) ** 2
                        if total > 0 else 1.0)
         return cls(day_var, a, float(k), factor, n_days, bins)

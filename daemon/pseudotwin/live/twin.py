@@ -30,6 +30,7 @@ from pseudotwin.errors import NumericalError
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.calibration import SLOPE_WINDOW_H
 from pseudotwin.live.envelope import WIDEN
+from pseudotwin.live.failover import ranked
 from pseudotwin.models.base import DayEstimator, TwinModel
 
 log = logging.getLogger(__name__)
@@ -40,7 +41,11 @@ class Quality(StrEnum):
 
     ok: the model answered from fresh references; init: the init phase before day start
     (never published); stale: a reference it needs has been silent longer than
-    ``stale_after``; fallback: the model failed numerically and a simpler one answered;
+    ``stale_after``; fallback: the model failed numerically and a simpler one answered, or
+    (failover, live/failover.py) a reference it needs is silent or missing and the artifact's
+    validated candidate without that reference answered, with its own calibrated σ
+    (:attr:`TwinEstimate.lost` names the silent references; ``stale`` then only when no
+    failover can answer from fresh references);
     uncertain: a reference it needs is outside its training range (level, deviation from its
     daily profile, or speed; live/envelope.py), so σ is widened by ``envelope.WIDEN`` and
     :attr:`TwinEstimate.why` says why.
@@ -60,8 +65,9 @@ class TwinEstimate:
     """One model's estimate of the target at ``ts``.
 
     value, std: [°C] or [ppm]; model: what produced the value (``triv`` on fallback,
-    ``var-fallback`` when VARMAX did not converge); refs: sensor → time of its last reading;
-    why: what is unlike training when the quality is ``uncertain``.
+    ``var-fallback`` when VARMAX did not converge; the failover's kind when a reference is
+    lost); refs: sensor → time of its last reading; why: what is unlike training when the
+    quality is ``uncertain``; lost: the silent references a failover answered without.
     """
 
     ts: dt.datetime
@@ -71,6 +77,7 @@ class TwinEstimate:
     quality: Quality
     refs: dict[str, dt.datetime | None] = field(default_factory=dict)
     why: tuple[str, ...] = ()
+    lost: tuple[str, ...] = ()
 
     @property
     def finite(self) -> bool:
@@ -128,6 +135,8 @@ class Twin:
         self.last: dict[str, tuple[dt.datetime, float]] = {}
         self._thinner = WindowThinner(self.thinning)
         self._est: dict[str, DayEstimator] = {}
+        # The primary's failovers' live state: lost reference → estimator (live/failover.py).
+        self._failover: dict[str, DayEstimator] = {}
         self._broken: set[str] = set()
         # Today's window per reference in time order: sensor → ([hours], [values]).
         self._series: dict[str, tuple[list[float], list[float]]] = {}
@@ -148,6 +157,8 @@ class Twin:
         self._broken = set()
         self._series = {s: ([], []) for s in self.references}
         self._est = {k: self.artifact.models[k].start_day(day) for k in self.kinds}
+        self._failover = ({r: f.model.start_day(day) for r, f in self.artifact.failover.items()}
+                          if self.artifact.primary in self.kinds else {})
         self.uncertain_since, self.uncertain_why = None, ()
         init_ts = self.hours.at(day, self.hours.init_start)
         for s in self.references:
@@ -168,6 +179,16 @@ class Twin:
                 est.observe(r.sensor, r.hours, r.value)
             except NumericalError as exc:
                 self._break(kind, exc)
+        for lost, est in list(self._failover.items()):
+            try:
+                est.observe(r.sensor, r.hours, r.value)
+            except NumericalError as exc:
+                self._drop_failover(lost, exc)
+
+    def _drop_failover(self, lost: str, exc: Exception) -> None:
+        # Failovers are cheap models; one that fails anyway sits out the rest of the day.
+        log.warning("failover for %s: numerical failure (%s); unavailable today", lost, exc)
+        del self._failover[lost]
 
     def _break(self, kind: str, exc: Exception) -> None:
         log.warning("%s: numerical failure (%s); publishing TRIV with quality fallback", kind, exc)
@@ -242,6 +263,11 @@ class Twin:
                 # KeyError: the estimator lost the point (never expected); rebuilt from the
                 # window at the next reading like a numerical failure.
                 self._break(kind, exc)
+        for lost, est in list(self._failover.items()):
+            try:
+                est.revise(sensor, old.hours, value)
+            except (NumericalError, KeyError) as exc:
+                self._drop_failover(lost, exc)
 
     # -- monitoring -------------------------------------------------------------------
     def slot_values(self) -> dict[str, np.ndarray]:
@@ -263,13 +289,14 @@ class Twin:
 
     # -- estimates --------------------------------------------------------------------
     def _stale(self, kind: str, ts: dt.datetime) -> bool:
-        for s in self._needs(kind):
-            last = self.last.get(s)
-            if last is None:
-                return True
-            if self.stale_after is not None and ts - last[0] > self.stale_after:
-                return True
-        return False
+        return any(self._silent(s, ts) for s in self._needs(kind))
+
+    def _silent(self, sensor: str, ts: dt.datetime) -> bool:
+        """Never reported, or silent longer than ``stale_after`` at ``ts``."""
+        last = self.last.get(sensor)
+        if last is None:
+            return True
+        return self.stale_after is not None and ts - last[0] > self.stale_after
 
     def slope(self, sensors: Sequence[str], hours: float) -> float:
         """Mean |slope| [unit/h] of ``sensors`` over the last ``SLOPE_WINDOW_H`` of today's
@@ -299,8 +326,10 @@ class Twin:
             slopes[refs] = self.slope(refs, hours)
         return calib.sigma(hours, slopes[refs])
 
-    def estimate(self, ts: dt.datetime) -> dict[str, TwinEstimate]:
-        """Every model's estimate at ``ts`` from the window's readings up to now.
+    def estimate(self, ts: dt.datetime,
+                 kinds: Sequence[str] | None = None) -> dict[str, TwinEstimate]:
+        """Every model's estimate at ``ts`` from the window's readings up to now (only
+        ``kinds``' when given: the daemon's per-reading update needs just the primary).
 
         Empty outside the operating window (before init start, after day end).
         """
@@ -311,7 +340,7 @@ class Twin:
         triv = None
         slopes: dict[tuple[str, ...], float] = {}
         unlike: dict[str, list[str]] = {}  # reference → why it is unlike training, at h
-        for kind in self.kinds:
+        for kind in self.kinds if kinds is None else kinds:
             refs = {s: (self.last[s][0] if s in self.last else None) for s in self._needs(kind)}
             name = self.artifact.models[kind].model_name
             quality = Quality.OK
@@ -329,10 +358,15 @@ class Twin:
             # init (never published) before stale before fallback: a model that failed
             # in the init phase must not publish early, nor hide a silent reference.
             why: tuple[str, ...] = ()
+            lost: tuple[str, ...] = ()
             if h < self.hours.day_start:
                 quality = Quality.INIT
             elif self._stale(kind, ts):
                 quality = Quality.STALE
+                if kind == self.artifact.primary and (answer := self._answer_without(ts, h,
+                                                                                     slopes)):
+                    value, std, name, lost = answer
+                    quality = Quality.FALLBACK
             elif quality is Quality.OK:
                 why = self._unlike_training(self._needs(kind), h, unlike)
                 if why:
@@ -340,8 +374,28 @@ class Twin:
             if kind == self.artifact.primary:
                 self.uncertain_why = why
                 self.uncertain_since = (self.uncertain_since or ts) if why else None
-            out[kind] = TwinEstimate(ts, float(value), float(std), name, quality, refs, why)
+            out[kind] = TwinEstimate(ts, float(value), float(std), name, quality, refs, why,
+                                     lost)
         return out
+
+    def _answer_without(self, ts: dt.datetime, h: float, slopes: dict[tuple[str, ...], float]
+                        ) -> tuple[float, float, str, tuple[str, ...]] | None:
+        """The failover's (value, σ, model name, lost references) at ``ts`` when the primary
+        cannot answer for a silent reference; None when no failover has fresh references."""
+        running = {r: f for r, f in self.artifact.failover.items() if r in self._failover}
+        for f in ranked(running, lambda s: not self._silent(s, ts)):
+            e = self._failover[f.lost].predict(h)
+            if not math.isfinite(e.value):
+                continue  # its references have no point in today's window yet
+            refs = f.model.references_
+            std = e.std
+            if f.calibration is not None:
+                if refs not in slopes:
+                    slopes[refs] = self.slope(refs, h)
+                std = f.calibration.sigma(h, slopes[refs])
+            lost = tuple(s for s in self._needs(self.artifact.primary) if self._silent(s, ts))
+            return e.value, std, f.model.model_name, lost
+        return None
 
     def _unlike_training(self, sensors: Sequence[str], h: float,
                          cache: dict[str, list[str]]) -> tuple[str, ...]:

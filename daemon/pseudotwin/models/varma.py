@@ -58,16 +58,11 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from statsmodels.tsa.statespace.tools import (
-    prepare_trend_spec,
-    solve_discrete_lyapunov,
-)
-from statsmodels.tsa.statespace.varmax import VARMAX
 
 from pseudotwin.core.spec import TwinSpec
 from pseudotwin.errors import ArtifactError, DataError, NumericalError
 from pseudotwin.models.base import DayEstimator, Estimate, TrainingSet, TwinModel
-from pseudotwin.models.triv import fill_slots
+from pseudotwin.models.triv import fill_slots, list_mean
 
 log = logging.getLogger(__name__)
 
@@ -153,59 +148,12 @@ def _single_threaded_blas() -> Iterator[None]:
             setter(n)
 
 
-class _FitTimeout(Exception):
-    """The VARMAX optimizer ran past ``max_seconds``."""
-
-
-class _BoundedVARMAX(VARMAX):
-    """VARMAX with a wall-clock deadline and a well-scaled trend for the optimizer.
-
-    The trend regressor τ runs up to a few hundred slots, so the likelihood's gradient with
-    respect to the drift is hundreds of times that of the intercept and L-BFGS stalls in its
-    first line search. The optimizer therefore sees each degree-d trend parameter multiplied
-    by ``nobs**d`` (a change of the whole trend over the training span); the constrained
-    parameters, which the results report and the artifact stores, are the ordinary ones.
-    """
-
-    deadline: float | None = None
-
-    def _trend_scale(self) -> np.ndarray:
-        """Optimizer scale of each parameter: [k_params] (1 except for trend terms)."""
-        scale = np.ones(self.k_params)
-        degrees = np.flatnonzero(self.polynomial_trend)
-        per_series = np.asarray(float(self.nobs)) ** degrees
-        scale[self._params_trend] = np.tile(per_series, self.k_endog)
-        return scale
-
-    def transform_params(self, unconstrained: np.ndarray) -> np.ndarray:
-        constrained = super().transform_params(unconstrained)
-        sl = self._params_trend
-        constrained[sl] = np.asarray(unconstrained)[sl] / self._trend_scale()[sl]
-        return constrained
-
-    def untransform_params(self, constrained: np.ndarray) -> np.ndarray:
-        unconstrained = super().untransform_params(constrained)
-        sl = self._params_trend
-        unconstrained[sl] = np.asarray(constrained)[sl] * self._trend_scale()[sl]
-        return unconstrained
-
-    def loglike(self, params: np.ndarray, *args: Any, **kwargs: Any) -> float:
-        # Every objective and finite-difference gradient evaluation passes here, so this is
-        # where a fit that runs out of time can be stopped.
-        if self.deadline is not None and time.monotonic() > self.deadline:
-            raise _FitTimeout
-        return super().loglike(params, *args, **kwargs)
-
-
-def _quiet_varmax(endog: np.ndarray, order: tuple[int, int], trend: str, **kw: Any) -> VARMAX:
-    """A plain VARMAX without the identification warning every VARMA(p, q>0) issues."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return VARMAX(endog, order=order, trend=trend, **kw)
-
-
 def _spectral_radius(transition: np.ndarray) -> float:
     return float(np.max(np.abs(np.linalg.eigvals(transition)))) if transition.size else 0.0
+
+
+_STATE_SPACE_FIELDS = ("design", "obs_intercept", "obs_cov", "transition", "selection",
+                       "state_cov", "trend_degrees", "trend_params", "init_cov")
 
 
 @dataclass(frozen=True)
@@ -228,6 +176,12 @@ class _StateSpace:
     trend_degrees: np.ndarray
     trend_params: np.ndarray
     init_cov: np.ndarray
+
+    def __post_init__(self) -> None:
+        # One memory layout whether read off statsmodels or an artifact: BLAS rounds a
+        # product by layout, and a fitted and a loaded model must predict the same bits.
+        for name in _STATE_SPACE_FIELDS:
+            object.__setattr__(self, name, np.ascontiguousarray(getattr(self, name), float))
 
     @property
     def k_endog(self) -> int:
@@ -254,12 +208,45 @@ class _StateSpace:
         mean = np.linalg.solve(eye - self.transition, self.state_intercept(tau0 + 1))
         return mean, self.init_cov.copy()
 
+    def to_dict(self) -> dict[str, list[Any]]:
+        return {name: getattr(self, name).tolist() for name in _STATE_SPACE_FIELDS}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], k: int) -> _StateSpace:
+        """The matrices an artifact stores (k series), checked for shape and finiteness."""
+        try:
+            arrays = {name: np.asarray(d[name], float).reshape(np.shape(d[name]))
+                      for name in _STATE_SPACE_FIELDS}
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ArtifactError(f"VARMA state_space unreadable: {exc!r}") from None
+        ssm = cls(**arrays)
+        m = ssm.k_states
+        shapes = {"design": (k, m), "obs_intercept": (k,), "obs_cov": (k, k),
+                  "transition": (m, m), "selection": (m, k), "state_cov": (k, k),
+                  "init_cov": (m, m)}
+        for name, shape in shapes.items():
+            if arrays[name].shape != shape:
+                raise ArtifactError(f"VARMA state_space {name} has shape "
+                                    f"{arrays[name].shape}, expected {shape}")
+        if ssm.trend_params.size and ssm.trend_params.shape != (len(ssm.trend_degrees), k):
+            raise ArtifactError(f"VARMA state_space trend_params has shape "
+                                f"{ssm.trend_params.shape}")
+        if not all(np.isfinite(a).all() for a in arrays.values()):
+            raise ArtifactError("VARMA state_space holds non-finite values")
+        return ssm
+
     @classmethod
     def from_params(
         cls, order: tuple[int, int], trend: str, params: np.ndarray, k: int
     ) -> _StateSpace:
         """Read the matrices off a statsmodels VARMAX updated with ``params`` (constrained)."""
-        mod = _quiet_varmax(np.zeros((2, k)), order, trend, trend_offset=0)
+        from pseudotwin.models.varmax import (
+            prepare_trend_spec,
+            quiet_varmax,
+            solve_discrete_lyapunov,
+        )
+
+        mod = quiet_varmax(np.zeros((2, k)), order, trend, trend_offset=0)
         if len(params) != mod.k_params:
             raise ArtifactError(
                 f"VARMA: {len(params)} parameters given, VARMAX{order} with trend {trend!r} "
@@ -300,6 +287,8 @@ def _ols_var(
     vector (trend, AR, lower Cholesky factor of the innovation covariance, in statsmodels'
     order) and the spectral radius of the OLS companion matrix before any shrinking.
     """
+    from pseudotwin.models.varmax import prepare_trend_spec
+
     n, k = grid.shape
     poly, k_trend = prepare_trend_spec(trend)
     degrees = np.flatnonzero(poly).astype(float)
@@ -390,6 +379,8 @@ class VarmaModel(TwinModel):
     def fit(self, training: TrainingSet) -> VarmaModel:
         if self.p < 1 or self.q < 0:
             raise DataError(f"VARMA order ({self.p}, {self.q}): need p ≥ 1 and q ≥ 0")
+        from pseudotwin.models.varmax import prepare_trend_spec, quiet_varmax
+
         prepare_trend_spec(self.trend)  # rejects an unknown trend before any work
         if self.target_mode not in TARGET_MODES:
             raise DataError(
@@ -471,18 +462,20 @@ class VarmaModel(TwinModel):
             # Asked-for VARMA that ends as VAR is worth a warning; a forced VAR is not.
             (log.info if self.force_fallback else log.warning)("VARMA: %s", self.fit_message_)
         self.param_names_ = list(
-            _quiet_varmax(np.zeros((2, len(sensors))), self.order_, self.trend).param_names
+            quiet_varmax(np.zeros((2, len(sensors))), self.order_, self.trend).param_names
         )
         self.ssm_ = _StateSpace.from_params(self.order_, self.trend, self.params_, len(sensors))
         return self
 
     def _fit_varmax(self, grid: np.ndarray) -> tuple[np.ndarray | None, str]:
         """Maximum likelihood VARMAX(p, q); (params, message), params None on failure."""
+        from pseudotwin.models.varmax import BoundedVARMAX, FitTimeout
+
         k = grid.shape[1]
         with warnings.catch_warnings(record=True) as caught, _single_threaded_blas():
             warnings.simplefilter("always")
             try:
-                mod = _BoundedVARMAX(
+                mod = BoundedVARMAX(
                     grid, order=(self.p, self.q), trend=self.trend, trend_offset=0
                 )
                 # statsmodels' own start (VAR on the interpolated grid, then a VAR on its
@@ -496,7 +489,7 @@ class VarmaModel(TwinModel):
                     cov_type="none", factr=LBFGS_FACTR, pgtol=LBFGS_PGTOL,
                 )
                 mod.deadline = None
-            except _FitTimeout:
+            except FitTimeout:
                 params, message = None, (
                     f"VARMAX{(self.p, self.q)} did not finish within {self.max_seconds:g} s"
                 )
@@ -583,6 +576,8 @@ class VarmaModel(TwinModel):
             "sensors": list(self.sensors_),
             "param_names": list(self.param_names_),
             "params": [float(v) for v in self.params_],
+            # The live path reads these (no statsmodels in the daemon); params stay the record.
+            "state_space": self.ssm_.to_dict(),
             "profile": self.profile_.tolist(),
             "train_day0": self.train_day0_.isoformat(),
             "slots": {
@@ -638,7 +633,16 @@ class VarmaModel(TwinModel):
         m.fit_message_ = str(d["fit_message"])
         m.fit_warnings_ = list(d.get("fit_warnings", []))
         m.fit_seconds_ = {k: float(v) for k, v in d.get("fit_seconds", {}).items()}
-        names = list(_quiet_varmax(np.zeros((2, len(sensors))), m.order_, m.trend).param_names)
+        if "state_space" in d:  # written by this version: no statsmodels needed
+            m.param_names_ = [str(n) for n in d["param_names"]]
+            m.params_ = np.array([float(v) for v in d["params"]])
+            if len(m.param_names_) != len(m.params_):
+                raise ArtifactError("VARMA param_names and params differ in length")
+            m.ssm_ = _StateSpace.from_dict(d["state_space"], len(sensors))
+            return m
+        from pseudotwin.models.varmax import quiet_varmax
+
+        names = list(quiet_varmax(np.zeros((2, len(sensors))), m.order_, m.trend).param_names)
         given = dict(zip(d["param_names"], d["params"], strict=True))
         missing = [n for n in names if n not in given]
         if missing:
@@ -772,7 +776,7 @@ class VarmaDay(DayEstimator):
         Before the first window slot no reading may be used yet: the stationary prior of
         the first slot is returned.
         """
-        slot = int(self.model.hours_.slot_of(hours)) - self._first
+        slot = self.model.hours_.slot_index_of(hours) - self._first
         if slot < 0:
             a, p = self._pred[0]
             return self._estimate(0, a, p)
@@ -793,10 +797,10 @@ class VarmaDay(DayEstimator):
             times, held = self._times[s], self._raw[slot, j]
             if not times or not math.isfinite(held):
                 continue
-            i = int(np.searchsorted(times, hours, side="right")) - 1
+            i = bisect.bisect_right(times, hours) - 1  # times: a sorted list, no array
             if i >= 0:
                 d.append(self._values[s][i] - held)
-        return float(np.mean(d)) if d else 0.0
+        return list_mean(d)
 
     def _estimate(self, slot: int, a: np.ndarray, p: np.ndarray) -> Estimate:
         ss, w = self._ss, self._weights

@@ -1,0 +1,63 @@
+"""Training the failover candidates: per reference the primary reads, the best model that does
+without it (live/failover.py says how the twin uses them).
+
+For each such reference r, the candidates ``FAILOVER_KINDS`` are trained on the twin with r
+removed and validated exactly like the twin's own candidates (leave-one-day-out over the
+training days, the same tie rule, σ calibrated on the held-out errors: analysis/validation.py).
+Only cheap kinds by default: TRIV and the raw reference need no GP fit, so failover adds a few
+seconds to ``train``, not minutes.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import replace
+from typing import Any
+
+import pandas as pd
+
+from pseudotwin.analysis import validation
+from pseudotwin.core.series import DayReadings
+from pseudotwin.core.spec import TwinSpec
+from pseudotwin.errors import DataError
+from pseudotwin.live.failover import Failover
+from pseudotwin.models.base import TrainingSet
+from pseudotwin.models.registry import build
+
+log = logging.getLogger(__name__)
+
+# Cheap candidates (no GP fit): a failover answers for hours at most, until the sensor is back.
+FAILOVER_KINDS: tuple[str, ...] = ("ref", "triv")
+
+
+def train_failover(
+    df: pd.DataFrame,
+    spec: TwinSpec,
+    days: Sequence[DayReadings],
+    needed: Sequence[str],
+    kinds: Sequence[str] = FAILOVER_KINDS,
+    options: Mapping[str, Mapping[str, Any]] | None = None,
+) -> dict[str, Failover]:
+    """Lost reference → its validated failover, for each of ``needed`` (the references the
+    primary reads). Empty for a single-reference twin; a reference whose candidates cannot be
+    validated gets none (logged): losing it makes the estimate stale, as before."""
+    if len(spec.references) < 2:
+        return {}
+    # A model option naming the lost reference (say ref's ``reference``) cannot apply.
+    opts = {k: {o: v for o, v in (options or {}).get(k, {}).items()
+                if o not in ("reference", "references")} for k in kinds}
+    out: dict[str, Failover] = {}
+    for lost in needed:
+        others = replace(spec, references=tuple(r for r in spec.references if r != lost))
+        try:
+            v = validation.validate(df, others, days, list(kinds), opts)
+        except DataError as exc:
+            log.warning("no failover for %s: %s", lost, exc)
+            continue
+        model = build(v.primary, opts.get(v.primary)).fit(TrainingSet(others, tuple(days)))
+        out[lost] = Failover(lost, v.primary, model, v.calibration.get(v.primary),
+                             v.scores[v.primary].nrmse_pct, v.reason)
+        log.info("failover for %s: %s on %s (held-out %.2f %%)", lost, v.primary,
+                 ", ".join(model.references_), v.scores[v.primary].nrmse_pct)
+    return out

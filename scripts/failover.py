@@ -1,0 +1,143 @@
+#!/usr/bin/env python3
+"""Reference failover on the shared runs with several references: each reference silenced in
+turn on every test day, the published estimate's error against the full twin's.
+
+Per run (scripts/results.py's runs with ≥ 2 references), trains as results.py does (same
+days, same models, validation picks the primary and the failovers), then replays the test days
+through the daemon's twin (analysis/replay.py, the daemon's ``stale_after``) three ways: with
+every reference (the full twin), and with one reference's readings removed from every test day
+(its last value before the test days is then older than ``stale_after`` all day), once with
+the artifact's failover and once without it (what older artifacts publish). Reports the mean
+daily NRMSE of the published estimate, its ratio to the full twin's (Issue 10: ≤ 1.2), the
+scored instants (true target readings in operating hours) left unanswered (no estimate, or
+quality ``stale``), and ±2σ coverage of the failover's estimates.
+
+Prints a Markdown table and, last, one JSON line.
+
+    .venv/bin/python scripts/failover.py [--runs NAME,...] [--models ref,triv,corrgp-triv]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime as dt
+import json
+import logging
+import math
+import sys
+import time
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+import pseudotwin  # noqa: F401  (one BLAS thread, before numpy does any work)
+from pseudotwin.analysis.evaluate import ESTIMATE, daily_scores, replay_estimates
+from pseudotwin.analysis.report.runs import RUNS
+from pseudotwin.analysis.training import train_twin
+from pseudotwin.history.convert import load
+from pseudotwin.live import metrics
+from pseudotwin.live.artifact import Artifact
+from pseudotwin.models.registry import ALL_MODELS
+
+STALE_AFTER = dt.timedelta(minutes=30)  # the daemon's default stale_after_minutes
+MULTI = [r for r in RUNS if len(r.references) >= 2]
+
+
+def _published(art: Artifact, history: pd.DataFrame, start: dt.date,
+               stale_after: dt.timedelta) -> tuple[pd.DataFrame, int]:
+    """The ``estimate`` rows (what <twin>/estimate carries) at every scored instant, and how
+    many instants were scored (every true target reading in operating hours: the raw
+    references' rows mark them all, whoever answered)."""
+    est = replay_estimates(art, history, start, [art.primary], stale_after=stale_after)
+    return est[est["model"] == ESTIMATE], int(est["ts"].nunique())
+
+
+def _mean_nrmse(rows: pd.DataFrame, art: Artifact) -> float:
+    answered = rows[rows["quality"] != "stale"]
+    if answered.empty:
+        return float("nan")
+    daily = daily_scores(answered, art.hours)
+    return float(daily["nrmse_pct"].mean())
+
+
+def run(spec: Any, models: tuple[str, ...], history: pd.DataFrame) -> list[dict[str, Any]]:
+    t0 = time.perf_counter()
+    art = train_twin(history, spec.twin, spec.train_start, spec.train_days, models)
+    start = dt.date.fromisoformat(art.training["end"]) + dt.timedelta(days=1)
+    days, _ = art.hours.day_and_hours(history["ts"])
+    full, total = _published(art, history, start, STALE_AFTER)
+    full_nrmse = _mean_nrmse(full, art)
+    bare = dataclasses.replace(art, failover={})
+    out = []
+    for lost in art.references:
+        silenced = history[~((history["sensor"] == lost) & (days >= np.datetime64(start)))]
+        with_fo, _ = _published(art, silenced, start, STALE_AFTER)
+        without, _ = _published(bare, silenced, start, STALE_AFTER)
+        fo_rows = with_fo[with_fo["quality"] == "fallback"]
+        answered = int((with_fo["quality"] != "stale").sum())
+        nrmse = _mean_nrmse(with_fo, art)
+        fo = art.failover.get(lost)
+        out.append({
+            "run": spec.name, "primary": art.primary,
+            "primary_refs": list(art.models[art.primary].references_), "lost": lost,
+            "failover": (f"{fo.kind} on {', '.join(fo.model.references_)}" if fo else None),
+            "test_days": int(daily_scores(full, art.hours)["day"].nunique()),
+            "full_nrmse_pct": full_nrmse, "silenced_nrmse_pct": nrmse,
+            "ratio": nrmse / full_nrmse if full_nrmse > 0 else float("nan"),
+            "instants": total, "full_unanswered": total - int((full["quality"] != "stale").sum()),
+            "unanswered": total - answered,
+            "unanswered_without_failover": total - int((without["quality"] != "stale").sum()),
+            "fallback_share_pct": 100 * len(fo_rows) / max(len(with_fo), 1),
+            "cover2_fallback_pct": (metrics.coverage_pct(fo_rows["truth"], fo_rows["value"],
+                                                         fo_rows["std"], 2.0)
+                                    if len(fo_rows) else float("nan")),
+            "seconds": round(time.perf_counter() - t0, 1),
+        })
+        print(f"# {spec.name}: {lost} silenced done ({out[-1]['seconds']} s)", flush=True)
+    return out
+
+
+def _f(x: Any, nd: int = 2) -> str:
+    return "—" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{nd}f}"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    names = [r.name for r in MULTI]
+    ap.add_argument("--runs", default=",".join(names),
+                    help=f"comma-separated runs with ≥ 2 references (default: all, "
+                         f"{', '.join(names)})")
+    ap.add_argument("--models", default=",".join(ALL_MODELS),
+                    help="models trained, as results.py does (default %(default)s; "
+                         "ref,triv,corrgp-triv is quicker)")
+    a = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING, stream=sys.stderr,
+                        format="%(levelname)s %(name)s: %(message)s")
+    wanted = [r.strip() for r in a.runs.split(",") if r.strip()]
+    unknown = sorted(set(wanted) - set(names))
+    if unknown:
+        ap.error(f"unknown run(s) {', '.join(unknown)}; runs with ≥ 2 references: "
+                 f"{', '.join(names)}")
+    models = tuple(m.strip() for m in a.models.split(",") if m.strip())
+    rows: list[dict[str, Any]] = []
+    for spec in (r for r in MULTI if r.name in wanted):
+        rows.extend(run(spec, models, load(spec.dataset)))
+    print("| run | primary | silenced | failover | days | NRMSE full % | NRMSE silenced % "
+          "| ratio | instants | unanswered full | unanswered | unanswered w/o failover "
+          "| fallback % | ±2σ cov fallback % |")
+    print("|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for r in rows:
+        print(f"| {r['run']} | {r['primary']} | {r['lost']} | {r['failover'] or '—'} "
+              f"| {r['test_days']} | {_f(r['full_nrmse_pct'])} | {_f(r['silenced_nrmse_pct'])} "
+              f"| {_f(r['ratio'])} | {r['instants']} | {r['full_unanswered']} | {r['unanswered']} "
+              f"| {r['unanswered_without_failover']} | {_f(r['fallback_share_pct'], 1)} "
+              f"| {_f(r['cover2_fallback_pct'], 1)} |")
+    print(json.dumps({"failover": [{k: (None if isinstance(v, float) and not math.isfinite(v)
+                                        else v) for k, v in r.items()} for r in rows]}))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,339 @@
+"""Reference failover (Issue 10, item 3): a silent reference does not stop the estimate.
+
+Real parts throughout: twins trained and validated on synthetic days with two references, the
+live Twin, artifacts saved and loaded, and the daemon on the real Mosquitto of conftest.py.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as dt
+import json
+import math
+import threading
+from pathlib import Path
+
+import numpy as np
+import paho.mqtt.client as mqtt
+import pandas as pd
+import pytest
+from paho.mqtt.enums import CallbackAPIVersion
+
+from daemon_support import wait_for
+from pseudotwin.analysis.replay import ESTIMATE, replay_estimates
+from pseudotwin.analysis.training import train_twin
+from pseudotwin.cli import main
+from pseudotwin.config import load_config
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.series import write_history
+from pseudotwin.core.spec import Quantity, TwinSpec
+from pseudotwin.edge.clock import ReplayClock
+from pseudotwin.edge.replay import replay
+from pseudotwin.edge.service import Service
+from pseudotwin.live.artifact import Artifact
+from pseudotwin.live.twin import Quality, Twin
+
+TZ = "Europe/Madrid"
+HOURS = OperatingHours(timezone=TZ)
+R1, R2, TARGET = "room/wall/temp", "room/ceiling/temp", "room/desk/temp"
+FIRST = dt.date(2024, 3, 4)
+TEST_DAY = FIRST + dt.timedelta(days=5)
+STALE = dt.timedelta(minutes=30)
+
+
+def synthetic_days(n_days: int = 6, seed: int = 7) -> pd.DataFrame:
+    """Two references and the desk every 5 min (the readings at an instant: references
+    first), 06:02:30–19:57:30 local: a shared daily shape and day level, each reference with its own
+    offset and noise, so TRIV on both beats either alone and each alone still answers."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for k in range(n_days):
+        day = FIRST + dt.timedelta(days=k)
+        level = rng.normal(0.0, 0.3)
+        for h in np.arange(6.0 + 2.5 / 60, 20.0, 5 / 60):  # off the 15-min publish grid
+            common = 21.0 + level + 1.5 * math.sin(math.pi * (h - 6.0) / 14.0)
+            ts = HOURS.at(day, float(h))
+            rows.append((R1, ts, common + 0.6 + rng.normal(0, 0.2)))
+            rows.append((R2, ts, common - 0.9 + rng.normal(0, 0.2)))
+            rows.append((TARGET, ts, common + 0.2 + rng.normal(0, 0.03)))
+    return pd.DataFrame(rows, columns=["sensor", "ts", "value"])
+
+
+@pytest.fixture(scope="module")
+def history() -> pd.DataFrame:
+    return synthetic_days()
+
+
+@pytest.fixture(scope="module")
+def today(history: pd.DataFrame) -> pd.DataFrame:
+    """The test day's readings (the day after the five training days)."""
+    return history[history["ts"] >= HOURS.at(TEST_DAY, 0.0)]
+
+
+@pytest.fixture(scope="module")
+def artifact(history: pd.DataFrame) -> Artifact:
+    spec = TwinSpec((R1, R2), TARGET, Quantity.TEMPERATURE, HOURS)
+    # Pinned: the primary must read both references for failover to matter.
+    return train_twin(history, spec, FIRST, 5, ("ref", "triv"), primary="triv")
+
+
+def feed(twin: Twin, df: pd.DataFrame, until: dt.datetime, skip: str | None = None,
+         after: dt.datetime | None = None) -> None:
+    """Observe ``df``'s references in order up to ``until``; ``skip``'s readings after
+    ``after`` are left out (the silenced sensor)."""
+    for s, ts, v in zip(df["sensor"], df["ts"], df["value"], strict=True):
+        if ts > until:
+            break
+        if s == TARGET or (s == skip and after is not None and ts > after):
+            continue
+        twin.observe(s, ts.to_pydatetime(), float(v))
+
+
+def alone(art: Artifact, lost: str) -> Twin:
+    """A twin whose only model is the failover for ``lost``, as a standalone artifact: what
+    the failover must publish, value and σ."""
+    f = art.failover[lost]
+    spec = dataclasses.replace(art.spec, references=f.model.references_)
+    calib = {f.kind: f.calibration} if f.calibration else {}
+    return Twin(Artifact(spec, {f.kind: f.model}, f.kind, calibration=calib))
+
+
+def test_training_keeps_a_validated_failover_per_reference(artifact: Artifact) -> None:
+    assert set(artifact.failover) == {R1, R2}
+    for lost, f in artifact.failover.items():
+        assert lost not in f.model.references_ and f.model.references_
+        assert f.kind in ("ref", "triv") and f.calibration is not None
+        assert math.isfinite(f.nrmse_pct) and f.reason
+
+
+@pytest.mark.parametrize("lost", [R1, R2])
+def test_silent_reference_switches_to_its_failover_and_back(
+    artifact: Artifact, today: pd.DataFrame, lost: str
+) -> None:
+    silent_from = HOURS.at(TEST_DAY, 10.0)
+    twin = Twin(artifact, stale_after=STALE)
+    t_ok = HOURS.at(TEST_DAY, 10.0)
+    feed(twin, today, t_ok)
+    before = twin.estimate(t_ok)["triv"]
+    assert before.quality in (Quality.OK, Quality.UNCERTAIN) and before.lost == ()
+
+    t = HOURS.at(TEST_DAY, 11.0 + 2.5 / 60)  # 62 min after the last reading of ``lost``
+    feed(twin, today[today["ts"] > t_ok], t, skip=lost, after=silent_from)
+    got = twin.estimate(t)["triv"]
+    f = artifact.failover[lost]
+    assert got.quality is Quality.FALLBACK
+    assert got.lost == (lost,) and got.model == f.model.model_name
+    assert set(got.refs) == {R1, R2}  # the lost reference's last reading is still reported
+    ref_twin = alone(artifact, lost)
+    feed(ref_twin, today, t, skip=lost, after=silent_from)
+    expected = ref_twin.estimate(t)[f.kind]
+    assert got.value == expected.value and got.std == expected.std
+    assert f.calibration is not None
+    h = HOURS.hours_of(t)
+    assert got.std == f.calibration.sigma(h, twin.slope(f.model.references_, h))
+    # the primary's own σ differs: the failover's is published, not the primary's
+    assert got.std != artifact.calibration["triv"].sigma(h, twin.slope((R1, R2), h))
+
+    back = HOURS.at(TEST_DAY, 11.1)
+    twin.observe(lost, back, float(today.loc[today["sensor"] == lost, "value"].iloc[0]))
+    again = twin.estimate(back)["triv"]
+    assert again.quality is not Quality.FALLBACK and again.lost == ()
+
+
+def test_missing_reference_fails_over_and_all_silent_is_stale(
+    artifact: Artifact, today: pd.DataFrame
+) -> None:
+    twin = Twin(artifact, stale_after=STALE)
+    t = HOURS.at(TEST_DAY, 9.0)
+    feed(twin, today[today["sensor"] != R1], t)
+    e = twin.estimate(t)["triv"]
+    assert e.quality is Quality.FALLBACK and e.lost == (R1,) and math.isfinite(e.value)
+    # both silent: no failover can answer
+    late = t + dt.timedelta(hours=1)
+    e = twin.estimate(late)["triv"]
+    assert e.quality is Quality.STALE and e.lost == ()
+
+
+def test_single_reference_twin_still_goes_stale(history: pd.DataFrame,
+                                                today: pd.DataFrame) -> None:
+    spec = TwinSpec((R1,), TARGET, Quantity.TEMPERATURE, HOURS)
+    art = train_twin(history[history["sensor"] != R2], spec, FIRST, 5, ("ref", "triv"))
+    assert art.failover == {}
+    twin = Twin(art, stale_after=STALE)
+    t = HOURS.at(TEST_DAY, 10.0)
+    feed(twin, today, t)
+    e = twin.estimate(t + dt.timedelta(hours=1))[art.primary]
+    assert e.quality is Quality.STALE and e.lost == ()
+
+
+def test_artifact_round_trip_keeps_failover(artifact: Artifact, today: pd.DataFrame,
+                                            tmp_path: Path) -> None:
+    path = artifact.save(tmp_path / "a.json")
+    d = json.loads(path.read_text(encoding="utf-8"))
+    assert d["version"] >= 4 and set(d["failover"]) == {R1, R2}
+    loaded = Artifact.load(path)
+    for lost, f in artifact.failover.items():
+        g = loaded.failover[lost]
+        assert (g.kind, g.model.references_, g.nrmse_pct) == (f.kind, f.model.references_,
+                                                             f.nrmse_pct)
+        assert g.calibration == f.calibration
+    # the loaded artifact fails over exactly as the trained one
+    t = HOURS.at(TEST_DAY, 11.5)
+    a, b = Twin(artifact, stale_after=STALE), Twin(loaded, stale_after=STALE)
+    for twin in (a, b):
+        feed(twin, today, t, skip=R2, after=HOURS.at(TEST_DAY, 10.0))
+    ea, eb = a.estimate(t)["triv"], b.estimate(t)["triv"]
+    assert ea.quality is Quality.FALLBACK and (ea.value, ea.std, ea.lost) == (eb.value, eb.std,
+                                                                             eb.lost)
+
+
+def test_older_artifact_without_failover_loads_and_goes_stale(
+    artifact: Artifact, today: pd.DataFrame
+) -> None:
+    d = artifact.to_dict()
+    del d["failover"]
+    d["version"] = 3
+    old = Artifact.from_dict(d)
+    assert old.failover == {}
+    twin = Twin(old, stale_after=STALE)
+    t = HOURS.at(TEST_DAY, 11.5)
+    feed(twin, today, t, skip=R2, after=HOURS.at(TEST_DAY, 10.0))
+    e = twin.estimate(t)["triv"]
+    assert e.quality is Quality.STALE and e.lost == ()
+
+
+def test_evaluate_cli_scores_the_failover_with_stale_after(
+    history: pd.DataFrame, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`evaluate --stale-after` publishes what the daemon would: with R2 silent on the test
+    day the `estimate` rows are the failover's (fallback), never stale; without the option
+    R2's carried-over value is held (no fallback); a bad value is a clear error."""
+    silent = history[~((history["sensor"] == R2) & (history["ts"] >= HOURS.at(TEST_DAY, 0.0)))]
+    csv = tmp_path / "h.csv"
+    write_history(silent, csv)
+    base = ["--log-level", "WARNING", "evaluate", "--history", str(csv), "--references",
+            f"{R1},{R2}", "--target", TARGET, "--quantity", "temperature", "--train-start",
+            str(FIRST), "--timezone", TZ, "--models", "ref,triv", "--primary", "triv"]
+    assert main([*base, "--out", str(tmp_path / "fo"), "--stale-after", "30"]) == 0
+    est = pd.read_csv(tmp_path / "fo" / "estimates.csv")
+    published = est[est["model"] == ESTIMATE]
+    assert len(published) > 100 and set(published["quality"]) == {"fallback"}
+    assert main([*base, "--out", str(tmp_path / "held")]) == 0
+    held = pd.read_csv(tmp_path / "held" / "estimates.csv")
+    assert "fallback" not in set(held.loc[held["model"] == ESTIMATE, "quality"])
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        main([*base, "--out", str(tmp_path / "bad"), "--stale-after", "-5"])
+    assert exc.value.code == 2
+    assert "--stale-after" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ through the daemon
+
+
+def write_config(folder: Path, port: int, artifact: Path) -> Path:
+    sensors = "".join(f"""
+[[sensors]]
+id = "{s}"
+topic = "house/{s}"
+unit = "°C"
+min = -10
+max = 50
+""" for s in (R1, R2, TARGET))
+    text = f"""
+[broker]
+host = "127.0.0.1"
+port = {port}
+client_id = "pt-failover-{folder.name}"
+
+[service]
+base_topic = "pt"
+timezone = "{TZ}"
+state_dir = "state"
+stale_after_minutes = {STALE.total_seconds() / 60:g}
+{sensors}
+[[twins]]
+id = "desk"
+references = ["{R1}", "{R2}"]
+target = "{TARGET}"
+quantity = "temperature"
+artifact = "{artifact}"
+"""
+    p = folder / "config.toml"
+    p.write_text(text, encoding="utf-8")
+    return p
+
+
+class Viewer:
+    """Every estimate the daemon publishes on pt/desk/estimate, in arrival order."""
+
+    def __init__(self, port: int) -> None:
+        self.msgs: list[dict] = []
+        self.lock = threading.Lock()
+        ready = threading.Event()
+        self.c = mqtt.Client(CallbackAPIVersion.VERSION2)
+        self.c.on_connect = lambda c, u, f, rc, p: (c.subscribe("pt/desk/estimate", 1),
+                                                    ready.set())
+        self.c.on_message = self._on
+        self.c.connect("127.0.0.1", port)
+        self.c.loop_start()
+        assert ready.wait(10)
+
+    def _on(self, c: mqtt.Client, u: object, m: mqtt.MQTTMessage) -> None:
+        if not m.retain:  # a retained message is an earlier test's
+            with self.lock:
+                self.msgs.append(json.loads(m.payload))
+
+    def all(self) -> list[dict]:
+        with self.lock:
+            return list(self.msgs)
+
+    def close(self) -> None:
+        self.c.disconnect()
+        self.c.loop_stop()
+
+
+def test_daemon_fails_over_on_a_silenced_reference_like_evaluate(
+    mosquitto, artifact: Artifact, history: pd.DataFrame, tmp_path: Path
+) -> None:
+    """R2 silenced from 10:00: the daemon publishes the failover with its σ and names R2,
+    and every estimate at a reading equals evaluate's (replay with the daemon's stale_after)."""
+    path = artifact.save(tmp_path / "desk.json")
+    cfg = load_config(write_config(tmp_path, mosquitto.port, path))
+    start, end = HOURS.at(TEST_DAY, 7.0), HOURS.at(TEST_DAY, 12.0)
+    silent_from = HOURS.at(TEST_DAY, 10.0)
+    day = history[(history["ts"] >= start) & (history["ts"] < end)]
+    day = day[~((day["sensor"] == R2) & (day["ts"] > silent_from))]
+    speed = 3000.0
+    viewer = Viewer(mosquitto.port)
+    svc = Service(cfg, clock=ReplayClock(start, speed))
+    svc.start(wait_connected=15)
+    try:
+        replay(cfg, day, start, end, speed)
+        refs = day[(day["sensor"] != TARGET) & (day["ts"] >= HOURS.at(TEST_DAY, 8.0))]
+        wanted = set(refs["ts"])
+        stamp = {t: t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z") for t in wanted}
+        wait_for(lambda: set(stamp.values()) <= {e["ts"] for e in viewer.all()},
+                 what="an estimate at every reference reading")
+    finally:
+        svc.stop()
+        viewer.close()
+    live: dict[str, dict] = {}
+    for e in viewer.all():  # two readings at an instant: the later estimate saw both
+        live[e["ts"]] = e
+    offline = replay_estimates(Artifact.load(path), day, TEST_DAY, stale_after=cfg.stale_after)
+    offline = offline[(offline["model"] == ESTIMATE) & offline["ts"].isin(wanted)]
+    assert len(offline) == len(wanted)
+    fallbacks = 0
+    for _, row in offline.iterrows():
+        e = live[stamp[row["ts"]]]
+        assert e["value"] == round(row["value"], 6) and e["std"] == round(row["std"], 6)
+        assert e["quality"] == row["quality"]
+        if row["ts"] > silent_from + STALE:
+            assert e["quality"] == "fallback" and e["lost"] == [R2]
+            assert e["model"] == artifact.failover[R2].model.model_name
+            fallbacks += 1
+        else:
+            assert e["quality"] in ("ok", "uncertain") and e["lost"] == []
+    assert fallbacks >= 10
+    assert all(e["quality"] != "stale" for e in viewer.all())
