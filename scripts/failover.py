@@ -22,9 +22,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime as dt
-import json
 import logging
-import math
 import sys
 import time
 from typing import Any
@@ -40,6 +38,7 @@ from pseudotwin.history.convert import load
 from pseudotwin.live import metrics
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.models.registry import ALL_MODELS
+from tables import print_table
 
 STALE_AFTER = dt.timedelta(minutes=30)  # the daemon's default stale_after_minutes
 MULTI = [r for r in RUNS if len(r.references) >= 2]
@@ -99,10 +98,6 @@ def run(spec: Any, models: tuple[str, ...], history: pd.DataFrame) -> list[dict[
     return out
 
 
-def _f(x: Any, nd: int = 2) -> str:
-    return "—" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{nd}f}"
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -125,18 +120,15 @@ def main() -> None:
     rows: list[dict[str, Any]] = []
     for spec in (r for r in MULTI if r.name in wanted):
         rows.extend(run(spec, models, load(spec.dataset)))
-    print("| run | primary | silenced | failover | days | NRMSE full % | NRMSE silenced % "
-          "| ratio | instants | unanswered full | unanswered | unanswered w/o failover "
-          "| fallback % | ±2σ cov fallback % |")
-    print("|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
-    for r in rows:
-        print(f"| {r['run']} | {r['primary']} | {r['lost']} | {r['failover'] or '—'} "
-              f"| {r['test_days']} | {_f(r['full_nrmse_pct'])} | {_f(r['silenced_nrmse_pct'])} "
-              f"| {_f(r['ratio'])} | {r['instants']} | {r['full_unanswered']} | {r['unanswered']} "
-              f"| {r['unanswered_without_failover']} | {_f(r['fallback_share_pct'], 1)} "
-              f"| {_f(r['cover2_fallback_pct'], 1)} |")
-    print(json.dumps({"failover": [{k: (None if isinstance(v, float) and not math.isfinite(v)
-                                        else v) for k, v in r.items()} for r in rows]}))
+    print_table("failover", rows, [
+        ("run", "run", None), ("primary", "primary", None), ("silenced", "lost", None),
+        ("failover", "failover", None), ("days", "test_days", 0),
+        ("NRMSE full %", "full_nrmse_pct", 2), ("NRMSE silenced %", "silenced_nrmse_pct", 2),
+        ("ratio", "ratio", 2), ("instants", "instants", 0),
+        ("unanswered full", "full_unanswered", 0), ("unanswered", "unanswered", 0),
+        ("unanswered w/o failover", "unanswered_without_failover", 0),
+        ("fallback %", "fallback_share_pct", 1), ("±2σ cov fallback %", "cover2_fallback_pct", 1),
+    ])
 
 
 if __name__ == "__main__":

@@ -10,18 +10,13 @@ Prints a Markdown table and, last, one JSON line.
 from __future__ import annotations
 
 import argparse
-import json
-import math
 import time
 
 from pseudotwin.analysis.evaluate import evaluate
 from pseudotwin.analysis.report.runs import RUN_NAMES, RUNS
 from pseudotwin.analysis.selfaware import selfaware, training_share
 from pseudotwin.history.convert import load
-
-
-def _f(x: float, nd: int = 2) -> str:
-    return "—" if not math.isfinite(x) else f"{x:.{nd}f}"
+from tables import print_table
 
 
 def main() -> None:
@@ -53,16 +48,13 @@ def main() -> None:
                      "n_uncertain": sa.n_uncertain,
                      "seconds": round(time.perf_counter() - t0, 1)})
         print(f"# {spec.name} done in {rows[-1]['seconds']} s", flush=True)
-    print("| run | primary | uncertain % test | uncertain % training | MAE ok | MAE uncertain "
-          "| ratio | ±2σ cov ok % | ±2σ cov uncertain % | n ok | n uncertain |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
-    for r in rows:
-        print(f"| {r['run']} | {r['primary']} | {_f(r['test_pct'], 1)} | {_f(r['train_pct'], 1)} "
-              f"| {_f(r['mae_ok'], 3)} | {_f(r['mae_uncertain'], 3)} | {_f(r['mae_ratio'])} "
-              f"| {_f(r['cover2_ok'], 1)} | {_f(r['cover2_uncertain'], 1)} | {r['n_ok']} "
-              f"| {r['n_uncertain']} |")
-    print(json.dumps({"selfaware": [{k: (None if isinstance(v, float) and not math.isfinite(v)
-                                         else v) for k, v in r.items()} for r in rows]}))
+    print_table("selfaware", rows, [
+        ("run", "run", None), ("primary", "primary", None),
+        ("uncertain % test", "test_pct", 1), ("uncertain % training", "train_pct", 1),
+        ("MAE ok", "mae_ok", 3), ("MAE uncertain", "mae_uncertain", 3), ("ratio", "mae_ratio", 2),
+        ("±2σ cov ok %", "cover2_ok", 1), ("±2σ cov uncertain %", "cover2_uncertain", 1),
+        ("n ok", "n_ok", 0), ("n uncertain", "n_uncertain", 0),
+    ])
 
 
 if __name__ == "__main__":

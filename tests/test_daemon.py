@@ -334,5 +334,9 @@ def test_baselines_are_published_on_the_grid_only_by_default(
     assert any(e["ts"] == stamp(tick) for e in viewer.on("/estimate"))
     for k in baselines:
         assert [e["ts"] for e in viewer.on(f"/baseline/{k}")] == [stamp(tick)], k
+    # every message sent was acknowledged by the broker: the count that paces grid work
+    # (TICK_BACKLOG) drains, or the grid would crawl at TICK_MAX_PAUSE per chunk
+    wait_for(lambda: svc.unconfirmed() == 0, what="the broker's PUBACKs")
+    assert svc._confirmed >= 2 + len(baselines) + 1  # estimates, baselines, monitor, status
     pub.loop_stop()
     viewer.close()

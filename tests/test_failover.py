@@ -264,15 +264,19 @@ artifact = "{artifact}"
     return p
 
 
+def stamp_of(t: dt.datetime) -> str:
+    return t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")
+
+
 class Viewer:
     """Every estimate the daemon publishes on pt/desk/estimate, in arrival order."""
 
-    def __init__(self, port: int) -> None:
+    def __init__(self, port: int, topic: str = "pt/desk/estimate") -> None:
         self.msgs: list[dict] = []
         self.lock = threading.Lock()
         ready = threading.Event()
         self.c = mqtt.Client(CallbackAPIVersion.VERSION2)
-        self.c.on_connect = lambda c, u, f, rc, p: (c.subscribe("pt/desk/estimate", 1),
+        self.c.on_connect = lambda c, u, f, rc, p: (c.subscribe(topic, 1),
                                                     ready.set())
         self.c.on_message = self._on
         self.c.connect("127.0.0.1", port)
@@ -306,6 +310,7 @@ def test_daemon_fails_over_on_a_silenced_reference_like_evaluate(
     day = day[~((day["sensor"] == R2) & (day["ts"] > silent_from))]
     speed = 3000.0
     viewer = Viewer(mosquitto.port)
+    monitor = Viewer(mosquitto.port, "pt/desk/monitor")
     svc = Service(cfg, clock=ReplayClock(start, speed))
     svc.start(wait_connected=15)
     try:
@@ -315,9 +320,23 @@ def test_daemon_fails_over_on_a_silenced_reference_like_evaluate(
         stamp = {t: t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z") for t in wanted}
         wait_for(lambda: set(stamp.values()) <= {e["ts"] for e in viewer.all()},
                  what="an estimate at every reference reading")
+        last_tick = stamp_of(HOURS.at(TEST_DAY, 11.75))
+        wait_for(lambda: any(m["ts"] == last_tick for m in monitor.all()),
+                 what="the monitor of the last grid instant")
     finally:
         svc.stop()
         viewer.close()
+        monitor.close()
+    # <twin>/monitor says which reference the estimate does without, from the first tick
+    # at which R2's last reading is older than stale_after; before, nothing is lost
+    last_r2 = day.loc[day["sensor"] == R2, "ts"].max()
+    for m in monitor.all():
+        lost = m["failover"]
+        if dt.datetime.fromisoformat(m["ts"]) - last_r2 > STALE:
+            assert lost is not None and lost["lost"] == [R2], m["ts"]
+            assert dt.datetime.fromisoformat(lost["since"]) - last_r2 > STALE
+        else:
+            assert lost is None, m["ts"]
     live: dict[str, dict] = {}
     for e in viewer.all():  # two readings at an instant: the later estimate saw both
         live[e["ts"]] = e

@@ -218,7 +218,7 @@ def test_discovery_messages_are_retained_valid_and_describe_real_payloads(
         assert len(configs) == 1 + len(kinds) and kinds
         for topic, body in configs.items():
             check_sensor_config(topic, body, prefix)
-            assert body["expire_after"] == 20 * 60
+            assert body["expire_after"] == 2 * 15 * 60  # two grid steps > stale_after
             assert body["device"]["name"] == "desk"
         by_state = {b["state_topic"]: b for b in configs.values()}
         assert set(by_state) == {"pt/desk/estimate", *(f"pt/desk/baseline/{k}" for k in kinds)}

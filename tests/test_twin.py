@@ -134,3 +134,18 @@ def test_calibration_of_a_model_without_any_held_out_error_is_finite() -> None:
     c = SigmaCalibration.fit(np.array([1, 1, 2, 2]), np.array([8.0, 9.0, 8.0, 9.0]),
                              np.zeros(4), np.zeros(4))
     assert c.factor == 1.0 and 0.0 <= c.sigma(8.5, 0.0) < 1e-3
+
+
+def test_estimating_a_subset_of_models_equals_estimating_all(art) -> None:
+    """The daemon's per-reading estimate computes only the primary: the same value as when
+    every model is estimated; a model the twin does not run is refused."""
+    day = dt.date(2012, 3, 20)
+    t = HOURS.at(day, 9.0)
+    twin = Twin(art)
+    twin.observe(REF, HOURS.at(day, 8.0), 17.0)
+    twin.observe(REF, t, 17.6)
+    every = twin.estimate(t)
+    alone = twin.estimate(t, kinds=(art.primary,))
+    assert list(alone) == [art.primary] and alone[art.primary] == every[art.primary]
+    with pytest.raises(ValueError, match="does not run"):
+        Twin(art, models=["triv"]).estimate(t, kinds=(art.primary,))

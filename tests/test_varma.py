@@ -374,8 +374,12 @@ def test_stored_matrices_are_checked(fallback: VarmaModel) -> None:
 
     spec = TwinSpec((REF,), TARGET, Quantity.TEMPERATURE, HOURS)
     d = json.loads(json.dumps(fallback.to_dict()))
-    d["state_space"]["transition"] = d["state_space"]["transition"][:-1]
-    with pytest.raises(ArtifactError, match="state_space .* has shape"):
+    d["state_space"]["selection"] = d["state_space"]["selection"][:-1]
+    with pytest.raises(ArtifactError, match="selection has shape"):
+        VarmaModel.from_dict(d, spec)
+    d = json.loads(json.dumps(fallback.to_dict()))
+    d["state_space"]["transition"] = (1.5 * np.eye(len(d["state_space"]["transition"]))).tolist()
+    with pytest.raises(ArtifactError, match="not stationary"):
         VarmaModel.from_dict(d, spec)
     d = json.loads(json.dumps(fallback.to_dict()))
     d["state_space"]["obs_cov"][0][0] = math.inf

@@ -11,6 +11,7 @@ seconds to ``train``, not minutes.
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from typing import Any
@@ -54,6 +55,9 @@ def train_failover(
             v = validation.validate(df, others, days, list(kinds), opts)
         except DataError as exc:
             log.warning("no failover for %s: %s", lost, exc)
+            continue
+        if not math.isfinite(v.scores[v.primary].nrmse_pct):  # nothing to rank it by
+            log.warning("no failover for %s: its held-out error is not finite", lost)
             continue
         model = build(v.primary, opts.get(v.primary)).fit(TrainingSet(others, tuple(days)))
         out[lost] = Failover(lost, v.primary, model, v.calibration.get(v.primary),

@@ -433,8 +433,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--stale-after", type=_positive_minutes, metavar="MINUTES",
                    help="score what the daemon with this stale_after_minutes publishes: a "
                         "reference silent longer makes the estimate stale, or a failover "
-                        "answers without it (default: never stale, a silent reference's last "
-                        "value is held)")
+                        "answers without it (default: a silent reference's last value is held; "
+                        "only a reference that never reported makes the estimate stale)")
     e.add_argument("--plot-day", type=_date, help="day to plot in detail (default: median day)")
     e.set_defaults(func=cmd_evaluate)
 

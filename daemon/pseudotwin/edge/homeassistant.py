@@ -11,9 +11,9 @@ shows as unknown) and ``json_attributes_topic`` is the same topic, so ``std`` (Ï
 Availability comes from ``<base>/status``. The daemon publishes ``online``, ``offline`` (last
 will, stop) and ``degraded`` (its journal cannot be written: it still publishes estimates on
 its grid, so they stay usable); ``availability_template`` maps everything but ``offline`` to
-``online``. ``expire_after`` is the config's ``stale_after`` (never shorter than the publish
-grid): an entity that has not been published for that long turns unavailable in Home
-Assistant, e.g. outside operating hours.
+``online``. ``expire_after`` is the config's ``stale_after`` (never shorter than two steps
+of the publish grid, on which the baselines come): an entity that has not been published
+for that long turns unavailable in Home Assistant, e.g. outside operating hours.
 
 Discovery messages are retained and published on every connect. Removal: the config topics
 this daemon ever published are remembered in ``<state_dir>/homeassistant.json``; on start,

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import paho.mqtt.client as mqtt
+from paho.mqtt.enums import MQTTErrorCode
 
 from pseudotwin.config import SensorConfig, ServiceConfig, TwinConfig
 from pseudotwin.core.horizon import OperatingHours
@@ -60,16 +61,15 @@ STOP_JOIN_SECONDS = 5.0  # the worker finishes its current item within this on s
 BATCH_MAX = 64
 # Twins whose grid work is done between two batches of readings: at 1,000 twins one tick
 # would otherwise hold every reading behind 1,000 estimates and monitors.
-TICK_CHUNK = 20
+TICK_CHUNK = 5
 # Grid work waits while this many of the daemon's QoS 1 messages wait for the broker's
 # PUBACK: paho sends in order, so a reading's estimate then queues behind at most these,
-# not behind the 6,000 messages of a thousand twins' tick.
-TICK_BACKLOG = 200
+# not behind the 6,000 messages of a thousand twins' tick (scripts/bench_daemon.py at 1,000
+# twins: p99 latency 2.6 s without pacing, 0.30 s at 200, 0.07 s at 20 with chunks of 5).
+TICK_BACKLOG = 20
 # ... for at most this long per chunk [s]: a broker that stops acknowledging must not stop
 # the grid (the messages stay queued in paho and go out on reconnect).
-TICK_MAX_PAUSE = 0.1
-# How long the worker waits for readings while grid work waits [s].
-TICK_POLL = 0.005
+TICK_MAX_PAUSE = 0.05
 
 
 def check_artifact(
@@ -147,6 +147,8 @@ class Service:
         # QoS 1 messages handed to paho / acknowledged by the broker (see TICK_BACKLOG).
         self._sent = 0
         self._confirmed = 0
+        self._awaiting_acks = False  # the worker waits for PUBACKs: wake it (_on_publish)
+        self.dropped = 0  # messages paho refused to queue
         self._sent_lock = threading.Lock()
         self._not_before_cache: tuple[dt.date | None, dt.datetime] = (None, dt.datetime.min)
         self._ready = False
@@ -201,7 +203,8 @@ class Service:
                                  tuple(k for k in rt.twin.artifact.published
                                        if k != rt.twin.artifact.primary))
                  for tid, rt in self.twins.items()]
-        expire = round(max(self.cfg.stale_after, self.cfg.publish_every).total_seconds())
+        # Baselines come only on the grid: one late tick must not blank their entities.
+        expire = round(max(self.cfg.stale_after, 2 * self.cfg.publish_every).total_seconds())
         current = ha.discovery_messages(
             twins, prefix=hc.discovery_prefix, base_topic=self.cfg.base_topic,
             expire_after=expire, baselines=hc.baselines,
@@ -255,11 +258,35 @@ class Service:
         """Every message of the daemon: QoS 1, counted until the broker acknowledges it."""
         with self._sent_lock:  # from the worker and the network thread
             self._sent += 1
-        return self.client.publish(topic, payload, qos=1, retain=retain)
+        try:
+            info = self.client.publish(topic, payload, qos=1, retain=retain)
+        except Exception:
+            self._uncount()
+            raise
+        if info.rc == MQTTErrorCode.MQTT_ERR_QUEUE_SIZE:
+            # paho dropped it (e.g. all 65,535 message ids held by unacknowledged messages
+            # after a long outage): no PUBACK will ever come for it.
+            self._uncount()
+            self.dropped += 1
+            if self.dropped == 1 or self.dropped % 1000 == 0:
+                log.error("%d message(s) dropped by the MQTT client (its queue of "
+                          "unacknowledged messages is full), the latest on %s",
+                          self.dropped, topic)
+        return info
+
+    def _uncount(self) -> None:
+        with self._sent_lock:
+            self._sent -= 1
 
     def _on_publish(self, client: mqtt.Client, userdata: Any, mid: int, reason_code: Any,
                     properties: Any) -> None:
         self._confirmed += 1  # only the network thread writes it
+        if self._awaiting_acks and self.unconfirmed() < TICK_BACKLOG:
+            self._awaiting_acks = False
+            try:  # wake the worker: its paced grid work may go on
+                self.queue.put_nowait(("wake",))
+            except queue.Full:
+                pass  # it is busy with readings anyway
 
     def unconfirmed(self) -> int:
         """Messages sent and not yet acknowledged by the broker."""
@@ -281,6 +308,10 @@ class Service:
         elif now - self._paced_since >= TICK_MAX_PAUSE:
             self._paced_since = now  # one chunk anyway, then wait again
             return False
+        self._awaiting_acks = True  # before the check again: no PUBACK slips in between
+        if self.unconfirmed() < TICK_BACKLOG:
+            self._awaiting_acks = False
+            return False
         return True
 
     # -- the worker -----------------------------------------------------------------------
@@ -295,7 +326,7 @@ class Service:
                     log.exception("retrying the held readings failed; trying again later")
                     self._journal_retry_at = time.monotonic() + JOURNAL_RETRY_SECONDS
             paced = self._tick_paced()
-            wait = (TICK_POLL if paced else 0.0) if self._tick_work \
+            wait = (TICK_MAX_PAUSE if paced else 0.0) if self._tick_work \
                 else JOURNAL_RETRY_SECONDS if self._held else 1.0
             batch = self._take(wait)
             self.heartbeat = time.monotonic()
@@ -309,6 +340,7 @@ class Service:
                     return
                 if kind == "msg":
                     messages.append(item)
+                # ("wake",): the broker took enough of what was sent; the loop goes on
                 elif kind == "tick":  # readings before it go first, as they arrived
                     self._guarded("msg", self._handle_messages, messages)
                     messages = []
@@ -502,8 +534,12 @@ class Service:
             self._tick_work.append(rt)
 
     def _tick_step(self) -> None:
-        for _ in range(min(TICK_CHUNK, len(self._tick_work))):
-            self._run_due(self._tick_work.popleft())
+        done = 0
+        while done < TICK_CHUNK and self._tick_work:
+            rt = self._tick_work.popleft()
+            if rt.cfg.id in self._tick_due:  # else a reading already ran it
+                self._run_due(rt)
+                done += 1
 
     def _run_due(self, rt: TwinRuntime) -> None:
         """The twin's pending grid work (none when a reading already ran it)."""

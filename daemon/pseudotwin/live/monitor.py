@@ -64,6 +64,9 @@ class TwinMonitor:
             # The self-aware indication (DESIGN.md §6): why the estimate is `uncertain` now.
             "uncertain": ({"since": tw.uncertain_since, "why": list(tw.uncertain_why)}
                           if tw.uncertain_since is not None else None),
+            # Reference failover (live/failover.py): which references the estimate does without.
+            "failover": ({"since": tw.failover_since, "lost": list(tw.failover_lost)}
+                         if tw.failover_since is not None else None),
         }
         out.update(tw.numerics())
         if self.pairs:

@@ -144,6 +144,9 @@ class Twin:
         # The primary's current uncertain spell: since when, and why (for <twin>/monitor).
         self.uncertain_since: dt.datetime | None = None
         self.uncertain_why: tuple[str, ...] = ()
+        # The primary's current failover spell: since when, and which references it lost.
+        self.failover_since: dt.datetime | None = None
+        self.failover_lost: tuple[str, ...] = ()
 
     # -- the window -------------------------------------------------------------------
     def _needs(self, kind: str) -> tuple[str, ...]:
@@ -160,6 +163,7 @@ class Twin:
         self._failover = ({r: f.model.start_day(day) for r, f in self.artifact.failover.items()}
                           if self.artifact.primary in self.kinds else {})
         self.uncertain_since, self.uncertain_why = None, ()
+        self.failover_since, self.failover_lost = None, ()
         init_ts = self.hours.at(day, self.hours.init_start)
         for s in self.references:
             last = self.last.get(s)
@@ -179,7 +183,7 @@ class Twin:
                 est.observe(r.sensor, r.hours, r.value)
             except NumericalError as exc:
                 self._break(kind, exc)
-        for lost, est in list(self._failover.items()):
+        for lost, est in list(self._failover.items()) if self._failover else ():
             try:
                 est.observe(r.sensor, r.hours, r.value)
             except NumericalError as exc:
@@ -263,7 +267,7 @@ class Twin:
                 # KeyError: the estimator lost the point (never expected); rebuilt from the
                 # window at the next reading like a numerical failure.
                 self._break(kind, exc)
-        for lost, est in list(self._failover.items()):
+        for lost, est in list(self._failover.items()) if self._failover else ():
             try:
                 est.revise(sensor, old.hours, value)
             except (NumericalError, KeyError) as exc:
@@ -333,6 +337,8 @@ class Twin:
 
         Empty outside the operating window (before init start, after day end).
         """
+        if kinds is not None and (unknown := set(kinds) - set(self.kinds)):
+            raise ValueError(f"the twin does not run {', '.join(sorted(unknown))}")
         if not self._window_for(ts):
             return {}
         h = self.hours.hours_of(ts)
@@ -374,6 +380,8 @@ class Twin:
             if kind == self.artifact.primary:
                 self.uncertain_why = why
                 self.uncertain_since = (self.uncertain_since or ts) if why else None
+                self.failover_lost = lost
+                self.failover_since = (self.failover_since or ts) if lost else None
             out[kind] = TwinEstimate(ts, float(value), float(std), name, quality, refs, why,
                                      lost)
         return out

@@ -233,6 +233,10 @@ class _StateSpace:
                                 f"{ssm.trend_params.shape}")
         if not all(np.isfinite(a).all() for a in arrays.values()):
             raise ArtifactError("VARMA state_space holds non-finite values")
+        radius = _spectral_radius(ssm.transition)
+        if not radius < STATIONARY_LIMIT:  # as from_params: no stationary start for a day
+            raise ArtifactError(f"VARMA state_space transition has spectral radius "
+                                f"{radius:.6f}: not stationary")
         return ssm
 
     @classmethod

@@ -197,10 +197,28 @@ PERFORMANCE = (
      "The daemon with 100 twins",
      "100 twins fed 5-minute COV readings at 60× replay speed through a real Mosquitto: "
      "latency from a reading's publish to its estimate's arrival, CPU and peak RSS."),
+    ("bench_daemon_1000.txt", ".venv/bin/python scripts/bench_daemon.py --twins 1000 --hours 1",
+     "The daemon with 1,000 twins",
+     "The same at 1,000 twins: the grid work of a thousand twins paced between readings."),
+    ("bench_daemon_10000.txt",
+     ".venv/bin/python scripts/bench_daemon.py --twins 10000 --hours 0.25 --speed 10",
+     "The daemon with 10,000 twins",
+     "10,000 twins at 10× replay: what one process still carries (every estimate arrives) "
+     "and what it does not (latency behind a 10,000-twin tick)."),
+    ("bench_chatty.txt", ".venv/bin/python scripts/bench_chatty.py",
+     "A chatty sensor",
+     "Two references reporting every 2 s for a whole operating day through the live twin: "
+     "window size, per-reading update latency (all day and the last hour), and the replay of "
+     "the raw days against their 1-minute means."),
     ("bench_history.txt", ".venv/bin/python scripts/bench_history.py",
      "Backfill and recorder",
-     "Backfill of one twin over 7 months of 1-minute readings in SQLite (days per second, "
-     "peak RSS of the backfill process) and the recorder's sustained rate into SQLite."),
+     "Backfill over 7 months of 1-minute readings in SQLite: one twin serial and on all "
+     "cores, and 8 twins (days per second, CPU per day, peak RSS), and the recorder's "
+     "sustained rate into SQLite."),
+    ("failover.txt", ".venv/bin/python scripts/failover.py",
+     "Reference failover",
+     "Each reference of the two-reference runs silenced for every test day: the estimate's "
+     "mean daily NRMSE against the full twin's, and the instants left unanswered."),
 )
 
 
