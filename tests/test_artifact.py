@@ -65,6 +65,16 @@ def test_newer_format_is_refused_clearly(trained, tmp_path: Path) -> None:
         Artifact.load(p)
 
 
+def test_a_model_s_own_error_names_the_artifact_file(trained, tmp_path: Path) -> None:
+    _, path = trained
+    d = json.loads(path.read_text(encoding="utf-8"))
+    d["models"]["varma"]["state_space"]["obs_cov"] = [[1.0]]
+    p = tmp_path / "broken.json"
+    p.write_text(json.dumps(d))
+    with pytest.raises(ArtifactError, match=rf"^{p}: VARMA state_space obs_cov has shape"):
+        Artifact.load(p)
+
+
 @pytest.mark.parametrize(
     "content,message",
     [

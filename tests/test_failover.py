@@ -30,6 +30,7 @@ from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.edge.clock import ReplayClock
 from pseudotwin.edge.replay import replay
 from pseudotwin.edge.service import Service
+from pseudotwin.errors import ArtifactError
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.twin import Quality, Twin
 
@@ -185,6 +186,19 @@ def test_artifact_round_trip_keeps_failover(artifact: Artifact, today: pd.DataFr
     ea, eb = a.estimate(t)["triv"], b.estimate(t)["triv"]
     assert ea.quality is Quality.FALLBACK and (ea.value, ea.std, ea.lost) == (eb.value, eb.std,
                                                                              eb.lost)
+
+
+def test_a_failover_reading_a_sensor_the_twin_lacks_is_refused(
+    artifact: Artifact, tmp_path: Path
+) -> None:
+    d = json.loads(json.dumps(artifact.to_dict(), allow_nan=True))
+    model = d["failover"][R2]["model"]
+    assert model.get("references") == [R1], model.keys()  # triv reads the other reference
+    model["references"] = ["hall/temp"]
+    p = tmp_path / "foreign.json"
+    p.write_text(json.dumps(d))
+    with pytest.raises(ArtifactError, match=rf"^{p}: failover for {R2} reads hall/temp"):
+        Artifact.load(p)
 
 
 def test_older_artifact_without_failover_loads_and_goes_stale(

@@ -132,8 +132,11 @@ class Artifact(OfTwin):
             return cls(spec, models, str(twin["primary"]), d.get("training", {}),
                        d.get("created", ""), calibration, d.get("validation", {}), envelope,
                        failover)
-        except ArtifactError:
-            raise
+        except ArtifactError as exc:
+            # a model's own check does not know the file: name it
+            if str(exc).startswith(f"{where}:"):
+                raise
+            raise ArtifactError(f"{where}: {exc}") from None
         except ConfigError as exc:
             raise ArtifactError(f"{where}: {exc}") from None
         except (KeyError, TypeError, ValueError, IndexError) as exc:

@@ -61,7 +61,12 @@ class Failover:
         if kind not in MODELS:
             raise ArtifactError(f"failover for {lost}: unknown model kind {kind!r}")
         calib = d.get("calibration")
-        return cls(lost, kind, MODELS[kind].from_dict(d["model"], spec),
+        model = MODELS[kind].from_dict(d["model"], spec)
+        foreign = set(model.references_) - set(spec.references)
+        if foreign:
+            raise ArtifactError(f"failover for {lost} reads {', '.join(sorted(foreign))}, "
+                                "which the twin does not")
+        return cls(lost, kind, model,
                    SigmaCalibration.from_dict(calib) if calib is not None else None,
                    float(d["nrmse_pct"]), str(d.get("reason", "")))
 
