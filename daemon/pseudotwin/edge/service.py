@@ -64,8 +64,8 @@ BATCH_MAX = 64
 TICK_CHUNK = 5
 # Grid work waits while this many of the daemon's QoS 1 messages wait for the broker's
 # PUBACK: paho sends in order, so a reading's estimate then queues behind at most these,
-# not behind the 6,000 messages of a thousand twins' tick (scripts/bench_daemon.py at 1,000
-# twins: p99 latency 2.6 s without pacing, 0.30 s at 200, 0.07 s at 20 with chunks of 5).
+# not behind the 6,000 messages of a thousand twins' tick (scripts/bench_daemon.py --twins
+# 1000 shows the p99 latency; rerun it with other values here to compare).
 TICK_BACKLOG = 20
 # ... for at most this long per chunk [s]: a broker that stops acknowledging must not stop
 # the grid (the messages stay queued in paho and go out on reconnect).

@@ -18,7 +18,7 @@ import bisect
 import datetime as dt
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 
@@ -28,7 +28,7 @@ from pseudotwin.core.series import DayReadings
 from pseudotwin.core.thinning import Action, Thinning, WindowThinner
 from pseudotwin.errors import NumericalError
 from pseudotwin.live.artifact import Artifact
-from pseudotwin.live.calibration import SLOPE_WINDOW_H
+from pseudotwin.live.calibration import SLOPE_WINDOW_H, SigmaCalibration
 from pseudotwin.live.envelope import WIDEN
 from pseudotwin.live.failover import ranked
 from pseudotwin.models.base import DayEstimator, TwinModel
@@ -183,16 +183,18 @@ class Twin:
                 est.observe(r.sensor, r.hours, r.value)
             except NumericalError as exc:
                 self._break(kind, exc)
+        self._each_failover(lambda est: est.observe(r.sensor, r.hours, r.value))
+
+    def _each_failover(self, step: Callable[[DayEstimator], None]) -> None:
+        """``step`` on every running failover. Failovers are cheap models: one that fails
+        anyway (or lost a point: KeyError) sits out the rest of the day."""
         for lost, est in list(self._failover.items()) if self._failover else ():
             try:
-                est.observe(r.sensor, r.hours, r.value)
-            except NumericalError as exc:
-                self._drop_failover(lost, exc)
-
-    def _drop_failover(self, lost: str, exc: Exception) -> None:
-        # Failovers are cheap models; one that fails anyway sits out the rest of the day.
-        log.warning("failover for %s: numerical failure (%s); unavailable today", lost, exc)
-        del self._failover[lost]
+                step(est)
+            except (NumericalError, KeyError) as exc:
+                log.warning("failover for %s: numerical failure (%s); unavailable today",
+                            lost, exc)
+                del self._failover[lost]
 
     def _break(self, kind: str, exc: Exception) -> None:
         log.warning("%s: numerical failure (%s); publishing TRIV with quality fallback", kind, exc)
@@ -267,11 +269,7 @@ class Twin:
                 # KeyError: the estimator lost the point (never expected); rebuilt from the
                 # window at the next reading like a numerical failure.
                 self._break(kind, exc)
-        for lost, est in list(self._failover.items()) if self._failover else ():
-            try:
-                est.revise(sensor, old.hours, value)
-            except (NumericalError, KeyError) as exc:
-                self._drop_failover(lost, exc)
+        self._each_failover(lambda est: est.revise(sensor, old.hours, value))
 
     # -- monitoring -------------------------------------------------------------------
     def slot_values(self) -> dict[str, np.ndarray]:
@@ -321,11 +319,16 @@ class Twin:
         """The σ of ``kind``'s estimate: its training-day calibration where the artifact has
         one (older artifacts: the model's own spread). slopes: the references' slopes at
         ``hours`` found so far in this estimate (models share references)."""
-        calib = self.artifact.calibration.get(kind)
-        if calib is None:
-            return std
         model = self.artifact.models.get(kind) or self._fallback_model()
         refs = model.references_ if model is not None else tuple(self.references)
+        return self._sigma(self.artifact.calibration.get(kind), refs, hours, std, slopes)
+
+    def _sigma(self, calib: SigmaCalibration | None, refs: tuple[str, ...], hours: float,
+               std: float, slopes: dict[tuple[str, ...], float]) -> float:
+        """``calib``'s σ at ``hours`` for a model reading ``refs`` (None: ``std``, the model's
+        own spread); slopes caches the references' slopes within one estimate."""
+        if calib is None:
+            return std
         if refs not in slopes:
             slopes[refs] = self.slope(refs, hours)
         return calib.sigma(hours, slopes[refs])
@@ -395,12 +398,7 @@ class Twin:
             e = self._failover[f.lost].predict(h)
             if not math.isfinite(e.value):
                 continue  # its references have no point in today's window yet
-            refs = f.model.references_
-            std = e.std
-            if f.calibration is not None:
-                if refs not in slopes:
-                    slopes[refs] = self.slope(refs, h)
-                std = f.calibration.sigma(h, slopes[refs])
+            std = self._sigma(f.calibration, f.model.references_, h, e.std, slopes)
             lost = tuple(s for s in self._needs(self.artifact.primary) if self._silent(s, ts))
             return e.value, std, f.model.model_name, lost
         return None
