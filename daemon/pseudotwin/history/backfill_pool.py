@@ -9,9 +9,10 @@ day done after its rows: resume and idempotence are those of a serial run. SQLit
 the writers (WAL, ``BEGIN IMMEDIATE`` with a busy timeout); a day's write is a few
 thousand rows, so the lock is held for milliseconds.
 
-Ctrl-C: workers ignore SIGINT; the parent sets a shared stop flag, which each worker checks
-between days, so every day is either finished (rows and mark) or untouched, and waits for
-them. Progress is one line per finished chunk, printed by the parent only.
+Ctrl-C: workers ignore SIGINT (blocked from their spawn until they do); the parent sets a
+shared stop flag, which each worker checks between days, so every day is either finished
+(rows and mark) or untouched, and waits for them. Progress is one line per finished chunk,
+printed by the parent only.
 """
 
 from __future__ import annotations
@@ -176,7 +177,16 @@ def _run_pool(cfg: ServiceConfig, work: list[Chunk], store_url: str, run: RunSum
     with ProcessPoolExecutor(max_workers=run.workers, mp_context=ctx,
                              initializer=_init_worker,
                              initargs=(cfg, store_url, stop, level)) as pool:
-        futures: dict[Future[ChunkResult], Chunk] = {pool.submit(_work, c): c for c in work}
+        # The workers are spawned by these submits. A Ctrl-C while one is still importing
+        # would raise KeyboardInterrupt in it before its initializer can ignore SIGINT; so
+        # SIGINT is blocked while they start (the mask is inherited), and the parent gets
+        # a Ctrl-C of that moment as soon as it is unblocked.
+        mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            futures: dict[Future[ChunkResult], Chunk] = {pool.submit(_work, c): c
+                                                         for c in work}
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         collected: set[Future[ChunkResult]] = set()
         try:
             for fut in as_completed(futures):
@@ -221,6 +231,7 @@ def _init_worker(cfg: ServiceConfig, store_url: str, stop: multiprocessing.synch
                  level: int) -> None:
     # Ctrl-C reaches the whole process group; the parent alone decides, via ``stop``.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # blocked at spawn
     logging.basicConfig(level=level, stream=sys.stderr,
                         format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
     _worker.update(cfg=cfg, url=store_url, stop=stop, store=None, artifacts={})
