@@ -232,15 +232,51 @@ def test_ctrl_c_stops_the_workers_and_keeps_finished_days(site: Path, tmp_path: 
     assert set(per_day.index) <= {d for _, d in done}  # and no half-written day
 
 
-def _group_alive(pgid: int) -> bool:
+def test_ctrl_c_while_the_workers_start(site: Path) -> None:
+    """The moment a worker is still importing (the last stop's CI failure): no traceback
+    from it, the run ends as interrupted, and no day is half written."""
+    db = fresh_store(site, "early")
+    site_config(site, db)
+    proc = subprocess.Popen(
+        [EXE, "--log-level", "WARNING", "backfill", "--config", str(site / "config-early.toml"),
+         "--twin", "desk,air", "--from", str(FIRST), "--to", str(LAST), "--jobs", "2"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        # the parent, its resource tracker and a first worker: workers are starting
+        wait_for(lambda: len(_group(proc.pid)) >= 3, timeout=60, what="a worker process")
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode in (0, 130), err  # 0: the run was already over (a fast machine)
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err
+    wait_for(lambda: not _group_alive(proc.pid), timeout=30, what="worker processes gone")
+    with open_store(str(db)) as store:
+        est = store.read_estimates("desk")
+    per_day = est["ts"].dt.tz_convert(HOURS.timezone).dt.date.astype(str).value_counts()
+    done = progress(db)
+    for (twin, day), n in done.items():
+        if twin.startswith("desk@"):
+            assert per_day.get(day, 0) == n
+    assert set(per_day.index) <= {d for t, d in done if t.startswith("desk@")}
+
+
+def _group(pgid: int) -> list[int]:
+    members = []
     for pid in os.listdir("/proc"):
         if pid.isdigit():
             try:
                 if os.getpgid(int(pid)) == pgid:
-                    return True
+                    members.append(int(pid))
             except ProcessLookupError:
                 continue
-    return False
+    return members
+
+
+def _group_alive(pgid: int) -> bool:
+    return bool(_group(pgid))
 
 
 def test_cli_twin_lists_and_bad_arguments(site: Path, capsys) -> None:

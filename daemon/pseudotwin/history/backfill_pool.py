@@ -181,14 +181,15 @@ def _run_pool(cfg: ServiceConfig, work: list[Chunk], store_url: str, run: RunSum
         # would raise KeyboardInterrupt in it before its initializer can ignore SIGINT; so
         # SIGINT is blocked while they start (the mask is inherited), and the parent gets
         # a Ctrl-C of that moment as soon as it is unblocked.
+        futures: dict[Future[ChunkResult], Chunk] = {}
+        collected: set[Future[ChunkResult]] = set()
         mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
         try:
-            futures: dict[Future[ChunkResult], Chunk] = {pool.submit(_work, c): c
-                                                         for c in work}
-        finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
-        collected: set[Future[ChunkResult]] = set()
-        try:
+            try:
+                for c in work:
+                    futures[pool.submit(_work, c)] = c
+            finally:
+                signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # may raise it here
             for fut in as_completed(futures):
                 _collect(fut, futures[fut], run, bar)
                 collected.add(fut)
