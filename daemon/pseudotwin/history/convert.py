@@ -5,6 +5,60 @@ canonical CSV (ts ISO 8601 UTC with offset, written by :func:`history.write_hist
 every experiment and the daemon's backfill read the same thing through
 :func:`history.read_history`.
 
+Sensors
+-------
+Every measured channel is kept as its own sensor (covariate models read them next to the
+references); ``Dataset.units`` gives each sensor's unit. Not kept: columns that are not
+measurements (SML2010's weather *forecast* ``Weather_Temperature``, the day of week; the
+Appliances random ``rv1``/``rv2``), SML2010's enthalpic-motor states (0 throughout both
+files) and Room Climate's activity label (a nominal class, not a level).
+
+sensor                          source column                           unit
+------------------------------  --------------------------------------  --------
+sml2010 (15-min means; column numbers of the ``#`` header)
+  dining/temp                   3 Temperature_Comedor_Sensor            °C
+  room/temp                     4 Temperature_Habitacion_Sensor         °C
+  dining/co2                    6 CO2_Comedor_Sensor                    ppm
+  room/co2                      7 CO2_Habitacion_Sensor                 ppm
+  outdoor/temp                  22 Temperature_Exterior_Sensor          °C
+  dining/humidity               8 Humedad_Comedor_Sensor                %
+  room/humidity                 9 Humedad_Habitacion_Sensor             %
+  dining/light                  10 Lighting_Comedor_Sensor              lx
+  room/light                    11 Lighting_Habitacion_Sensor           lx
+  outdoor/humidity              23 Humedad_Exterior_Sensor              %
+  outdoor/rain                  12 Precipitacion (share of the 15 min)  fraction
+  outdoor/twilight              13 Meteo_Exterior_Crepusculo            lx
+  outdoor/wind                  14 Meteo_Exterior_Viento                m/s
+  outdoor/light_west            15 Meteo_Exterior_Sol_Oest (façade)     lx
+  outdoor/light_east            16 Meteo_Exterior_Sol_Est               lx
+  outdoor/light_south           17 Meteo_Exterior_Sol_Sud               lx
+  outdoor/irradiance            18 Meteo_Exterior_Piranometro           W/m²
+appliances (10 min; ROOM = kitchen, living, laundry, office, bathroom, outside, ironing,
+teen, parents for i = 1..9)
+  ROOM/temp                     Ti                                      °C
+  ROOM/humidity                 RH_i                                    %
+  house/appliances              Appliances (energy in the 10 min)       Wh
+  house/lights                  lights (energy in the 10 min)           Wh
+  weather/temp                  T_out (airport)                         °C
+  weather/humidity              RH_out                                  %
+  weather/pressure              Press_mm_hg                             mmHg
+  weather/wind                  Windspeed                               m/s
+  weather/visibility            Visibility                              km
+  weather/dewpoint              Tdewpoint                               °C
+room-climate-a, -b (X = A or B, k = node 1..4 or 1..3; 1-min means, ground truth: maxima)
+  Xk/temp                       Temp                                    °C
+  Xk/humidity                   RelH                                    %
+  Xk/light1, Xk/light2          L1, L2                                  a.u.
+  X/occupancy                   Occ                                     persons
+  X/door, X/window              Door, Win (0 closed, 1 open)            open=1
+
+Units that differ from PROVENANCE: SML2010 columns 15–17 reach 95,000, so they are
+illuminance in lux (UCI: "sun light in … facade, in Lux"), not W/m² (the pyranometer, 18,
+is). Room Climate's README calls L1/L2 "Wavelength [nm]", but they follow daylight (higher
+at midday, both sensors r ≈ 0.98): uncalibrated light levels. Door and window are set per
+episode (an experimental condition): A's door is open in episodes 45–60, the window never
+(A, B), B's door never, so ``A/window``, ``B/door`` and ``B/window`` are constant 0.
+
 Clocks
 ------
 The sources store naive wall-clock stamps. Which clock they ran on was checked against the
@@ -17,13 +71,13 @@ hours (and, on the DST day, stacks readings on one instant):
   sunrise/sunset for Valencia on all 42 days, before and after 25 March alike, i.e. the
   clock is UTC, not CET/CEST. Read as Europe/Madrid the data would land 1–2 h late and the
   four 02:xx rows would collide with 03:00.
-* ``appliances``: the house sensors (T1–T9) run on a **fixed UTC+1 clock** (Belgian winter
-  time, never switched): 2016-03-27 02:00–02:50 are real, varying readings in an unbroken
+* ``appliances``: the house sensors (T, RH, energy) run on a **fixed UTC+1 clock** (Belgian
+  winter time, never switched): 2016-03-27 02:00–02:50 are real, varying readings in an unbroken
   10-min grid, and the household's daily routine (appliance load) moves one hour earlier on
   that clock after 27 March. The weather columns were merged from the airport by Belgian
   wall time *with* DST: T_out tracks the façade sensor T6 with ~0 lag before 27 March and
-  lags it by ~1 h afterwards. So ``weather/temp`` is read as Europe/Brussels; its six
-  stamps 02:00–02:50 on 2016-03-27 do not exist on that clock (they are interpolation
+  lags it by ~1 h afterwards. So the ``weather/*`` sensors are read as Europe/Brussels;
+  their six stamps 02:00–02:50 on 2016-03-27 do not exist on that clock (they are interpolation
   fillers) and are dropped rather than shifted forward onto 03:00. Fixed UTC+1 rather than
   UTC for the house follows from T_out (Belgian wall time) lining up with the house clock
   in winter.
@@ -39,19 +93,21 @@ The FAU nodes sample every ~4 s. A live twin conditions on change-of-value-rate 
 not on a 4-s stream, and the PROVENANCE verification (correlations, offsets) was done on
 1-minute means, so the converter emits per node the mean Temp of each UTC minute (bucket =
 floor of AbsT to the minute, ts = bucket start; only minutes with at least one sample).
-``X/occupancy`` is the maximum ground-truth occupant count (0–2) in that minute.
+Humidity and the light levels are averaged the same way; ``X/occupancy`` is the maximum
+ground-truth occupant count (0–2) in that minute and ``X/door``/``X/window`` the maximum state
+(open if open at any sample of it).
 
 ``--raw`` keeps every sample instead (ts = AbsT to the millisecond; samples of one node at
-one instant averaged): a real chatty sensor for the window's thinning (DESIGN §2), its tests
-and benchmarks. The other datasets have no averaging to skip; ``--raw`` gives them as they
-are.
+one instant averaged, of the location the maximum): a real chatty sensor for the window's
+thinning (DESIGN §2), its tests and benchmarks. The other datasets have no averaging to
+skip; ``--raw`` gives them as they are.
 """
 
 from __future__ import annotations
 
 import os
 import re
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -70,23 +126,40 @@ _UTC_PLUS_1 = "Etc/GMT-1"
 
 @dataclass(frozen=True)
 class Channel:
-    """One output sensor: the source column it comes from and the clock that column runs on."""
+    """One output sensor: the source column it comes from, the clock that column runs on and
+    the unit of its values."""
 
     sensor: str
     column: str | int
     clock: str
+    unit: str
 
 
 @dataclass(frozen=True)
 class Dataset:
-    """A registered converter: ``read(source)`` returns a canonical long frame."""
+    """A registered converter: ``read(source)`` returns a canonical long frame.
+
+    units: every sensor it writes → the unit of its values, in the order ``convert`` lists
+    them (the original channels first, so summaries keep their order).
+    """
 
     name: str
     folder: str  # relative to the shared data root
     description: str
-    sensors: tuple[str, ...]
+    units: Mapping[str, str]
     read: Callable[[Path], pd.DataFrame]
     read_raw: Callable[[Path], pd.DataFrame] | None = None  # every sample, where read averages
+
+    @property
+    def sensors(self) -> tuple[str, ...]:
+        return tuple(self.units)
+
+    def unit(self, sensor: str) -> str:
+        """The unit of ``sensor``'s values; DataError for a sensor the dataset lacks."""
+        try:
+            return self.units[sensor]
+        except KeyError:
+            raise DataError(f"dataset {self.name} has no sensor {sensor!r}") from None
 
 
 @dataclass(frozen=True)
@@ -201,6 +274,8 @@ def _files(source: Path, pattern: str) -> list[Path]:
 
 # ---------------------------------------------------------------------------- SML2010
 
+# Column numbers are the 1-based ones of the file header; every kept column's header name is
+# checked, so a reordered file cannot put lux under a temperature id.
 _SML_HEADER = {
     1: "Date",
     2: "Time",
@@ -208,16 +283,39 @@ _SML_HEADER = {
     4: "Temperature_Habitacion_Sensor",
     6: "CO2_Comedor_Sensor",
     7: "CO2_Habitacion_Sensor",
+    8: "Humedad_Comedor_Sensor",
+    9: "Humedad_Habitacion_Sensor",
+    10: "Lighting_Comedor_Sensor",
+    11: "Lighting_Habitacion_Sensor",
+    12: "Precipitacion",
+    13: "Meteo_Exterior_Crepusculo",
+    14: "Meteo_Exterior_Viento",
+    15: "Meteo_Exterior_Sol_Oest",
+    16: "Meteo_Exterior_Sol_Est",
+    17: "Meteo_Exterior_Sol_Sud",
+    18: "Meteo_Exterior_Piranometro",
     22: "Temperature_Exterior_Sensor",
+    23: "Humedad_Exterior_Sensor",
 }
 _SML_NCOLS = 24
-# Column numbers are the 1-based ones of the file header.
 _SML_CHANNELS = (
-    Channel("dining/temp", 3, "UTC"),
-    Channel("room/temp", 4, "UTC"),
-    Channel("dining/co2", 6, "UTC"),
-    Channel("room/co2", 7, "UTC"),
-    Channel("outdoor/temp", 22, "UTC"),
+    Channel("dining/temp", 3, "UTC", "°C"),
+    Channel("room/temp", 4, "UTC", "°C"),
+    Channel("dining/co2", 6, "UTC", "ppm"),
+    Channel("room/co2", 7, "UTC", "ppm"),
+    Channel("outdoor/temp", 22, "UTC", "°C"),
+    Channel("dining/humidity", 8, "UTC", "%"),
+    Channel("room/humidity", 9, "UTC", "%"),
+    Channel("dining/light", 10, "UTC", "lx"),
+    Channel("room/light", 11, "UTC", "lx"),
+    Channel("outdoor/humidity", 23, "UTC", "%"),
+    Channel("outdoor/rain", 12, "UTC", "fraction"),
+    Channel("outdoor/twilight", 13, "UTC", "lx"),
+    Channel("outdoor/wind", 14, "UTC", "m/s"),
+    Channel("outdoor/light_west", 15, "UTC", "lx"),
+    Channel("outdoor/light_east", 16, "UTC", "lx"),
+    Channel("outdoor/light_south", 17, "UTC", "lx"),
+    Channel("outdoor/irradiance", 18, "UTC", "W/m²"),
 )
 
 
@@ -259,17 +357,24 @@ def read_sml2010(source: Path) -> pd.DataFrame:
 # ---------------------------------------------------------------------------- appliances
 
 _APPLIANCES_FILE = "energydata_complete.csv"
+_APPLIANCES_ROOMS = ("kitchen", "living", "laundry", "office", "bathroom", "outside", "ironing",
+                     "teen", "parents")  # T1..T9 and RH_1..RH_9, in that order
+_WEATHER = "Europe/Brussels"
 _APPLIANCES_CHANNELS = (
-    Channel("kitchen/temp", "T1", _UTC_PLUS_1),
-    Channel("living/temp", "T2", _UTC_PLUS_1),
-    Channel("laundry/temp", "T3", _UTC_PLUS_1),
-    Channel("office/temp", "T4", _UTC_PLUS_1),
-    Channel("bathroom/temp", "T5", _UTC_PLUS_1),
-    Channel("outside/temp", "T6", _UTC_PLUS_1),
-    Channel("ironing/temp", "T7", _UTC_PLUS_1),
-    Channel("teen/temp", "T8", _UTC_PLUS_1),
-    Channel("parents/temp", "T9", _UTC_PLUS_1),
-    Channel("weather/temp", "T_out", "Europe/Brussels"),
+    *(Channel(f"{room}/temp", f"T{i}", _UTC_PLUS_1, "°C")
+      for i, room in enumerate(_APPLIANCES_ROOMS, start=1)),
+    Channel("weather/temp", "T_out", _WEATHER, "°C"),
+    *(Channel(f"{room}/humidity", f"RH_{i}", _UTC_PLUS_1, "%")
+      for i, room in enumerate(_APPLIANCES_ROOMS, start=1)),
+    # Metered by the house, so on the house's clock; energy used in the 10 minutes.
+    Channel("house/appliances", "Appliances", _UTC_PLUS_1, "Wh"),
+    Channel("house/lights", "lights", _UTC_PLUS_1, "Wh"),
+    # The airport columns were merged like T_out, so they share its clock.
+    Channel("weather/humidity", "RH_out", _WEATHER, "%"),
+    Channel("weather/pressure", "Press_mm_hg", _WEATHER, "mmHg"),
+    Channel("weather/wind", "Windspeed", _WEATHER, "m/s"),
+    Channel("weather/visibility", "Visibility", _WEATHER, "km"),
+    Channel("weather/dewpoint", "Tdewpoint", _WEATHER, "°C"),
 )
 # The shared copy was re-saved by a spreadsheet (day-first); the UCI original is ISO-like.
 _APPLIANCES_DATE_FORMATS = ("%d-%m-%Y %H:%M", "%Y-%m-%d %H:%M:%S")
@@ -298,8 +403,38 @@ def read_appliances(source: Path) -> pd.DataFrame:
 # ---------------------------------------------------------------------------- room climate
 
 _RC_NCOLS = 12
-_RC_ABST, _RC_NID, _RC_TEMP, _RC_OCC = 1, 3, 4, 8
+_RC_ABST, _RC_NID = 1, 3
 _RC_NODES = {"A": (1, 2, 3, 4), "B": (1, 2, 3)}
+# Per node, averaged over the bucket: output name (``A1/humidity``) → (column, its README
+# name, unit). L1/L2 are documented as "Light Sensor (Wavelength) [nm]", but their values
+# rise and fall with the room's light; they are uncalibrated light levels, hence "a.u.".
+_RC_NODE_VALUES = {
+    "temp": (4, "Temp", "°C"),
+    "humidity": (5, "RelH", "%"),
+    "light1": (6, "L1", "a.u."),
+    "light2": (7, "L2", "a.u."),
+}
+# Per location, the maximum over the bucket (ground truth: any open moment counts as open).
+# Act (activity class 0–4) is a nominal label, not a level, and is not kept.
+_RC_LOCATION_VALUES = {
+    "occupancy": (8, "Occ", "persons"),
+    "door": (10, "Door", "open=1"),
+    "window": (11, "Win", "open=1"),
+}
+
+
+def _room_climate_units(location: str) -> dict[str, str]:
+    """The sensors of one location in output order (the original temp/occupancy first)."""
+    nodes = _RC_NODES[location]
+    units = {f"{location}{n}/temp": _RC_NODE_VALUES["temp"][2] for n in nodes}
+    units[f"{location}/occupancy"] = _RC_LOCATION_VALUES["occupancy"][2]
+    for name, (_, _, unit) in _RC_NODE_VALUES.items():
+        if name != "temp":
+            units.update({f"{location}{n}/{name}": unit for n in nodes})
+    for name, (_, _, unit) in _RC_LOCATION_VALUES.items():
+        if name != "occupancy":
+            units[f"{location}/{name}"] = unit
+    return units
 
 
 def _read_room_climate_file(path: Path, location: str) -> pd.DataFrame:
@@ -312,14 +447,10 @@ def _read_room_climate_file(path: Path, location: str) -> pd.DataFrame:
             f"{path}: expected {_RC_NCOLS} columns (EID, AbsT, RelT, NID, Temp, RelH, L1, L2, "
             f"Occ, Act, Door, Win), found {raw.shape[1]}"
         )
-    out = pd.DataFrame(
-        {
-            "abst": _numeric(raw[_RC_ABST], path, "AbsT", 1),
-            "nid": _numeric(raw[_RC_NID], path, "NID", 1),
-            "temp": _numeric(raw[_RC_TEMP], path, "Temp", 1),
-            "occ": _numeric(raw[_RC_OCC], path, "Occ", 1),
-        }
-    )
+    columns = {"abst": (_RC_ABST, "AbsT"), "nid": (_RC_NID, "NID")}
+    columns.update({k: (col, what) for k, (col, what, _) in _RC_NODE_VALUES.items()})
+    columns.update({k: (col, what) for k, (col, what, _) in _RC_LOCATION_VALUES.items()})
+    out = pd.DataFrame({k: _numeric(raw[col], path, what, 1) for k, (col, what) in columns.items()})
     if out["abst"].isna().any():
         i = int(np.flatnonzero(out["abst"].isna().to_numpy())[0])
         raise DataError(f"{path}: AbsT missing on line {i + 1}")
@@ -339,18 +470,24 @@ def _room_climate_samples(source: Path, location: str) -> pd.DataFrame:
     )
 
 
+def _epoch_ms(values: pd.Index) -> pd.Series:
+    return pd.Series(pd.to_datetime(values, unit="ms", utc=True))
+
+
 def _room_climate_frame(raw: pd.DataFrame, key: str, source: Path, location: str) -> pd.DataFrame:
-    """Per node the mean Temp, and the maximum occupancy, of each value of column ``key``
-    (epoch ms: the sample's own time, or its minute)."""
-    temp = raw.dropna(subset=["nid", "temp"]).groupby(["nid", key])["temp"].mean()
+    """Per node the mean of each node value, and per location the maximum of each ground
+    truth, of each value of column ``key`` (epoch ms: the sample's own time, or its minute)."""
     parts = []
-    for nid, series in temp.groupby(level="nid"):
-        ts = pd.Series(pd.to_datetime(series.index.get_level_values(key), unit="ms", utc=True))
-        parts.append(_long(f"{location}{int(nid)}/temp", ts, series.reset_index(drop=True)))
-    occ = raw.dropna(subset=["occ"]).groupby(key)["occ"].max()
-    if len(occ):
-        ts = pd.Series(pd.to_datetime(occ.index, unit="ms", utc=True))
-        parts.append(_long(f"{location}/occupancy", ts, occ.reset_index(drop=True)))
+    for name in _RC_NODE_VALUES:
+        mean = raw.dropna(subset=["nid", name]).groupby(["nid", key])[name].mean()
+        for nid, series in mean.groupby(level="nid"):
+            ts = _epoch_ms(pd.Index(series.index.get_level_values(key)))
+            parts.append(_long(f"{location}{int(nid)}/{name}", ts, series.reset_index(drop=True)))
+    for name in _RC_LOCATION_VALUES:
+        peak = raw.dropna(subset=[name]).groupby(key)[name].max()
+        if len(peak):
+            parts.append(_long(f"{location}/{name}", _epoch_ms(peak.index),
+                               peak.reset_index(drop=True)))
     return _finish(parts, source)
 
 
@@ -369,35 +506,43 @@ def read_room_climate(source: Path, location: str) -> pd.DataFrame:
 
 # ---------------------------------------------------------------------------- registry
 
+def _channel_units(channels: Sequence[Channel]) -> dict[str, str]:
+    return {ch.sensor: ch.unit for ch in channels}
+
+
 DATASETS: dict[str, Dataset] = {
     "sml2010": Dataset(
         "sml2010",
         "sml2010",
-        "UCI SML2010 house, Valencia 2012: dining/room temp + CO2, outdoor temp (15 min, UTC)",
-        tuple(ch.sensor for ch in _SML_CHANNELS),
+        "UCI SML2010 house, Valencia 2012: dining/room temp, CO2, humidity, light; outdoor "
+        "temp, humidity, wind, rain, sun (15 min, UTC)",
+        _channel_units(_SML_CHANNELS),
         read_sml2010,
     ),
     "room-climate-a": Dataset(
         "room-climate-a",
         "room_climate/datasets-location_A",
-        "FAU office A 2016: 4 temp nodes in one room, A4 above the desk (1-min means)",
-        ("A1/temp", "A2/temp", "A3/temp", "A4/temp", "A/occupancy"),
+        "FAU office A 2016: 4 temp/humidity/light nodes in one room, A4 above the desk; "
+        "occupancy, door, window (1-min means)",
+        _room_climate_units("A"),
         partial(read_room_climate, location="A"),
         partial(read_room_climate_raw, location="A"),
     ),
     "room-climate-b": Dataset(
         "room-climate-b",
         "room_climate/datasets-location_B",
-        "FAU office B 2016: 3 temp nodes in one room, B2 between the desks (1-min means)",
-        ("B1/temp", "B2/temp", "B3/temp", "B/occupancy"),
+        "FAU office B 2016: 3 temp/humidity/light nodes in one room, B2 between the desks; "
+        "occupancy, door, window (1-min means)",
+        _room_climate_units("B"),
         partial(read_room_climate, location="B"),
         partial(read_room_climate_raw, location="B"),
     ),
     "appliances": Dataset(
         "appliances",
         "appliances",
-        "UCI appliances house, Belgium 2016: 9 room/outside temps + airport T_out (10 min)",
-        tuple(ch.sensor for ch in _APPLIANCES_CHANNELS),
+        "UCI appliances house, Belgium 2016: 9 room/outside temps + humidities, appliance and "
+        "light energy, airport weather (10 min)",
+        _channel_units(_APPLIANCES_CHANNELS),
         read_appliances,
     ),
 }
