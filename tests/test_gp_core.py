@@ -131,17 +131,73 @@ def test_incremental_posterior_equals_gpy_prediction(kernel: str, Q: int, P: int
     assert np.allclose(mu, mu_f)
 
 
-def test_failed_extension_falls_back_to_regularized_refactorization() -> None:
+@pytest.mark.parametrize("one_by_one", [True, False], ids=["row", "block"])
+def test_failed_extension_falls_back_to_regularized_refactorization(one_by_one: bool) -> None:
     rng = np.random.default_rng(0)
     params = random_params(rng, "rq", 2, 1)
     params = LcmParams("rq", params.terms, np.array([1e-14, 1e-14]))  # noise-free: duplicates
     post = IncrementalPosterior(params)
     for _ in range(3):
         post.add(9.0, 0, 0.5)  # the same point three times: exactly singular
+        if one_by_one:
+            post.flush()
+    post.flush()  # lazy: the pending points are conditioned on here
     assert post.refactorizations >= 1
     assert post.jitter > 0
     mean, var = post.predict(9.0, 1)
     assert np.isfinite(mean) and np.isfinite(var)
+
+
+@pytest.mark.parametrize("every", [2, 15, 200])
+def test_predictions_do_not_depend_on_when_predictions_were_asked(every: int) -> None:
+    """Lazy conditioning: a posterior asked after every observation and one asked after
+    every ``every``-th give the same predictions, to the last bit (what a baseline
+    published on the grid or at every reading relies on), revisions and new residuals of
+    all observations included."""
+    rng = np.random.default_rng(every)
+    params = random_params(rng, "rq", 3, 2)
+    n = 200
+    t = np.sort(rng.uniform(7.5, 19.0, size=n))
+    o = rng.integers(0, 2, size=n)
+    r = np.sin(t) + 0.1 * rng.normal(size=n)
+    often, seldom = IncrementalPosterior(params, capacity=8), IncrementalPosterior(params, 8)
+    for i in range(n):
+        for post in (often, seldom):
+            post.add(t[i], o[i], r[i] + 1.0)
+            post.revise(i, r[i])
+        often.predict(t[i], 2)
+        if i % every == every - 1 or i == n - 1:
+            for x in (t[i], 12.0):
+                for out in (0, 2):
+                    assert seldom.predict(x, out) == often.predict(x, out)
+    new = rng.normal(size=n + 1)
+    for post in (often, seldom):
+        post.add(19.5, 0, 0.3)
+        post.set_residuals(new)
+    assert seldom.predict(15.0, 2) == often.predict(15.0, 2)
+    assert seldom.refactorizations == often.refactorizations == 0
+
+
+def test_a_failed_block_leaves_the_posterior_without_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    rng = np.random.default_rng(0)
+    params = random_params(rng, "rq", 2, 1)
+    params = LcmParams("rq", params.terms, np.array([1e-14, 1e-14]))  # noise-free: duplicates
+    post = IncrementalPosterior(params)
+    post.add(8.0, 0, 0.1)
+    before = post.predict(10.0, 1)
+
+    def failing(self: IncrementalPosterior) -> None:  # fault injection: no regularization helps
+        raise NumericalError("injected")
+
+    monkeypatch.setattr(IncrementalPosterior, "_refactorize", failing)
+    for _ in range(3):
+        post.add(9.0, 0, 0.5)  # exactly singular as a block
+    with pytest.raises(NumericalError, match="injected"):
+        post.flush()
+    assert post.n == 1
+    assert post.predict(10.0, 1) == before
 
 
 def test_set_residuals_equals_rebuilding() -> None:

@@ -15,6 +15,7 @@ from pseudotwin.analysis.training import train_twin
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.core.thinning import Action, Thinning, WindowThinner
+from pseudotwin.gp.points import INTERVAL_H
 from pseudotwin.history.convert import load
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.twin import Twin
@@ -115,7 +116,9 @@ def test_the_window_stays_bounded_for_a_sensor_reporting_every_second(art: Artif
     minutes = round((12.0 - HOURS.init_start) * 60)
     assert len(readings) == minutes * 60
     assert len(chatty.window) == minutes
-    assert chatty.numerics()["gp_points"] == minutes
+    # and the GP models merge the minutes into one point per INTERVAL_H (gp/points.py)
+    assert INTERVAL_H is not None
+    assert chatty.numerics()["gp_points"] == round(minutes / (INTERVAL_H * 60))
 
     means = pd.Series([v for _, v in readings]).groupby(np.arange(len(readings)) // 60).mean()
     by_minute = Twin(art)
