@@ -8,8 +8,11 @@ as independent sensors report), published through a real Mosquitto broker while 
 runs as its own process in replay mode at the same speed.
 
 Measured: end-to-end latency from a reading's publish to the arrival of the estimate it
-caused (median, p99), the daemon's CPU time (per reading and as a share of one core) and its
-peak RSS (VmHWM). Prints a table and, last, one JSON line.
+caused (median, p99), the daemon's CPU time (per reading and as a share of one core; per
+reading = the daemon's CPU from "online" to the last estimate / the readings published) and
+its peak RSS (VmHWM). The CPU is also split by thread, largest first: the worker (models,
+payloads, publish calls), then paho's network thread (reading the broker's messages and
+PUBACKs, writing ours). Prints a table and, last, one JSON line.
 Usage: .venv/bin/python scripts/bench_daemon.py [--twins 100] [--hours 2] [--speed 60]
 """
 
@@ -68,6 +71,19 @@ def proc_stats(pid: int) -> tuple[float, int]:
             if line.startswith("VmHWM:"):
                 hwm = int(line.split()[1])
     return cpu, hwm
+
+
+def thread_cpu(pid: int) -> dict[int, float]:
+    """CPU seconds (user + system) of each thread of a process."""
+    ticks = os.sysconf("SC_CLK_TCK")
+    out = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:  # the thread ended meanwhile
+            continue
+        out[int(task.name)] = (int(fields[11]) + int(fields[12])) / ticks
+    return out
 
 
 def main() -> int:
@@ -156,6 +172,7 @@ def main() -> int:
             print((tmp / "daemon.log").read_text())
             return 1
         cpu0, _ = proc_stats(daemon.pid)
+        threads0 = thread_cpu(daemon.pid)
         pub = mqtt.Client(CallbackAPIVersion.VERSION2, client_id="bench-pub")
         pub.max_queued_messages_set(0)
         pub.connect("127.0.0.1", port)
@@ -180,6 +197,9 @@ def main() -> int:
             time.sleep(0.1)
         wall = time.monotonic() - wall0
         cpu1, hwm = proc_stats(daemon.pid)
+        threads1 = thread_cpu(daemon.pid)
+        by_thread = sorted((round(c - threads0.get(t, 0.0), 2) for t, c in threads1.items()),
+                           reverse=True)
         stop_process(daemon, signal.SIGTERM, 60)  # before the figures: its exit status
         ms = np.array(lat) * 1e3
         fig = {
@@ -194,6 +214,7 @@ def main() -> int:
             "daemon_cpu_share_of_core": round((cpu1 - cpu0) / wall, 3),
             "daemon_cpu_ms_per_reading": round(1e3 * (cpu1 - cpu0) / published, 3),
             "daemon_peak_rss_mb": round(hwm / 1024, 1),
+            "daemon_cpu_threads_s": [c for c in by_thread if c > 0],
             "daemon_exit": daemon.returncode,
         }
         print(f"{a.twins} twins, 5-min COV readings at {a.speed:g}×, {a.hours:g} h of day time "
@@ -204,6 +225,8 @@ def main() -> int:
         print(f"  daemon CPU: {fig['daemon_cpu_s']} s = {fig['daemon_cpu_share_of_core']:.1%} "
               f"of one core, {fig['daemon_cpu_ms_per_reading']} ms per reading; "
               f"peak RSS {fig['daemon_peak_rss_mb']} MB")
+        print(f"  daemon CPU by thread [s], largest first (worker, network): "
+              f"{', '.join(map(str, fig['daemon_cpu_threads_s']))}")
         print(json.dumps(fig))
         return 0
     finally:
