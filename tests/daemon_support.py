@@ -1,14 +1,19 @@
-"""Shared pieces of the daemon tests: a trained artifact, configs, waiting on conditions."""
+"""Shared pieces of the daemon tests: a trained artifact, configs, waiting on conditions, a
+subscriber that keeps what the daemon publishes."""
 
 from __future__ import annotations
 
 import datetime as dt
+import json
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import paho.mqtt.client as mqtt
 import pandas as pd
+from paho.mqtt.enums import CallbackAPIVersion
 
 from pseudotwin.config import ServiceConfig, load_config
 from pseudotwin.core.horizon import OperatingHours
@@ -115,3 +120,32 @@ def uninterrupted_estimates(artifact: Path, readings: pd.DataFrame, kind: str = 
             expected[t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")] = \
                 twin.estimate(t)[kind]
     return expected
+
+
+class Viewer:
+    """Every estimate the daemon publishes on pt/desk/estimate, in arrival order."""
+
+    def __init__(self, port: int, topic: str = "pt/desk/estimate") -> None:
+        self.msgs: list[dict] = []
+        self.lock = threading.Lock()
+        ready = threading.Event()
+        self.c = mqtt.Client(CallbackAPIVersion.VERSION2)
+        self.c.on_connect = lambda c, u, f, rc, p: (c.subscribe(topic, 1),
+                                                    ready.set())
+        self.c.on_message = self._on
+        self.c.connect("127.0.0.1", port)
+        self.c.loop_start()
+        assert ready.wait(10)
+
+    def _on(self, c: mqtt.Client, u: object, m: mqtt.MQTTMessage) -> None:
+        if not m.retain:  # a retained message is an earlier test's
+            with self.lock:
+                self.msgs.append(json.loads(m.payload))
+
+    def all(self) -> list[dict]:
+        with self.lock:
+            return list(self.msgs)
+
+    def close(self) -> None:
+        self.c.disconnect()
+        self.c.loop_stop()

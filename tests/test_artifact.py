@@ -23,7 +23,8 @@ def trained(tmp_path_factory) -> tuple[Artifact, Path]:
     df = load("sml2010")
     df = df[df["ts"] < "2012-03-22T00:00Z"]
     hours = OperatingHours(timezone="Europe/Madrid")
-    spec = TwinSpec(("dining/co2",), "room/co2", Quantity.CO2, hours)
+    # a covariate of another unit, so that every registered model is trained
+    spec = TwinSpec(("dining/co2",), "room/co2", Quantity.CO2, hours, ("dining/temp",))
     art = train_twin(df, spec, dt.date(2012, 3, 14), 5)
     path = art.save(tmp_path_factory.mktemp("art") / "co2.json")
     return art, path
@@ -33,7 +34,9 @@ def test_artifact_holds_everything_and_round_trips(trained, tmp_path: Path) -> N
     art, path = trained
     d = json.loads(path.read_text(encoding="utf-8"))
     assert d["version"] == VERSION and d["twin"]["unit"] == "ppm"
-    assert set(d["models"]) == set(ALL_MODELS)  # every registered model, trained
+    assert d["twin"]["covariates"] == ["dining/temp"]
+    # every registered model that serves a one-reference twin with a covariate, trained
+    assert set(d["models"]) == set(ALL_MODELS) - {"corrgp-multi"}
     gp = d["models"]["corrgp-triv"]
     assert gp["kernel"] == "matern52"  # the CO2 default
     assert {"offset", "scale"} <= set(gp["scaling"])

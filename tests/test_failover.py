@@ -10,16 +10,13 @@ import dataclasses
 import datetime as dt
 import json
 import math
-import threading
 from pathlib import Path
 
 import numpy as np
-import paho.mqtt.client as mqtt
 import pandas as pd
 import pytest
-from paho.mqtt.enums import CallbackAPIVersion
 
-from daemon_support import wait_for
+from daemon_support import Viewer, wait_for
 from pseudotwin.analysis.replay import ESTIMATE, replay_estimates
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.cli import main
@@ -280,35 +277,6 @@ artifact = "{artifact}"
 
 def stamp_of(t: dt.datetime) -> str:
     return t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")
-
-
-class Viewer:
-    """Every estimate the daemon publishes on pt/desk/estimate, in arrival order."""
-
-    def __init__(self, port: int, topic: str = "pt/desk/estimate") -> None:
-        self.msgs: list[dict] = []
-        self.lock = threading.Lock()
-        ready = threading.Event()
-        self.c = mqtt.Client(CallbackAPIVersion.VERSION2)
-        self.c.on_connect = lambda c, u, f, rc, p: (c.subscribe(topic, 1),
-                                                    ready.set())
-        self.c.on_message = self._on
-        self.c.connect("127.0.0.1", port)
-        self.c.loop_start()
-        assert ready.wait(10)
-
-    def _on(self, c: mqtt.Client, u: object, m: mqtt.MQTTMessage) -> None:
-        if not m.retain:  # a retained message is an earlier test's
-            with self.lock:
-                self.msgs.append(json.loads(m.payload))
-
-    def all(self) -> list[dict]:
-        with self.lock:
-            return list(self.msgs)
-
-    def close(self) -> None:
-        self.c.disconnect()
-        self.c.loop_stop()
 
 
 def test_daemon_fails_over_on_a_silenced_reference_like_evaluate(

@@ -12,7 +12,7 @@ from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.series import normalize, split_days
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.models.base import TrainingSet
-from pseudotwin.models.triv import TrivModel
+from pseudotwin.models.triv import TrivModel, TrivShrunkModel
 
 
 def training_set(offset_fn, days=3, refs=("r1", "r2")) -> TrainingSet:
@@ -63,3 +63,27 @@ def test_round_trip() -> None:
     for x in (a, b):
         x.observe("r1", 8.0, 20.0)
     assert a.predict(12.3) == b.predict(12.3)
+
+
+def test_shrunk_profile_keeps_a_shape_the_days_agree_on() -> None:
+    rng = np.random.default_rng(5)
+    ts = training_set(lambda h: 0.1 * (h - 8) + rng.normal(0.0, 0.02), days=5)
+    m = TrivShrunkModel().fit(ts)
+    assert all(lam > 0.95 for lam in m.shrink_)
+    np.testing.assert_allclose(m.offsets_, TrivModel().fit(ts).offsets_, atol=0.02)
+
+
+def test_shrunk_profile_falls_back_to_the_mean_offset_when_the_days_disagree() -> None:
+    rng = np.random.default_rng(6)
+    # every day and slot its own offset: the mean profile's shape is sampling noise
+    ts = training_set(lambda h: 0.5 + rng.normal(0.0, 0.4), days=5)
+    m = TrivShrunkModel().fit(ts)
+    raw = TrivModel().fit(ts)
+    assert all(lam < 0.3 for lam in m.shrink_), m.shrink_
+    flat = m.offsets_.std(axis=1)
+    assert np.all(flat < 0.3 * raw.offsets_.std(axis=1))
+    np.testing.assert_allclose(m.offsets_.mean(axis=1), raw.offsets_.mean(axis=1), atol=1e-9)
+    assert "λ" in m.fit_summary()
+    again = TrivShrunkModel.from_dict(m.to_dict(), ts.spec)
+    assert again.shrink_ == m.shrink_
+    np.testing.assert_array_equal(again.offsets_, m.offsets_)

@@ -52,7 +52,7 @@ def replay_estimates(
     twin = Twin(artifact, models=models, thinning=thinning, stale_after=stale_after)
     refs = list(artifact.references)
     primary = artifact.primary
-    sub = history[history["sensor"].isin([*refs, artifact.target])]
+    sub = history[history["sensor"].isin([*artifact.inputs, artifact.target])]
     days, hrs = hours.day_and_hours(sub["ts"])
     keep = np.ones(len(sub), dtype=bool)
     if end is not None:

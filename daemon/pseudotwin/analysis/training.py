@@ -70,11 +70,13 @@ def pick_training_days(
     hours: OperatingHours,
     start: dt.date,
     n_days: int = 5,
+    extra: Sequence[str] = (),
 ) -> list[DayReadings]:
-    """The first ``n_days`` days on or after ``start`` on which every sensor reports."""
+    """The first ``n_days`` days on or after ``start`` on which every sensor reports; the
+    days also carry the ``extra`` sensors' readings (covariates), whether or not they report."""
     if n_days < 1:
         raise DataError("--train-days must be at least 1")
-    days = [d for d in split_days(df, list(sensors), hours) if d.day >= start]
+    days = [d for d in split_days(df, [*sensors, *extra], hours) if d.day >= start]
     usable = [d for d in days if day_is_usable(d, sensors, hours)]
     if len(usable) < n_days:
         raise DataError(
@@ -128,9 +130,16 @@ def train_validated(
     """
     for kind in models:
         model_class(kind)  # an unknown kind fails before any training
+    skipped = {k: why for k in models if (why := model_class(k).not_applicable(spec))}
+    for kind, why in skipped.items():
+        log.info("%s is not trained: %s", kind, why)
+    models = [k for k in models if k not in skipped]
+    if not models:
+        raise DataError("none of the models asked for can serve this twin: "
+                        + "; ".join(f"{k}: {w}" for k, w in skipped.items()))
     sensors = list(spec.sensors)
-    require_sensors(df, sensors)
-    days = pick_training_days(df, sensors, spec.hours, train_start, train_days)
+    require_sensors(df, [*sensors, *spec.covariates])
+    days = pick_training_days(df, sensors, spec.hours, train_start, train_days, spec.covariates)
     # Judged on the training days only: a sensor broken some other week must not stop this.
     local_day, _ = spec.hours.day_and_hours(df["ts"])
     check_plausible(df[np.isin(local_day, [np.datetime64(d.day) for d in days])], spec)
@@ -158,6 +167,11 @@ def train_validated(
             withheld[kind] = problem
     for kind, why in withheld.items():
         log.warning("%s is not published live: %s", kind, why)
+    for kind, m in fitted.items():
+        if not m.live_baseline and kind != primary and kind not in withheld:
+            # Every published model costs the daemon its work and a message per grid step.
+            withheld[kind] = f"a variant, run live only as the primary (validation chose {primary})"
+            log.info("%s is not published live: %s", kind, withheld[kind])
     if validate and len(days) >= MIN_DAYS:
         for kind in fitted:
             if kind not in calibration and kind not in withheld:
@@ -175,7 +189,7 @@ def train_validated(
             "start": str(days[0].day),
             "end": str(days[-1].day),
             "days": [str(d.day) for d in days],
-            "sensors": sensors,
+            "sensors": [*sensors, *spec.covariates],
         },
     ), v
 

@@ -6,8 +6,9 @@ trained on the other days and the held-out day is replayed causally through a
 honest errors on a day it has not seen:
 
 - the **primary** is the candidate with the lowest mean held-out daily NRMSE, except that the
-  simplest candidate within ``TIE_RELATIVE`` of it wins (ref < triv < corrgp-triv <
-  corrgp-lcm, the registry's order): five days cannot tell a 3 % difference from noise, and
+  simplest candidate within ``TIE_RELATIVE`` of it wins (the registry's order, ref < triv <
+  triv-shrunk < triv-cov < corrgp-triv < corrgp-multi < corrgp-lcm): five days cannot tell
+  a 3 % difference from noise, and
   the simpler model fails in simpler ways;
 - every model's **σ** is calibrated on its held-out errors (:mod:`pseudotwin.live.calibration`).
 

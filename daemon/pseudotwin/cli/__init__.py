@@ -78,6 +78,10 @@ def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
     p.add_argument("--references", required=True, type=_csv,
                    help="reference sensor(s), comma-separated, e.g. hmi/temp,ceiling/temp")
     p.add_argument("--target", required=True, help="the desk sensor to pseudo-measure")
+    p.add_argument("--covariates", type=_csv, default=[],
+                   help="other live sensors, comma-separated, of any unit (e.g. room/co2 for a "
+                        "temperature twin): read by the triv-cov model, kept by validation only "
+                        "where they help")
     p.add_argument("--quantity", required=True, choices=("temperature", "co2"),
                    help="selects the default kernel: RQ for temperature, Matérn 5/2 for CO2")
     p.add_argument("--train-start", required=not train, type=_date,
@@ -102,8 +106,8 @@ def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
     p.add_argument("--kernel", choices=tuple(KERNEL_REGISTRY),
                    help="override the Corr-GP kernel")
     p.add_argument("--ref-mean", choices=("shifted", "profile"), default="shifted",
-                   help="corrgp-triv reference prior mean: training profile shifted to today's "
-                        "level in the init phase (default), or the unshifted profile")
+                   help="corrgp-triv/-multi reference prior mean: training profile shifted to "
+                        "today's level in the init phase (default), or the unshifted profile")
 
 
 def _hours(a: argparse.Namespace) -> OperatingHours:
@@ -122,7 +126,8 @@ def _options(a: argparse.Namespace) -> dict[str, dict[str, Any]]:
 
 
 def _spec(a: argparse.Namespace) -> TwinSpec:
-    return TwinSpec(tuple(a.references), a.target, Quantity.parse(a.quantity), _hours(a))
+    return TwinSpec(tuple(a.references), a.target, Quantity.parse(a.quantity), _hours(a),
+                    tuple(a.covariates))
 
 
 def _training_history(a: argparse.Namespace,
@@ -146,7 +151,8 @@ def _training_history(a: argparse.Namespace,
         if url is None:
             raise ConfigError(f"{a.config}: no store configured in [service]")
     with open_store(url) as store:
-        return history_from_store(store, [*a.references, a.target], hours, a.train_start,
+        return history_from_store(store, [*a.references, *a.covariates, a.target], hours,
+                                  a.train_start,
                                   a.train_days)
 
 

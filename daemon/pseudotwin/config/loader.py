@@ -67,7 +67,7 @@ class Loader:
     SENSOR_KEYS = ("id", "topic", "format", "ts_key", "value_key", "unit", "min", "max",
                    "min_interval_seconds")
     SENSOR_REQUIRED = ("id", "topic", "unit", "min", "max")
-    TWIN_KEYS = ("id", "quantity", "references", "target", "artifact")
+    TWIN_KEYS = ("id", "quantity", "references", "target", "artifact", "covariates")
     TWIN_REQUIRED = ("id", "quantity", "references", "artifact")
     METRICS_KEYS = ("host", "port", "record_port")
     HOMEASSISTANT_KEYS = ("enabled", "discovery_prefix", "baselines")
@@ -342,8 +342,9 @@ class Loader:
         values = {k: v for k, v in table.items() if k in self.TWIN_KEYS}
         if "artifact" in values:
             values["artifact"] = self.path(table, "artifact", loc)
-        if isinstance(values.get("references"), list):
-            values["references"] = tuple(values["references"])
+        for key in ("references", "covariates"):
+            if isinstance(values.get(key), list):
+                values[key] = tuple(values[key])
         if not complete or values["artifact"] is None:
             return None
         return self.build(loc, TwinConfig, **values)

@@ -262,6 +262,8 @@ class TwinConfig:
         monitoring against the estimate; None otherwise.
     artifact: the trained model file.
     quantity: what is estimated; selects kernels and the accepted units.
+    covariates: other permanent sensors the twin reads live, of any unit (e.g. CO2 or
+        illuminance for a temperature twin); only the models made for them use them.
     """
 
     id: str
@@ -269,10 +271,13 @@ class TwinConfig:
     artifact: Path
     quantity: Literal["temperature", "co2"]
     target: str | None = None
+    covariates: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if isinstance(self.references, list):
             object.__setattr__(self, "references", tuple(self.references))
+        if isinstance(self.covariates, list):
+            object.__setattr__(self, "covariates", tuple(self.covariates))
         if isinstance(self.artifact, str):
             object.__setattr__(self, "artifact", Path(self.artifact))
         raise_if(self._problems())
@@ -281,7 +286,7 @@ class TwinConfig:
         """What this twin pseudo-measures under the service's ``hours``; ``target`` stands in
         when the configuration names none (the desk sensor is usually gone live)."""
         return TwinSpec(self.references, self.target or target, Quantity.parse(self.quantity),
-                        hours)
+                        hours, self.covariates)
 
     def _problems(self) -> Found:
         found: Found = []
@@ -303,6 +308,16 @@ class TwinConfig:
             if isinstance(refs, tuple) and self.target in refs:
                 found.append(("target", f"sensor {self.target!r} is also a reference; "
                                         "the target must not feed its own estimate"))
+        covs = self.covariates
+        if not isinstance(covs, tuple) or not all(isinstance(c, str) for c in covs):
+            found.append(("covariates", "expected an array of sensor ids (strings)"))
+        else:
+            for i, c in enumerate(covs):
+                if c in covs[:i]:
+                    found.append(("covariates", f"sensor {c!r} is listed twice"))
+                elif (isinstance(refs, tuple) and c in refs) or c == self.target:
+                    found.append(("covariates", f"sensor {c!r} is also a reference or the "
+                                                "target"))
         expect(found, "artifact", self.artifact, "path")
         if expect(found, "quantity", self.quantity, "string") and self.quantity not in QUANTITIES:
             found.append(("quantity", f"must be one of {', '.join(map(repr, QUANTITIES))}, "
@@ -313,6 +328,11 @@ class TwinConfig:
     def sensors(self) -> tuple[str, ...]:
         """References, then the target if configured."""
         return (*self.references, self.target) if self.target else self.references
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        """References then covariates: what the twin subscribes to."""
+        return (*self.references, *self.covariates)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -491,6 +511,9 @@ def cross_problems(
                 out.append(f"{loc}.{field}: sensor {sid!r} has unit {sensor.unit!r}, not a "
                            f"{t.quantity} unit ({', '.join(accepted)})")
             units[sid] = sensor.unit
+        for sid in t.covariates:  # any unit: a covariate is not the estimated quantity
+            if sid not in by_id and unchecked_ids is not None and sid not in unchecked_ids:
+                out.append(f"{loc}.covariates: unknown sensor {sid!r}{suggest(sid, by_id)}")
         if len(set(units.values())) > 1:
             listing = ", ".join(f"{sid!r}: {u!r}" for sid, u in units.items())
             out.append(f"{loc}.references: all sensors of a twin must share one unit ({listing})")

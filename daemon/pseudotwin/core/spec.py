@@ -39,16 +39,20 @@ class TwinSpec:
 
     references: the permanent sensors fed live, in model order; target: the desk sensor
     (measured only while commissioning); quantity: temperature [°C] or co2 [ppm]; hours:
-    operating hours, slot grid and time zone.
+    operating hours, slot grid and time zone; covariates: other permanent sensors fed live
+    (any quantity, e.g. CO2 or illuminance for a temperature twin) that only the models made
+    for them read (``triv-cov``); validation decides whether they help.
     """
 
     references: tuple[str, ...]
     target: str
     quantity: Quantity
     hours: OperatingHours
+    covariates: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "references", tuple(self.references))
+        object.__setattr__(self, "covariates", tuple(self.covariates))
         object.__setattr__(self, "quantity", Quantity.parse(self.quantity))
         if not self.references:
             raise ConfigError("a twin needs at least one reference sensor")
@@ -56,11 +60,22 @@ class TwinSpec:
             raise ConfigError(f"references listed twice: {', '.join(self.references)}")
         if self.target in self.references:
             raise ConfigError(f"target {self.target!r} is also listed as a reference")
+        if len(set(self.covariates)) != len(self.covariates):
+            raise ConfigError(f"covariates listed twice: {', '.join(self.covariates)}")
+        both = [c for c in self.covariates if c in self.references or c == self.target]
+        if both:
+            raise ConfigError(f"covariate(s) {', '.join(both)} also listed as reference or "
+                              "target")
 
     @property
     def sensors(self) -> tuple[str, ...]:
         """References then target: the outputs of the multi-output models."""
         return (*self.references, self.target)
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        """References then covariates: every sensor the twin reads live."""
+        return (*self.references, *self.covariates)
 
     @property
     def unit(self) -> str:
@@ -74,6 +89,9 @@ class TwinSpec:
         if set(self.references) != set(other.references):
             out.append(f"references {', '.join(sorted(self.references))} differ from "
                        f"{theirs} {', '.join(sorted(other.references))}")
+        if set(self.covariates) != set(other.covariates):
+            out.append(f"covariates {', '.join(sorted(self.covariates)) or '(none)'} differ "
+                       f"from {theirs} {', '.join(sorted(other.covariates)) or '(none)'}")
         if self.target != other.target:
             out.append(f"target {self.target!r} differs from {theirs} {other.target!r}")
         if self.quantity != other.quantity:
@@ -90,6 +108,7 @@ class TwinSpec:
             "target": self.target,
             "quantity": self.quantity.value,
             "unit": self.unit,
+            **({"covariates": list(self.covariates)} if self.covariates else {}),
         }
 
 
@@ -122,3 +141,11 @@ class OfTwin:
     @property
     def sensors(self) -> tuple[str, ...]:
         return self.spec.sensors
+
+    @property
+    def covariates(self) -> tuple[str, ...]:
+        return self.spec.covariates
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        return self.spec.inputs

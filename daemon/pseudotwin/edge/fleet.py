@@ -106,7 +106,7 @@ def _explicit(twins: Sequence[str], configured: Collection[str]) -> tuple[str, .
 
 
 def _sensors_of(cfg: ServiceConfig, twins: Iterable[str]) -> set[str]:
-    return {s for t in twins for s in cfg.twins[t].sensors}
+    return {s for t in twins for s in (*cfg.twins[t].sensors, *cfg.twins[t].covariates)}
 
 
 def narrow(cfg: ServiceConfig, *, shard: Shard | None = None,

@@ -70,6 +70,12 @@ TICK_BACKLOG = 20
 # ... for at most this long per chunk [s]: a broker that stops acknowledging must not stop
 # the grid (the messages stay queued in paho and go out on reconnect).
 TICK_MAX_PAUSE = 0.05
+# The baselines and the monitor go out at QoS 0: they are for monitoring, and the next grid
+# instant replaces one lost with a dropped connection. They are six of a twin's eight
+# messages per grid step, and a QoS 1 message costs paho about twice the CPU of a QoS 0 one
+# (the PUBACK and its bookkeeping): at 1,000 twins this is ~15 % of the daemon's CPU and
+# most of the grid's burst (scripts/bench_daemon.py). Estimates and status stay QoS 1.
+MONITORING_QOS = 0
 
 
 def check_artifact(
@@ -84,11 +90,16 @@ def check_artifact(
 
 @dataclass
 class TwinRuntime:
-    """One configured twin with its live bookkeeping for today's monitor."""
+    """One configured twin with its live bookkeeping for today's monitor, and what its
+    messages need that never changes (asked for every message: built once)."""
 
     cfg: TwinConfig
     twin: Twin
     monitor: TwinMonitor
+    reading_kinds: tuple[str, ...] | None  # the models estimated at a reading (None: all)
+    estimate_topic: str
+    monitor_topic: str
+    baseline_topics: dict[str, str]
 
 
 class Service:
@@ -115,9 +126,12 @@ class Service:
             for kind, why in art.withheld.items():
                 log.info("twin %s: %s is not published (%s)", tid, kind, why)
             monitor = TwinMonitor(tid, twin, artifact_hash(tc.artifact), cfg.hours, tc.sensors)
-            rt = TwinRuntime(tc, twin, monitor)
+            rt = TwinRuntime(
+                tc, twin, monitor, cfg.per_reading_kinds(art.primary),
+                cfg.twin_topic(tid, "estimate"), cfg.twin_topic(tid, "monitor"),
+                {k: cfg.twin_topic(tid, "baseline", k) for k in twin.kinds if k != art.primary})
             self.twins[tid] = rt
-            for s in {*tc.references, *([tc.target] if tc.target else [])}:
+            for s in {*tc.inputs, *([tc.target] if tc.target else [])}:
                 self.by_sensor[s].append(rt)
         if problems:
             raise ConfigError("\n".join(problems))
@@ -147,6 +161,10 @@ class Service:
         # QoS 1 messages handed to paho / acknowledged by the broker (see TICK_BACKLOG).
         self._sent = 0
         self._confirmed = 0
+        # QoS 0 messages handed to paho and not written yet: paho calls on_publish for them
+        # too (once written), which must not count as a PUBACK. Dropped unwritten by a
+        # disconnect (no callback then), so forgotten on connect.
+        self._unwritten_qos0: set[int] = set()
         self._awaiting_acks = False  # the worker waits for PUBACKs: wake it (_on_publish)
         self.dropped = 0  # messages paho refused to queue
         self._sent_lock = threading.Lock()
@@ -165,6 +183,10 @@ class Service:
     # -- MQTT (network thread: no model work here) -----------------------------------------
     def _make_client(self) -> mqtt.Client:
         c = make_client(self.cfg.broker, self.cfg.broker.client_id, self.status_topic)
+        # No in-flight cap: with one, paho walks every unacknowledged message on each PUBACK
+        # (Client._update_inflight), a cost per message that grows with the backlog. The
+        # grid pacing (TICK_BACKLOG) already keeps what is in flight small.
+        c.max_inflight_messages_set(0)
         c.on_connect = self._on_connect
         c.on_disconnect = self._on_disconnect
         c.on_message = self._on_message
@@ -180,6 +202,8 @@ class Service:
             return
         with self._lock:
             self._gen += 1
+        with self._sent_lock:
+            self._unwritten_qos0.clear()
         topics = [(s.topic, 1) for s in self.cfg.sensors.values()]
         if topics:  # a fleet instance may own no twin (paho refuses an empty list)
             client.subscribe(topics)
@@ -253,9 +277,18 @@ class Service:
             if qos > 0 and gen == self._gen:
                 self.client.ack(mid, qos)
 
-    def _send(self, topic: str, payload: bytes | str, retain: bool = True
+    def _send(self, topic: str, payload: bytes | str, retain: bool = True, qos: int = 1
               ) -> mqtt.MQTTMessageInfo:
-        """Every message of the daemon: QoS 1, counted until the broker acknowledges it."""
+        """Every message of the daemon; QoS 1 ones are counted until the broker acknowledges
+        them."""
+        if qos == 0:
+            # The lock is held across publish: paho's network thread may write the message
+            # (and call on_publish) before publish() returns its mid here.
+            with self._sent_lock:
+                info = self.client.publish(topic, payload, qos=0, retain=retain)
+                if info.rc == MQTTErrorCode.MQTT_ERR_SUCCESS:
+                    self._unwritten_qos0.add(info.mid)
+            return info
         with self._sent_lock:  # from the worker and the network thread
             self._sent += 1
         try:
@@ -280,6 +313,10 @@ class Service:
 
     def _on_publish(self, client: mqtt.Client, userdata: Any, mid: int, reason_code: Any,
                     properties: Any) -> None:
+        with self._sent_lock:
+            if mid in self._unwritten_qos0:  # a QoS 0 message written, not a PUBACK
+                self._unwritten_qos0.discard(mid)
+                return
         self._confirmed += 1  # only the network thread writes it
         if self._awaiting_acks and self.unconfirmed() < TICK_BACKLOG:
             self._awaiting_acks = False
@@ -292,8 +329,8 @@ class Service:
         """Messages sent and not yet acknowledged by the broker."""
         return max(self._sent - self._confirmed, 0)
 
-    def _publish(self, topic: str, payload: bytes, retain: bool = True) -> None:
-        self._send(topic, payload, retain)
+    def _publish(self, topic: str, payload: bytes, retain: bool = True, qos: int = 1) -> None:
+        self._send(topic, payload, retain, qos)
         self.published += 1
 
     def _tick_paced(self) -> bool:
@@ -488,10 +525,10 @@ class Service:
                 self._guarded("tick", self._run_due, rt)
             with twin_context(rt.cfg.id):  # the twin's log lines name it
                 try:  # one twin's failure must not keep the reading from the others
-                    if r.sensor in rt.twin.references:
+                    if r.sensor in rt.twin.inputs:
                         if rt.twin.observe(r.sensor, r.ts, r.value) and publish:
-                            kinds = self.cfg.per_reading_kinds(rt.twin.artifact.primary)
-                            self._publish_estimates(rt, rt.twin.estimate(r.ts, kinds=kinds))
+                            self._publish_estimates(
+                                rt, rt.twin.estimate(r.ts, kinds=rt.reading_kinds))
                     elif r.sensor == rt.cfg.target:
                         self._score_target(rt, r)
                 except Exception:  # noqa: BLE001 — logged with its traceback; the rest goes on
@@ -514,12 +551,12 @@ class Service:
             if not e.publishable:
                 continue
             if kind == primary:
-                topic = self.cfg.twin_topic(rt.cfg.id, "estimate")
+                topic, qos = rt.estimate_topic, 1
                 rt.monitor.roll(self.hours.day_of(e.ts))
                 rt.monitor.record_estimate(e.std)
             else:
-                topic = self.cfg.twin_topic(rt.cfg.id, "baseline", kind)
-            self._publish(topic, estimate_payload(e, unit))
+                topic, qos = rt.baseline_topics[kind], MONITORING_QOS
+            self._publish(topic, estimate_payload(e, unit), qos=qos)
             if kind == primary:
                 self.metrics.published(rt.cfg.id, e.quality, e.ts)
 
@@ -550,10 +587,10 @@ class Service:
                         health: dict[str, Any]) -> None:
         with twin_context(rt.cfg.id):
             self._publish_estimates(rt, rt.twin.estimate(instant))
-        self._publish(self.cfg.twin_topic(rt.cfg.id, "monitor"),
+        self._publish(rt.monitor_topic,
                       monitor_payload({**rt.monitor.snapshot(instant, self.rejections.counts),
                                        "health": health}),
-                      retain=False)
+                      retain=False, qos=MONITORING_QOS)
 
     # -- timers ---------------------------------------------------------------------------
     def _next_grid(self, after: dt.datetime) -> dt.datetime:

@@ -244,7 +244,7 @@ def run_chunk(cfg: ServiceConfig, chunk: Chunk, store: Store, artifact: Artifact
     t0 = time.perf_counter()
     job = chunk.job
     res = ChunkResult(chunk)
-    refs = list(artifact.references)
+    refs = list(artifact.inputs)  # the readings the twin reads: references and covariates
     hours = artifact.hours
     twin: Twin | None = None
     prev: dt.date | None = None

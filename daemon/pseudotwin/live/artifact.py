@@ -28,7 +28,8 @@ FORMAT = "pseudotwin-artifact"
 # 2: σ calibration, validation, the ref model, VARMA re-levelling; version 1 still loads.
 # 3: the training envelope (live/envelope.py); older versions load without one.
 # 4: reference failover (live/failover.py); older versions load without any.
-VERSION = 4
+# 5: covariates (twin.covariates, the triv-cov model); older versions have none.
+VERSION = 5
 
 
 @dataclass(frozen=True)
@@ -114,7 +115,7 @@ class Artifact(OfTwin):
             twin = d["twin"]
             spec = TwinSpec(
                 tuple(twin["references"]), str(twin["target"]), Quantity.parse(twin["quantity"]),
-                OperatingHours.from_dict(d["hours"]),
+                OperatingHours.from_dict(d["hours"]), tuple(twin.get("covariates", ())),
             )
             models: dict[str, TwinModel] = {}
             for kind, md in d["models"].items():

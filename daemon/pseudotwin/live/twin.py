@@ -130,6 +130,7 @@ class Twin:
         self.max_carry = max_carry
         self.thinning = thinning or Thinning()
         self.references = artifact.references
+        self.inputs = artifact.inputs  # references, then covariates
         self.day: dt.date | None = None
         self.window: list[WindowReading] = []
         self.last: dict[str, tuple[dt.datetime, float]] = {}
@@ -158,14 +159,14 @@ class Twin:
         self.window = []
         self._thinner = WindowThinner(self.thinning)
         self._broken = set()
-        self._series = {s: ([], []) for s in self.references}
+        self._series = {s: ([], []) for s in self.inputs}
         self._est = {k: self.artifact.models[k].start_day(day) for k in self.kinds}
         self._failover = ({r: f.model.start_day(day) for r, f in self.artifact.failover.items()}
                           if self.artifact.primary in self.kinds else {})
         self.uncertain_since, self.uncertain_why = None, ()
         self.failover_since, self.failover_lost = None, ()
         init_ts = self.hours.at(day, self.hours.init_start)
-        for s in self.references:
+        for s in self.inputs:
             last = self.last.get(s)
             if last and last[0] < init_ts and init_ts - last[0] <= self.max_carry:
                 self._feed(WindowReading(s, last[0], self.hours.init_start, last[1]))
@@ -210,6 +211,8 @@ class Twin:
             try:
                 for r in self.window:
                     est.observe(r.sensor, r.hours, r.value)
+                if self.window:  # GP posteriors condition when asked: ask, or fail here
+                    est.predict(self.window[-1].hours)
             except NumericalError:
                 continue
             self._est[kind] = est
@@ -229,8 +232,9 @@ class Twin:
 
     def observe(self, sensor: str, ts: dt.datetime, value: float) -> bool:
         """Take one reading (already validated). False when it does not enter the window:
-        not a reference, a duplicate, outside the operating window, or from a past day."""
-        if sensor not in self.references or not math.isfinite(value):
+        not an input (reference or covariate), a duplicate, outside the operating window, or
+        from a past day."""
+        if sensor not in self.inputs or not math.isfinite(value):
             return False
         # Open the day first: its carry-over is the last value from *before* this reading.
         in_window = self._window_for(ts)
@@ -395,7 +399,13 @@ class Twin:
         cannot answer for a silent reference; None when no failover has fresh references."""
         running = {r: f for r, f in self.artifact.failover.items() if r in self._failover}
         for f in ranked(running, lambda s: not self._silent(s, ts)):
-            e = self._failover[f.lost].predict(h)
+            try:  # a GP posterior conditions on its pending points when asked
+                e = self._failover[f.lost].predict(h)
+            except NumericalError as exc:
+                log.warning("failover for %s: numerical failure (%s); unavailable today",
+                            f.lost, exc)
+                del self._failover[f.lost]
+                continue
             if not math.isfinite(e.value):
                 continue  # its references have no point in today's window yet
             std = self._sigma(f.calibration, f.model.references_, h, e.std, slopes)

@@ -83,10 +83,20 @@ class TwinModel(ABC):
     kind: ClassVar[str]
     options: ClassVar[tuple[str, ...]] = ()
     candidate: ClassVar[bool] = True  # may become the twin's primary by validation
+    # Published live as a baseline when not the primary (DESIGN's baselines and the thesis's
+    # models); a variant of one of them (another offset profile, covariates, more
+    # references) runs live only when validation makes it the primary.
+    live_baseline: ClassVar[bool] = True
     # Settings of the refits on held-out training days (validation): cheaper where a full
     # fit per fold would cost minutes.
     validation_options: ClassVar[dict[str, Any]] = {}
     references_: tuple[str, ...]
+
+    @classmethod
+    def not_applicable(cls, spec: TwinSpec) -> str:
+        """Why this model cannot serve the twin ``spec`` (training then skips it); empty when
+        it can. E.g. a model of covariates for a twin without any."""
+        return ""
 
     @abstractmethod
     def fit(self, training: TrainingSet) -> Self:

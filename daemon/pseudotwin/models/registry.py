@@ -4,14 +4,16 @@ from __future__ import annotations
 
 from pseudotwin.errors import DataError
 from pseudotwin.models.base import TwinModel
-from pseudotwin.models.corrgp import CorrGpLcm, CorrGpTriv
+from pseudotwin.models.corrgp import CorrGpLcm, CorrGpMulti, CorrGpTriv
+from pseudotwin.models.covariate import TrivCovModel
 from pseudotwin.models.ref import RefModel
-from pseudotwin.models.triv import TrivModel
+from pseudotwin.models.triv import TrivModel, TrivShrunkModel
 from pseudotwin.models.varma import VarmaModel
 
 # From the simplest: validation prefers the earlier of two models that score alike.
 MODELS: dict[str, type[TwinModel]] = {
-    cls.kind: cls for cls in (RefModel, TrivModel, CorrGpTriv, CorrGpLcm, VarmaModel)
+    cls.kind: cls for cls in (RefModel, TrivModel, TrivShrunkModel, TrivCovModel, CorrGpTriv,
+                              CorrGpMulti, CorrGpLcm, VarmaModel)
 }
 ALL_MODELS: tuple[str, ...] = tuple(MODELS)
 

@@ -7,7 +7,7 @@ On the slot grid (COV values sample-and-hold), O_m(τ) = mean over training days
 from __future__ import annotations
 
 import datetime as dt
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
 
@@ -44,7 +44,7 @@ class TrivModel(TwinModel):
     def __init__(self, references: tuple[str, ...] | None = None) -> None:
         self.references = references
 
-    def fit(self, training: TrainingSet) -> TrivModel:
+    def fit(self, training: TrainingSet) -> Self:
         refs = tuple(self.references or training.references)
         self.hours_ = training.hours
         self.references_ = refs
@@ -55,7 +55,7 @@ class TrivModel(TwinModel):
         with np.errstate(invalid="ignore"), _quiet():
             for r in refs:
                 ref = slot_matrix(training, r)
-                offsets.append(fill_slots(np.nanmean(tgt - ref, axis=0)))
+                offsets.append(self._offset_profile(tgt - ref))
                 self.profiles_[r] = fill_slots(np.nanmean(ref, axis=0))
             self.profiles_[training.target] = fill_slots(np.nanmean(tgt, axis=0))
             self.offsets_ = np.array(offsets)
@@ -67,6 +67,10 @@ class TrivModel(TwinModel):
         self.std_ = np.where(np.isfinite(spread), spread, overall)
         self.std_ = np.maximum(self.std_, 1e-6)
         return self
+
+    def _offset_profile(self, diffs: np.ndarray) -> np.ndarray:
+        """Target − reference per day and slot [D, S] → the offset profile [S]."""
+        return fill_slots(np.nanmean(diffs, axis=0))
 
     def slot_index(self, hours: float) -> int:
         """Index into the window slots [S] of wall-clock hours (clamped to the window)."""
@@ -90,7 +94,7 @@ class TrivModel(TwinModel):
         }
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any], spec: TwinSpec) -> TrivModel:
+    def from_dict(cls, d: dict[str, Any], spec: TwinSpec) -> Self:
         hours = spec.hours
         m = cls(tuple(d["references"]))
         m.hours_ = hours
@@ -102,6 +106,55 @@ class TrivModel(TwinModel):
         S = len(hours.window_slots())
         if m.offsets_.shape != (len(m.references_), S):
             raise ValueError("TRIV offsets do not match the references and the slot grid")
+        return m
+
+
+class TrivShrunkModel(TrivModel):
+    """TRIV whose offset profile is shrunk towards its daily mean as far as the training
+    days disagree about its shape (James–Stein, one factor per reference).
+
+    With D training days, the profile's shape (O(τ) − Ō) is estimated with a sampling
+    variance of about mean_τ(s²(τ)/D) (s² the spread of the days' offsets at slot τ), while
+    its spread across slots is mean_τ (O(τ) − Ō)². The factor λ = max(0, 1 − sampling /
+    spread) keeps the shape only as far as it stands out of the days' disagreement: five
+    alike days keep it (λ ≈ 1), five days that each had their own offset course leave the
+    constant mean offset (λ = 0). Fitted: shrink_ [M] the factors λ per reference.
+    """
+
+    kind = "triv-shrunk"
+    live_baseline = False
+
+    def fit(self, training: TrainingSet) -> Self:
+        self.shrink_: list[float] = []
+        super().fit(training)
+        return self
+
+    def _offset_profile(self, diffs: np.ndarray) -> np.ndarray:
+        profile = super()._offset_profile(diffs)
+        n = np.isfinite(diffs).sum(axis=0)
+        keep = n >= 2
+        if not keep.any():
+            self.shrink_.append(1.0)
+            return profile
+        mean = float(np.mean(profile))
+        spread = float(np.mean((profile - mean) ** 2))
+        sampling = float(np.mean(np.nanvar(diffs[:, keep], axis=0, ddof=1) / n[keep]))
+        lam = max(0.0, 1.0 - sampling / spread) if spread > 0 else 0.0
+        self.shrink_.append(lam)
+        return mean + lam * (profile - mean)
+
+    def fit_summary(self) -> str:
+        factors = ", ".join(f"{r} {lam:.2f}" for r, lam in zip(self.references_, self.shrink_,
+                                                                strict=True))
+        return f"offset profile kept by a factor λ (1 = TRIV's, 0 = constant): {factors}"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**super().to_dict(), "shrink": list(self.shrink_)}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], spec: TwinSpec) -> Self:
+        m = super().from_dict(d, spec)
+        m.shrink_ = [float(x) for x in d.get("shrink", [])]
         return m
 
 

@@ -71,13 +71,27 @@ def config_snippet(artifact: Artifact, artifact_path: Path, twin: str) -> str:
             f"min = {lo:.1f}",
             f"max = {hi:.1f}",
         ]
+    for sensor in artifact.covariates:
+        topic = "building/" + _NOT_IN_TOPIC.sub("_", sensor)
+        lines += [
+            "",
+            "# covariate (any quantity): set its unit and valid range; topic as above",
+            "[[sensors]]",
+            f"id = {_s(sensor)}",
+            f"topic = {_s(topic)}",
+            'unit = "unknown"',
+            "min = -1e9",
+            "max = 1e9",
+        ]
     refs = ", ".join(_s(r) for r in artifact.references)
+    covs = ", ".join(_s(c) for c in artifact.covariates)
     lines += [
         "",
         "[[twins]]",
         f"id = {_s(twin)}",
         f"quantity = {_s(artifact.quantity.value)}",
         f"references = [{refs}]",
+        *([f"covariates = [{covs}]"] if covs else []),
         "# compared with the estimate on <base_topic>/<twin>/monitor while it stands there;",
         "# remove this line (and its [[sensors]] table) when the desk sensor is taken away",
         f"target = {_s(artifact.target)}",

@@ -38,7 +38,8 @@ COMMAND = ".venv/bin/python scripts/results.py"
 PROFILE = "corrgp-triv (profile)"
 # Column order of every model table; ref:* pseudo-models follow. ``estimate`` is what the
 # daemon publishes (the primary chosen by validation, with its fallbacks).
-MODEL_ORDER = (ESTIMATE, "ref", "corrgp-triv", PROFILE, "corrgp-lcm", "triv", "varma")
+MODEL_ORDER = (ESTIMATE, "ref", "corrgp-triv", "corrgp-multi", PROFILE, "corrgp-lcm", "triv",
+               "triv-cov", "varma")
 # GP: the Corr-GP with the TRIV mean, compared with its prior mean TRIV (secondary evidence).
 GP, BASE, REF = "corrgp-triv", "triv", "ref"
 
@@ -63,12 +64,15 @@ class RunSpec:
     about: str
     train_days: int = 5
     long_term: bool = False  # also run corrgp-triv with ref_mean="profile"
+    # Other live sensors for triv-cov, chosen before looking at any result: what a room's
+    # permanent sensors would offer (people: CO2 or occupancy; lamps, sun, outdoor air).
+    covariates: tuple[str, ...] = ()
 
     @property
     def twin(self) -> TwinSpec:
         """What the run's twin pseudo-measures (hours 08:00–19:00 in the run's time zone)."""
         return TwinSpec(self.references, self.target, Quantity.parse(self.quantity),
-                        OperatingHours(timezone=self.timezone))
+                        OperatingHours(timezone=self.timezone), self.covariates)
 
 
 RUNS: tuple[RunSpec, ...] = (
@@ -77,6 +81,7 @@ RUNS: tuple[RunSpec, ...] = (
         ("dining/temp",), "room/temp", "temperature", "Europe/Madrid", dt.date(2012, 3, 14),
         "UCI SML2010 house (Valencia, spring 2012, 15-min means, logger clock UTC): reference "
         "`dining/temp` (dining room), target `room/temp` (the other room).",
+        covariates=("dining/co2", "dining/light", "outdoor/temp", "outdoor/irradiance"),
     ),
     RunSpec(
         "sml2010-co2", "SML2010 — CO2", "sml2010",
@@ -84,6 +89,7 @@ RUNS: tuple[RunSpec, ...] = (
         "UCI SML2010 house (Valencia, spring 2012, 15-min means): reference `dining/co2`, "
         "target `room/co2`. The CO2 sensors read ~200 ppm, below outdoor air: uncalibrated "
         "offset, only relative dynamics are meaningful (PROVENANCE).",
+        covariates=("dining/temp", "dining/humidity", "dining/light"),
     ),
     RunSpec(
         "room-climate-a", "Room Climate — location A", "room-climate-a",
@@ -93,6 +99,7 @@ RUNS: tuple[RunSpec, ...] = (
         "references `A1/temp` (ceiling centre, 2.88 m) and `A3/temp` (opposite wall, 2.25 m), "
         "target `A4/temp` (wall directly above the desk, 1.18 m). corrgp-triv uses the first "
         "reference (A1) only; corrgp-lcm, triv and varma use both.",
+        covariates=("A/occupancy", "A/window", "A/door", "A1/light1"),
     ),
     RunSpec(
         "room-climate-b", "Room Climate — location B", "room-climate-b",
@@ -102,6 +109,7 @@ RUNS: tuple[RunSpec, ...] = (
         "`B1/temp` (ceiling, 2.8 m) and `B3/temp` (side wall, 2.2 m), target `B2/temp` "
         "(between the two desks, 1.2 m). corrgp-triv uses the first reference (B1) only; "
         "corrgp-lcm, triv and varma use both.",
+        covariates=("B/occupancy", "B/window", "B/door", "B1/light1"),
     ),
     RunSpec(
         "appliances", "Appliances house — long-term (Jan–May 2016)", "appliances",
@@ -112,7 +120,7 @@ RUNS: tuple[RunSpec, ...] = (
         "room) — the pair with the highest overall r (0.945) in PROVENANCE, most of which is "
         "the common seasonal trend (PROVENANCE: median daily r 0.49 over whole days). "
         "Different rooms, not one room.",
-        long_term=True,
+        long_term=True, covariates=("weather/temp", "house/lights", "ironing/humidity"),
     ),
 )
 RUN_NAMES = tuple(r.name for r in RUNS)

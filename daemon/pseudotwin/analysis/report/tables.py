@@ -181,4 +181,10 @@ def validation_md(res: RunResult) -> str:
                      "model's day-level σ")
     if "seconds" in v:
         extra.append(f"{fmt(v['seconds'], 1)} s")
-    return "\n\n".join([table, reason + " " + "; ".join(extra) + "."])
+    parts = [table, reason + " " + "; ".join(extra) + "."]
+    cov = art.models.get("triv-cov")
+    if cov is not None:  # which covariate helped, on the training days (Trust II)
+        parts.append(f"Covariates ({', '.join(f'`{c}`' for c in art.covariates)}), each "
+                     f"added to TRIV alone and scored leave-one-day-out inside every fold's "
+                     f"training days: {cov.fit_summary()}.")
+    return "\n\n".join(parts)

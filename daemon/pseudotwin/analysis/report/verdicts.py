@@ -18,6 +18,7 @@ from pseudotwin.live import metrics
 # The figures for the ``estimate`` rows (Trust I):
 FLOOR_RATIO = 1.02  # mean daily NRMSE ≤ this × min(TRIV, best raw reference)
 COVER2_RANGE = (90.0, 98.0)  # ±2σ coverage of all scored readings [%]
+BEAT_TRIV = 0.9  # Trust II: mean daily NRMSE ≤ this × TRIV's on at least three runs
 OK = "✓"
 
 

@@ -1,0 +1,241 @@
+"""Covariates (issue Trust II): other live sensors that a model may use, kept only where
+validation on the training days says they help.
+
+Synthetic twins whose truth is known: the desk's temperature follows the reference plus a
+term in a CO2 covariate's deviation from its usual day (people warm the desk side of the
+room); a second covariate is noise that drives nothing. Then the plumbing: configuration,
+artifact round trip, the live twin reading the covariate.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from daemon_support import Viewer, wait_for
+from pseudotwin.analysis.commissioning.snippet import config_snippet
+from pseudotwin.analysis.replay import ESTIMATE, replay_estimates
+from pseudotwin.analysis.training import train_twin
+from pseudotwin.cli import _artifact_check
+from pseudotwin.config import check_config, load_config
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.spec import Quantity, TwinSpec
+from pseudotwin.edge.clock import ReplayClock
+from pseudotwin.edge.replay import replay
+from pseudotwin.edge.service import Service
+from pseudotwin.errors import ConfigError, DataError
+from pseudotwin.live.artifact import Artifact
+from pseudotwin.live.twin import Twin
+from pseudotwin.models.covariate import MAX_AGE_H, TrivCovModel
+
+HOURS = OperatingHours(timezone="UTC")
+DAY0 = dt.date(2024, 3, 4)
+STEP_H = 0.25
+N = 52  # 07:00 … 19:45 on the 15-min grid
+GAIN = 0.004  # [°C/ppm] the desk's warming per ppm of CO2 above the usual day
+
+
+def _smooth(rng: np.random.Generator, days: int, scale: float, length: int) -> np.ndarray:
+    raw = rng.normal(size=(days, N + length))
+    kernel = np.ones(length) / np.sqrt(length)
+    return scale * np.array([np.convolve(r, kernel, mode="valid")[:N] for r in raw])
+
+
+def _frame(series: dict[str, np.ndarray], days: int) -> pd.DataFrame:
+    rows = []
+    for d in range(days):
+        base = pd.Timestamp(DAY0 + dt.timedelta(days=d), tz="UTC") + pd.Timedelta(hours=7)
+        ts = base + pd.to_timedelta(np.arange(N) * STEP_H, unit="h")
+        for name, values in series.items():
+            rows.append(pd.DataFrame({"sensor": name, "ts": ts, "value": values[d]}))
+    return pd.concat(rows, ignore_index=True).sort_values("ts", kind="stable")
+
+
+def _house(seed: int, days: int) -> pd.DataFrame:
+    """ref, desk, co2 (drives the desk), noise (drives nothing)."""
+    rng = np.random.default_rng(seed)
+    h = 7.0 + np.arange(N) * STEP_H
+    ref = 21.0 + np.sin((h - 7) / 12 * np.pi)[None, :] + _smooth(rng, days, 0.2, 8)
+    occupied = _smooth(rng, days, 150.0, 10)  # the day's own occupancy pattern [ppm]
+    co2 = 600.0 + 200.0 * np.sin((h - 7) / 12 * np.pi)[None, :] + occupied
+    noise = 50.0 + _smooth(rng, days, 10.0, 6)
+    desk = ref + 0.8 + GAIN * occupied + rng.normal(0.0, 0.03, size=(days, N))
+    return _frame({"ref": ref, "desk": desk, "room/co2": co2, "noise": noise}, days)
+
+
+def _spec(covariates: tuple[str, ...]) -> TwinSpec:
+    return TwinSpec(("ref",), "desk", Quantity.TEMPERATURE, HOURS, covariates)
+
+
+@pytest.fixture(scope="module")
+def house() -> pd.DataFrame:
+    return _house(3, 12)
+
+
+@pytest.fixture(scope="module")
+def with_co2(house: pd.DataFrame) -> Artifact:
+    return train_twin(house, _spec(("noise", "room/co2")), DAY0, 5,
+                      models=["ref", "triv", "triv-cov"])
+
+
+def test_a_covariate_that_drives_the_target_is_picked_by_validation(with_co2: Artifact) -> None:
+    model = with_co2.models["triv-cov"]
+    assert isinstance(model, TrivCovModel)
+    assert model.covariates_ == ("room/co2",)  # the noise was tried and left out
+    assert model.beta_[0] == pytest.approx(GAIN, rel=0.25)
+    assert with_co2.primary == "triv-cov", with_co2.validation["reason"]
+    scores = with_co2.validation["scores"]
+    assert scores["triv-cov"]["nrmse_pct"] < 0.7 * scores["triv"]["nrmse_pct"]
+    assert "room/co2" in model.fit_summary() and "triv-cov" in with_co2.published
+
+
+def test_an_irrelevant_covariate_is_not_picked(house: pd.DataFrame) -> None:
+    art = train_twin(house, _spec(("noise",)), DAY0, 5, models=["ref", "triv", "triv-cov"])
+    model = art.models["triv-cov"]
+    assert isinstance(model, TrivCovModel) and model.covariates_ == ()
+    assert art.primary == "triv", art.validation["reason"]  # same score, simpler
+    assert "triv-cov" in art.withheld and "triv-cov" not in art.published
+
+
+def test_the_covariate_helps_on_days_after_training(with_co2: Artifact,
+                                                    house: pd.DataFrame) -> None:
+    rows = replay_estimates(with_co2, house, DAY0 + dt.timedelta(days=5))
+    err = {m: float(np.sqrt(np.mean((g["value"] - g["truth"]) ** 2)))
+           for m, g in rows.groupby("model")}
+    assert err[ESTIMATE] == err["triv-cov"] and err["triv-cov"] < 0.6 * err["triv"]
+
+
+def test_artifact_round_trip_and_live_twin(with_co2: Artifact, tmp_path: Path,
+                                           house: pd.DataFrame) -> None:
+    path = tmp_path / "desk.json"
+    with_co2.save(path)
+    loaded = Artifact.load(path)
+    assert loaded.covariates == ("noise", "room/co2")
+    a = replay_estimates(with_co2, house, DAY0 + dt.timedelta(days=5))
+    b = replay_estimates(loaded, house, DAY0 + dt.timedelta(days=5))
+    pd.testing.assert_frame_equal(a, b, check_exact=True)
+    # live: the covariate's reading enters the window and moves the estimate
+    twin = Twin(loaded, models=["triv-cov"])
+    day = DAY0 + dt.timedelta(days=7)
+    t = dt.datetime.combine(day, dt.time(10), dt.UTC)
+    assert twin.observe("ref", t, 21.5)
+    before = twin.estimate(t)["triv-cov"].value
+    assert twin.observe("room/co2", t, 1500.0)
+    after = twin.estimate(t)["triv-cov"].value
+    assert after > before + 0.5 * GAIN * 500
+    # a covariate silent for longer than MAX_AGE_H corrects nothing any more
+    late = t + dt.timedelta(hours=MAX_AGE_H + 0.5)
+    assert twin.observe("ref", late, 21.5)
+    triv_only = Twin(loaded, models=["triv"])
+    triv_only.observe("ref", late, 21.5)
+    assert twin.estimate(late)["triv-cov"].value == triv_only.estimate(late)["triv"].value
+
+
+def test_a_twin_without_covariates_does_not_train_the_model(house: pd.DataFrame) -> None:
+    art = train_twin(house, _spec(()), DAY0, 5, models=["triv", "triv-cov"], validate=False)
+    assert list(art.models) == ["triv"]
+    with pytest.raises(DataError, match="no covariates"):
+        train_twin(house, _spec(()), DAY0, 5, models=["triv-cov"], validate=False)
+
+
+def test_covariates_are_checked() -> None:
+    with pytest.raises(ConfigError, match="also listed"):
+        _spec(("ref",))
+    with pytest.raises(ConfigError, match="listed twice"):
+        _spec(("co2", "co2"))
+    # a configuration must name the covariates its artifact was trained with
+    assert _spec(("noise",)).differences(_spec(()), "the artifact's") == [
+        "covariates noise differ from the artifact's (none)"]
+    assert _spec(("a", "b")).differences(_spec(("b", "a"))) == []
+    with pytest.raises(DataError, match="noise2"):
+        train_twin(_house(4, 6), _spec(("noise2",)), DAY0, 5, models=["triv-cov"])
+
+
+# ------------------------------------------------------------------ through the daemon
+
+
+def _config(folder: Path, port: int, artifact: Path) -> Path:
+    sensors = "".join(f"""
+[[sensors]]
+id = "{s}"
+topic = "house/{s}"
+unit = "{unit}"
+min = {lo}
+max = {hi}
+""" for s, unit, lo, hi in (("ref", "°C", -10, 50), ("desk", "°C", -10, 50),
+                             ("room/co2", "ppm", 0, 5000), ("noise", "lx", -1000, 1000)))
+    text = f"""
+[broker]
+host = "127.0.0.1"
+port = {port}
+client_id = "pt-covariates-{folder.name}"
+
+[service]
+base_topic = "pt"
+timezone = "UTC"
+state_dir = "state"
+{sensors}
+[[twins]]
+id = "desk"
+references = ["ref"]
+covariates = ["noise", "room/co2"]
+target = "desk"
+quantity = "temperature"
+artifact = "{artifact}"
+"""
+    p = folder / "config.toml"
+    p.write_text(text, encoding="utf-8")
+    return p
+
+
+def test_the_daemon_reads_the_covariates_like_evaluate(
+    mosquitto, with_co2: Artifact, house: pd.DataFrame, tmp_path: Path
+) -> None:
+    """A CO2 covariate of another unit (ppm for a °C twin) is subscribed to, and every live
+    estimate equals evaluate's for the same readings."""
+    path = with_co2.save(tmp_path / "desk.json")
+    cfg = load_config(_config(tmp_path, mosquitto.port, path))
+    assert set(cfg.twins["desk"].inputs) == {"ref", "noise", "room/co2"}
+    day = DAY0 + dt.timedelta(days=8)
+    start = dt.datetime.combine(day, dt.time(7), dt.UTC)
+    end = dt.datetime.combine(day, dt.time(12), dt.UTC)
+    readings = house[(house["ts"] >= start) & (house["ts"] < end)]
+    speed = 3000.0
+    viewer = Viewer(mosquitto.port)
+    svc = Service(cfg, clock=ReplayClock(start, speed))
+    svc.start(wait_connected=15)
+    try:
+        replay(cfg, readings, start, end, speed)
+        scored = readings[(readings["sensor"] == "desk")
+                          & (readings["ts"] >= dt.datetime.combine(day, dt.time(8), dt.UTC))]
+        stamps = {t.isoformat().replace("+00:00", "Z") for t in scored["ts"]}
+        wait_for(lambda: stamps <= {e["ts"] for e in viewer.all()},
+                 what="an estimate at every instant")
+        # the last input of every instant is a covariate: its estimate saw all of them
+        wait_for(lambda: sum(e["ts"] in stamps for e in viewer.all()) >= 3 * len(stamps),
+                 what="the estimates of every input")
+    finally:
+        svc.stop()
+        viewer.close()
+    live = {e["ts"]: e for e in viewer.all()}
+    offline = replay_estimates(Artifact.load(path), readings, day)
+    offline = offline[offline["model"] == ESTIMATE]
+    assert len(offline) == len(stamps)
+    for _, row in offline.iterrows():
+        e = live[row["ts"].isoformat().replace("+00:00", "Z")]
+        assert e["model"] == "triv-cov"
+        assert e["value"] == round(row["value"], 6) and e["std"] == round(row["std"], 6)
+
+
+def test_the_commissioning_config_names_the_covariates(with_co2: Artifact,
+                                                       tmp_path: Path) -> None:
+    path = with_co2.save(tmp_path / "desk.json")
+    toml = tmp_path / "twin.toml"
+    toml.write_text(config_snippet(with_co2, path, "desk"), encoding="utf-8")
+    cfg = check_config(toml, artifact_check=_artifact_check)  # raises on any problem
+    assert cfg.twins["desk"].covariates == ("noise", "room/co2")
+    assert {"noise", "room/co2"} <= set(cfg.sensors)
