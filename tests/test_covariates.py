@@ -18,6 +18,7 @@ import pytest
 
 from daemon_support import Viewer, wait_for
 from pseudotwin.analysis.commissioning.snippet import config_snippet
+from pseudotwin.analysis.evaluate import evaluate
 from pseudotwin.analysis.replay import ESTIMATE, replay_estimates
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.cli import _artifact_check
@@ -239,3 +240,11 @@ def test_the_commissioning_config_names_the_covariates(with_co2: Artifact,
     cfg = check_config(toml, artifact_check=_artifact_check)  # raises on any problem
     assert cfg.twins["desk"].covariates == ("noise", "room/co2")
     assert {"noise", "room/co2"} <= set(cfg.sensors)
+
+
+def test_evaluate_scores_the_models_that_serve_the_twin(house: pd.DataFrame) -> None:
+    """Asked for every kind, evaluate scores those training kept (the last stop's results
+    run failed on a one-reference twin without covariates)."""
+    ev = evaluate(house, _spec(()), DAY0, 5, ("triv", "triv-cov", "corrgp-multi"))
+    assert list(ev.artifact.models) == ["triv"]
+    assert set(ev.daily["model"]) == {"triv", ESTIMATE, "ref:ref"}

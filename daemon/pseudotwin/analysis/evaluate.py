@@ -107,8 +107,9 @@ def evaluate(
     if plot_day is not None and plot_day < test_start:
         raise DataError(f"--plot-day {plot_day} is not scored: the evaluated days begin on "
                         f"{test_start}, after training")
-    est = replay_estimates(artifact, history, test_start, models, thinning=thinning,
-                           stale_after=stale_after)
+    # every model trained (training skips those that cannot serve this twin)
+    est = replay_estimates(artifact, history, test_start, list(artifact.models),
+                           thinning=thinning, stale_after=stale_after)
     if est.empty:
         raise DataError(
             f"no target readings of {target} in operating hours after the training period "

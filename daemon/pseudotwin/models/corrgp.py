@@ -318,6 +318,41 @@ class CorrGpTriv(_GpModel):
         return m
 
 
+class _LevelShift:
+    """Today's level shift of one reference's prior mean.
+
+    A function of the *set* of that reference's readings (all init-phase deviations, or the
+    earliest reading's when there is none), so arrival order never changes it.
+    """
+
+    def __init__(self, model: CorrGpTriv) -> None:
+        self.model = model
+        self.init_dev: dict[int, float] = {}  # posterior index → init-phase deviation
+        self.earliest: tuple[float, int, float] | None = None  # (hours, index, deviation)
+        self.value = 0.0
+
+    def note(self, i: int, hours: float, deviation: float) -> bool:
+        """Record point i's deviation from the profile; True when the shift moved (every
+        residual of this reference then moves with its prior mean)."""
+        moved = False
+        if hours < self.model.hours_.day_start:
+            self.init_dev[i] = deviation
+            moved = True
+        elif self.init_dev.pop(i, None) is not None:  # a merged point moved past day start
+            moved = True
+        if self.earliest is None or hours < self.earliest[0] or i == self.earliest[1]:
+            self.earliest = (hours, i, deviation)
+            moved = moved or not self.init_dev  # the earliest counts only without init ones
+        if not moved:
+            return False
+        devs = list(self.init_dev.values()) or [self.earliest[2]]
+        new = self.model._shift(np.array(devs))
+        if new == self.value:
+            return False
+        self.value = new
+        return True
+
+
 class TrivGpDay(DayEstimator):
     """Live state: ICM posterior on the reference's deviations from its prior mean.
 
@@ -332,44 +367,20 @@ class TrivGpDay(DayEstimator):
         self.held = HeldValues()
         self.values: list[float] = []  # raw reference values, in the posterior's order
         self.profile: list[float] = []  # the reference's profile at each value's time
-        self.init_dev: dict[int, float] = {}  # posterior index → init-phase deviation
-        self.earliest: tuple[float, int, float] | None = None  # (hours, index, deviation)
-        self.shift = 0.0
+        self.level = _LevelShift(model)
         self.points = gp_points.merging()  # None: one GP point per window point
 
     def _residual(self, profile: float, value: float) -> float:
         """The GP residual of a reference value whose profile value is ``profile``; the prior
         mean is the profile moved by today's shift."""
         m = self.model
-        return (value - m._ref_mean(profile, self.shift) - m.c_) / m.s_
-
-    def _note_deviation(self, i: int, hours: float, value: float, profile: float) -> bool:
-        """Record point i's deviation from the profile; True when today's shift moved (every
-        residual then moves with the prior mean)."""
-        m = self.model
-        dev = value - profile
-        moved = False
-        if hours < m.hours_.day_start:
-            self.init_dev[i] = dev
-            moved = True
-        elif self.init_dev.pop(i, None) is not None:  # a merged point moved past day start
-            moved = True
-        if self.earliest is None or hours < self.earliest[0] or i == self.earliest[1]:
-            self.earliest = (hours, i, dev)
-            moved = moved or not self.init_dev  # the earliest counts only without init ones
-        if not moved:
-            return False
-        devs = list(self.init_dev.values()) or [self.earliest[2]]
-        new_shift = m._shift(np.array(devs))
-        if new_shift == self.shift:
-            return False
-        self.shift = new_shift
-        return True
+        return (value - m._ref_mean(profile, self.level.value) - m.c_) / m.s_
 
     def _reset_residuals(self) -> None:
         m = self.model
         values, profile = np.array(self.values), np.array(self.profile)
-        self.post.set_residuals((values - m._ref_mean(profile, self.shift) - m.c_) / m.s_)
+        self.post.set_residuals((values - m._ref_mean(profile, self.level.value) - m.c_)
+                                / m.s_)
 
     def observe(self, sensor: str, hours: float, value: float) -> None:
         if sensor != self.ref:
@@ -383,7 +394,7 @@ class TrivGpDay(DayEstimator):
         # A failed add raises here and the twin rebuilds this estimator from the window, so
         # the deviation noted for the lost point never outlives it.
         profile = self.model.triv_.profile(self.ref, hours)
-        if self._note_deviation(self.post.n, hours, value, profile):
+        if self.level.note(self.post.n, hours, value - profile):
             self._reset_residuals()
         self.post.add(hours, 0, self._residual(profile, value))
         self.values.append(value)
@@ -398,7 +409,7 @@ class TrivGpDay(DayEstimator):
             return
         i = self.post.index_of(hours, 0)
         self.values[i] = value
-        if self._note_deviation(i, hours, value, self.profile[i]):
+        if self.level.note(i, hours, value - self.profile[i]):
             self._reset_residuals()
         else:
             self.post.revise(i, self._residual(self.profile[i], value))
@@ -407,7 +418,7 @@ class TrivGpDay(DayEstimator):
         """GP point i (merged window points, gp/points.py) is now at (hours, value)."""
         profile = self.model.triv_.profile(self.ref, hours)
         self.values[i], self.profile[i] = value, profile
-        moved = self._note_deviation(i, hours, value, profile)
+        moved = self.level.note(i, hours, value - profile)
         self.post.move(i, hours, self._residual(profile, value))
         if moved:
             self._reset_residuals()
@@ -515,41 +526,6 @@ class CorrGpMulti(CorrGpTriv):
         if m.triv_.references_ != refs:
             raise ValueError("corrgp-multi TRIV mean does not use its references")
         return m
-
-
-class _LevelShift:
-    """Today's level shift of one reference's prior mean.
-
-    A function of the *set* of that reference's readings (all init-phase deviations, or the
-    earliest reading's when there is none), so arrival order never changes it.
-    """
-
-    def __init__(self, model: CorrGpTriv) -> None:
-        self.model = model
-        self.init_dev: dict[int, float] = {}  # posterior index → init-phase deviation
-        self.earliest: tuple[float, int, float] | None = None  # (hours, index, deviation)
-        self.value = 0.0
-
-    def note(self, i: int, hours: float, deviation: float) -> bool:
-        """Record point i's deviation from the profile; True when the shift moved (every
-        residual of this reference then moves with its prior mean)."""
-        moved = False
-        if hours < self.model.hours_.day_start:
-            self.init_dev[i] = deviation
-            moved = True
-        elif self.init_dev.pop(i, None) is not None:  # a merged point moved past day start
-            moved = True
-        if self.earliest is None or hours < self.earliest[0] or i == self.earliest[1]:
-            self.earliest = (hours, i, deviation)
-            moved = moved or not self.init_dev  # the earliest counts only without init ones
-        if not moved:
-            return False
-        devs = list(self.init_dev.values()) or [self.earliest[2]]
-        new = self.model._shift(np.array(devs))
-        if new == self.value:
-            return False
-        self.value = new
-        return True
 
 
 class MultiGpDay(DayEstimator):
