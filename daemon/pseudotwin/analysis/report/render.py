@@ -179,6 +179,10 @@ def render(
         "",
         _overview(results),
         "",
+        "### What helped where (Trust II)",
+        "",
+        _helped(results),
+        "",
     ]
     for res in results:
         lines += _section(res)
@@ -245,6 +249,35 @@ def _performance() -> list[str]:
         out += [f"### {title}", "", what, "", f"`{cmd} > docs/{name}`:", "", "```",
                 text.strip(), "```", ""]
     return out
+
+
+# TRIV and the models that try to beat it with information TRIV does not use.
+_TRIED = ("triv", "triv-shrunk", "triv-cov", "corrgp-triv", "corrgp-multi", "corrgp-lcm")
+
+
+def _helped(results: Sequence[RunResult]) -> str:
+    """Per run and model: mean daily NRMSE on the test days, and held-out on the training
+    days (what validation saw), next to TRIV's."""
+    rows = []
+    for res in results:
+        test = res.daily.groupby("model")["nrmse_pct"].mean()
+        scores = res.ev.artifact.validation.get("scores", {})
+        cells = [res.spec.name, f"`{res.ev.artifact.primary}`"]
+        for kind in _TRIED:
+            if kind not in test:
+                cells.append("—")
+                continue
+            held = scores.get(kind, {}).get("nrmse_pct")
+            cells.append(f"{fmt(test[kind])} ({fmt(held)})"
+                         + (f" {test[kind] / test['triv']:.2f}×" if kind != "triv" else ""))
+        rows.append(cells)
+    table = md_table(["run", "primary", *_TRIED], rows, left=2)
+    return table + (
+        "\n\nMean daily NRMSE % on the test days (in brackets: held out on the training days, "
+        "what validation chose from), and the ratio to TRIV's on the test days. `—`: the model "
+        "cannot serve the run's twin (corrgp-multi needs two references; triv-cov is TRIV "
+        "where no covariate was kept, see each run's validation section). Only the primary is "
+        "published as `estimate`; the others are scored here whether or not they run live.")
 
 
 def _overview(results: Sequence[RunResult]) -> str:
