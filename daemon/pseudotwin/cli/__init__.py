@@ -260,9 +260,10 @@ def _load_service_config(path: Path) -> ServiceConfig:
 
 def _serve(process: Service | Recorder) -> int:
     """Start a long-running process (daemon, recorder) and stop it on SIGTERM/SIGINT."""
-    import gc
     import signal
     import threading
+
+    from pseudotwin.core.heap import freeze_long_lived
 
     done = threading.Event()
 
@@ -272,10 +273,7 @@ def _serve(process: Service | Recorder) -> int:
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
-    # The loaded twins live as long as the process: out of the cyclic GC's way, whose full
-    # passes over a thousand twins' objects otherwise stop every thread for ~0.7 s.
-    gc.collect()
-    gc.freeze()
+    freeze_long_lived()  # the loaded twins live as long as the process
     try:
         process.start(wait_connected=None)  # never blocks: a signal is honoured at once
     except ConfigError as exc:  # found only on start, e.g. a metrics port already taken

@@ -62,6 +62,7 @@ def run(a: argparse.Namespace) -> int:
     """Backfill; 0 when every day finished, 1 when some failed (each named on stderr),
     130 when interrupted (finished days stay written; the same command resumes)."""
     from pseudotwin.config import load_config
+    from pseudotwin.core.heap import freeze_long_lived
     from pseudotwin.errors import ConfigError
     from pseudotwin.history.backfill_pool import backfill_twins
     from pseudotwin.history.store import open_store
@@ -75,6 +76,7 @@ def run(a: argparse.Namespace) -> int:
         twins = [t.strip() for arg in a.twin for t in arg.split(",") if t.strip()]
         if not twins:
             raise ConfigError("--twin: no twin id given")
+    freeze_long_lived()
     with open_store(cfg.store) as store:
         summary = backfill_twins(cfg, twins, a.start, a.end, store, jobs=a.jobs,
                                  progress=not a.quiet)
