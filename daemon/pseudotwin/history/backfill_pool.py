@@ -29,7 +29,6 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, TextIO
 
-from pseudotwin.core.heap import freeze_long_lived
 from pseudotwin.errors import ConfigError
 from pseudotwin.history.backfill import (
     BackfillSummary,
@@ -237,7 +236,6 @@ def _init_worker(cfg: ServiceConfig, store_url: str, stop: multiprocessing.synch
     logging.basicConfig(level=level, stream=sys.stderr,
                         format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
     _worker.update(cfg=cfg, url=store_url, stop=stop, store=None, artifacts={})
-    freeze_long_lived()  # the modules just imported: a process of ours
 
 
 def _work(chunk: Chunk) -> ChunkResult:
