@@ -292,7 +292,7 @@ class CorrGpTriv(_GpModel):
         """The reference's prior mean from its profile value(s) at the readings' times."""
         return profile + shift
 
-    def start_day(self, day: dt.date) -> DayEstimator:
+    def start_day(self, day: dt.date) -> TrivGpDay:
         return TrivGpDay(self)
 
     def fallback(self) -> TwinModel:
@@ -351,89 +351,6 @@ class _LevelShift:
             return False
         self.value = new
         return True
-
-
-class TrivGpDay(DayEstimator):
-    """Live state: ICM posterior on the reference's deviations from its prior mean.
-
-    The level shift is a function of the *set* of readings (all init-phase deviations, or
-    the earliest reading's when there is none), so arrival order never changes it.
-    """
-
-    def __init__(self, model: CorrGpTriv) -> None:
-        self.model = model
-        self.ref = model.references_[0]
-        self.post = IncrementalPosterior(model.params_, capacity=512)
-        self.held = HeldValues()
-        self.values: list[float] = []  # raw reference values, in the posterior's order
-        self.profile: list[float] = []  # the reference's profile at each value's time
-        self.level = _LevelShift(model)
-        self.points = gp_points.merging()  # None: one GP point per window point
-
-    def _residual(self, profile: float, value: float) -> float:
-        """The GP residual of a reference value whose profile value is ``profile``; the prior
-        mean is the profile moved by today's shift."""
-        m = self.model
-        return (value - m._ref_mean(profile, self.level.value) - m.c_) / m.s_
-
-    def _reset_residuals(self) -> None:
-        m = self.model
-        values, profile = np.array(self.values), np.array(self.profile)
-        self.post.set_residuals((values - m._ref_mean(profile, self.level.value) - m.c_)
-                                / m.s_)
-
-    def observe(self, sensor: str, hours: float, value: float) -> None:
-        if sensor != self.ref:
-            return
-        self.held.update(sensor, hours, value)
-        if self.points is not None:
-            i, h, v = self.points.offer(0, hours, value, self.post.n)
-            if i is not None:
-                self._move(i, h, v)
-                return
-        # A failed add raises here and the twin rebuilds this estimator from the window, so
-        # the deviation noted for the lost point never outlives it.
-        profile = self.model.triv_.profile(self.ref, hours)
-        if self.level.note(self.post.n, hours, value - profile):
-            self._reset_residuals()
-        self.post.add(hours, 0, self._residual(profile, value))
-        self.values.append(value)
-        self.profile.append(profile)
-
-    def revise(self, sensor: str, hours: float, value: float) -> None:
-        if sensor != self.ref:
-            return
-        self.held.update(sensor, hours, value)
-        if self.points is not None:
-            self._move(*self.points.revise(0, hours, value))
-            return
-        i = self.post.index_of(hours, 0)
-        self.values[i] = value
-        if self.level.note(i, hours, value - self.profile[i]):
-            self._reset_residuals()
-        else:
-            self.post.revise(i, self._residual(self.profile[i], value))
-
-    def _move(self, i: int, hours: float, value: float) -> None:
-        """GP point i (merged window points, gp/points.py) is now at (hours, value)."""
-        profile = self.model.triv_.profile(self.ref, hours)
-        self.values[i], self.profile[i] = value, profile
-        moved = self.level.note(i, hours, value - profile)
-        self.post.move(i, hours, self._residual(profile, value))
-        if moved:
-            self._reset_residuals()
-
-    def numerics(self) -> Numerics:
-        return _numerics(self.post)
-
-    def predict(self, hours: float) -> Estimate:
-        m = self.model
-        ref = self.held.get(self.ref)
-        if ref is None:
-            return Estimate(float("nan"), float("nan"))
-        mu, var = self.post.predict(hours, 1)
-        value = m.triv_.offset(0, hours) + ref + m.c_ + m.s_ * mu
-        return Estimate(float(value), m.s_ * math.sqrt(var))
 
 
 # Noise variance floor of corrgp-multi's outputs [normalized units: (σ/s)², i.e. σ ≥ 1 % of
@@ -501,8 +418,8 @@ class CorrGpMulti(CorrGpTriv):
         q = p.n_outputs - 1
         return np.asarray(np.linalg.solve(cov[:q, :q], cov[:q, q]), float)
 
-    def start_day(self, day: dt.date) -> MultiGpDay:
-        return MultiGpDay(self)
+    def start_day(self, day: dt.date) -> TrivGpDay:
+        return TrivGpDay(self)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -528,11 +445,12 @@ class CorrGpMulti(CorrGpTriv):
         return m
 
 
-class MultiGpDay(DayEstimator):
-    """Live state of :class:`CorrGpMulti`: one posterior on all references' deviations, one
-    level shift per reference."""
+class TrivGpDay(DayEstimator):
+    """Live state of :class:`CorrGpTriv` and :class:`CorrGpMulti`: one posterior on the
+    deviations of the model's references (one for corrgp-triv) from their prior means, one
+    level shift per reference; the target's prior mean is TRIV over those references."""
 
-    def __init__(self, model: CorrGpMulti) -> None:
+    def __init__(self, model: CorrGpTriv) -> None:
         self.model = model
         self.index = {r: i for i, r in enumerate(model.references_)}
         self.post = IncrementalPosterior(model.params_, capacity=512)
