@@ -104,6 +104,19 @@ def test_sigma_covers_95_percent_of_days_drawn_from_the_model_itself() -> None:
     assert moving >= 90  # σ follows the references within a day, nearly always
 
 
+def test_the_validation_coverage_checks_sigma_on_days_it_was_not_calibrated_on() -> None:
+    """One training day's offset is far from the others'. A σ calibrated on all held-out
+    errors includes that day and covers it; the validation's coverage must instead score each
+    day with a σ that never saw it, and so miss the odd day."""
+    rng = np.random.default_rng(4)
+    days, h = 5, _grid()
+    ref = 21.0 + _smooth(rng, days, len(h), 0.5, 8)
+    offset = np.array([0.0, 0.05, -0.05, 0.02, 2.0])[:, None]
+    desk = ref + 0.8 + offset + rng.normal(0.0, 0.05, size=(days, len(h)))
+    art = train_twin(_frame(ref, desk, days), SPEC, DAY0, 5, models=["triv"])
+    assert art.validation["scores"]["triv"]["cover2_pct"] <= 85.0
+
+
 def test_estimate_rows_are_the_primary_and_sigma_is_not_constant_within_a_day() -> None:
     rng = np.random.default_rng(4)
     days, h = 8, _grid()

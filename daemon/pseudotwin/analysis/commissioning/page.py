@@ -139,8 +139,8 @@ def validation_section(p: Page) -> str:
         "<h2>Candidates and the primary</h2>"
         f"<p>{esc(v.get('method', ''))}. Each training day is held out in turn: every model "
         "is refit on the other days and the held-out day is replayed through the daemon's "
-        "twin code. CRPS and ±2σ coverage use the calibrated σ, on the days it was "
-        "calibrated on (a check, not a promise).</p>"
+        "twin code. CRPS and ±2σ coverage score each held-out day with a σ calibrated on "
+        "the other days only (nested), so they check σ on a day it has not seen.</p>"
         + verdict(Level.GOOD, f"Primary: {a.primary}.", str(v.get("reason", "")))
         + table("validation", ["model", "held-out daily NRMSE %", f"CRPS {a.unit}",
                                "±2σ coverage %", "days", "note"], rows, classes,

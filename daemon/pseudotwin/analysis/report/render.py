@@ -143,7 +143,9 @@ HOW_TO_READ = f"""\
   mean **CRPS** (continuous ranked probability score of the Gaussian N(estimate, σ²), in the
   quantity's unit, lower is better: it rewards a small error and a σ of the right size; for
   an estimate without σ, such as a raw reference, it is the absolute error). Computed by
-  `pseudotwin.live.metrics`, as in `daily.csv`.
+  `pseudotwin.live.metrics`, as in `daily.csv`. In the validation tables, CRPS and ±2σ
+  coverage are nested: each held-out training day is scored with a σ calibrated on the
+  other training days' held-out errors only, a check of σ on a day it has not seen.
 * **Verdicts** are computed by the script from the test days, against the figures the
   product must reach: the estimate's mean daily NRMSE ≤ {FLOOR_RATIO:.2f} × the *floor*, the
   lower of TRIV's and the best raw reference's (never meaningfully worse than the simple
