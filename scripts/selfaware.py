@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import time
 
+from pseudotwin.analysis.criteria import criteria_table
 from pseudotwin.analysis.evaluate import evaluate
 from pseudotwin.analysis.report.runs import RUN_NAMES, RUNS
 from pseudotwin.analysis.selfaware import selfaware, training_share
@@ -46,14 +47,19 @@ def main() -> None:
                      "mae_ratio": sa.mae_ratio, "cover2_ok": sa.cover2_ok,
                      "cover2_uncertain": sa.cover2_uncertain, "n_ok": sa.n_ok,
                      "n_uncertain": sa.n_uncertain,
+                     "kept": " ".join(sorted(env.kept or ())) if (env := ev.artifact.envelope)
+                     else "", "widen": env.widen if env else float("nan"),
                      "seconds": round(time.perf_counter() - t0, 1)})
         print(f"# {spec.name} done in {rows[-1]['seconds']} s", flush=True)
+        print(criteria_table(ev.artifact.to_dict().get("envelope"), ev.artifact.unit),
+              flush=True)
     print_table("selfaware", rows, [
         ("run", "run", None), ("primary", "primary", None),
         ("uncertain % test", "test_pct", 1), ("uncertain % training", "train_pct", 1),
         ("MAE ok", "mae_ok", 3), ("MAE uncertain", "mae_uncertain", 3), ("ratio", "mae_ratio", 2),
         ("±2σ cov ok %", "cover2_ok", 1), ("±2σ cov uncertain %", "cover2_uncertain", 1),
         ("n ok", "n_ok", 0), ("n uncertain", "n_uncertain", 0),
+        ("kept criteria", "kept", None), ("σ widen", "widen", 2),
     ])
 
 

@@ -1,5 +1,6 @@
 """The self-aware indication: quality ``uncertain`` when a reference is unlike training
-(live/envelope.py), on the SML2010 desk twin (tests/conftest.py ``desk_artifact``)."""
+(live/envelope.py) by a criterion the held-out training days kept (analysis/criteria.py), on
+the SML2010 desk twin (tests/conftest.py ``desk_artifact``)."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import pandas as pd
 import pytest
 
 from daemon_support import DAY, HOURS, REF, day_readings, sml
+from pseudotwin.analysis.criteria import MIN_DAYS, MIN_RATIO, MIN_ROWS, criteria_table, select
 from pseudotwin.analysis.selfaware import selfaware, training_share
 from pseudotwin.edge.outputs import monitor_payload
 from pseudotwin.live.artifact import Artifact
@@ -20,10 +22,20 @@ from pseudotwin.live.envelope import MARGIN, Q_HI, Q_LO, WIDEN, Envelope
 from pseudotwin.live.monitor import TwinMonitor
 from pseudotwin.live.twin import Quality, Twin
 
+LEVEL = f"level:{REF}"
+
 
 @pytest.fixture(scope="module")
-def art(desk_artifact) -> Artifact:
+def trained(desk_artifact) -> Artifact:
     return Artifact.load(desk_artifact)
+
+
+@pytest.fixture(scope="module")
+def art(trained) -> Artifact:
+    """The desk twin with its level criterion acting and σ × 3 (whatever validation kept on
+    SML2010): the live mechanism under test."""
+    assert trained.envelope is not None
+    return dataclasses.replace(trained, envelope=trained.envelope.keeping(frozenset({LEVEL}), 3.0))
 
 
 @pytest.fixture(scope="module")
@@ -78,8 +90,9 @@ def test_an_out_of_range_reference_makes_ok_estimates_uncertain_with_widened_sig
         assert b[kind].quality is Quality.OK, kind  # without ranges nothing is unlike training
         assert e[kind].quality is Quality.UNCERTAIN, kind
         assert e[kind].value == b[kind].value
-        assert e[kind].std == pytest.approx(WIDEN * b[kind].std)
+        assert e[kind].std == pytest.approx(3.0 * b[kind].std)
         assert any("level" in w and REF in w for w in e[kind].why)
+        assert LEVEL in e[kind].unlike
     assert twin.uncertain_since == t2 and twin.uncertain_why == e[art.primary].why
 
 
@@ -109,18 +122,122 @@ def test_the_monitor_says_why_and_since_when(art, history) -> None:
     assert any("level" in w and REF in w for w in payload["uncertain"]["why"])
 
 
-def test_the_training_days_themselves_are_rarely_uncertain(art, history) -> None:
-    share = training_share(art, history)
-    assert 0.0 <= share <= 0.10
+def test_a_criterion_not_kept_is_reported_but_changes_nothing(art, history) -> None:
+    assert art.envelope is not None
+    dropped = dataclasses.replace(art, envelope=art.envelope.keeping(frozenset(), 1.0))
+    readings = day_readings(history)
+    twin, blind = Twin(dropped), Twin(dataclasses.replace(art, envelope=None))
+    t = _first_ok(twin, readings)
+    _first_ok(blind, readings[readings["ts"] <= t])
+    t2, hot = _hot_reading(art, twin, t)
+    twin.observe(REF, t2, hot)
+    blind.observe(REF, t2, hot)
+    e, b = twin.estimate(t2)[art.primary], blind.estimate(t2)[art.primary]
+    assert e.quality is Quality.OK and e.why == () and e.std == b.std
+    assert LEVEL in e.unlike  # what validation judges it on
+    assert twin.uncertain_since is None
 
 
-def test_the_envelope_survives_a_round_trip(art, tmp_path) -> None:
+def test_the_training_days_themselves_are_rarely_uncertain(art, trained, history) -> None:
+    assert 0.0 <= training_share(art, history) <= 0.10
+    assert 0.0 <= training_share(trained, history) <= 0.10
+
+
+def _held_out(errors: dict[str, tuple[float, int, int]]) -> pd.DataFrame:
+    """Synthetic held-out rows of the primary ``triv``: per criterion key (or "" for rows
+    where nothing fired) (absolute error, readings per day, days); truth 20, slope 0."""
+    rows = []
+    t0 = pd.Timestamp("2012-03-14T10:00Z")
+    for key, (err, per_day, days) in errors.items():
+        for d in range(days):
+            for i in range(per_day):
+                ts = t0 + pd.Timedelta(days=d, minutes=i)
+                rows.append({"ts": ts, "model": "triv", "value": 20.0 + err * (-1) ** i,
+                             "std": 1.0, "truth": 20.0, "quality": "ok", "slope": 0.0,
+                             "day": str(ts.date()), "unlike": key})
+    return pd.DataFrame(rows)
+
+
+def test_a_criterion_that_flags_larger_held_out_errors_is_kept_one_that_does_not_dropped(
+        trained, history) -> None:
+    env = trained.envelope
+    assert env is not None
+    dev, speed = f"deviation:{REF}", f"speed:{REF}"
+    rows = _held_out({"": (0.2, 30, 5),  # nothing fired: MAE 0.2
+                      LEVEL: (1.0, 10, 3),  # 5× the error, 30 readings on 3 days: kept
+                      dev: (0.3, 30, 3),  # 1.5× only: dropped
+                      speed: (2.0, 30, 1)})  # large, but on one day only: dropped
+    calib = trained.calibration["triv"]
+    sel = select(env, rows, "triv", calib, HOURS)
+    assert sel.kept == frozenset({LEVEL})
+    assert sel.judged[LEVEL]["ratio"] == pytest.approx(5.0) and sel.judged[LEVEL]["kept"]
+    assert sel.judged[LEVEL]["n"] == 30 and sel.judged[LEVEL]["days"] == 3
+    assert not sel.judged[dev]["kept"] and f"< {MIN_RATIO:g}×" in sel.judged[dev]["reason"]
+    assert not sel.judged[speed]["kept"] and f"≥ {MIN_DAYS} days" in sel.judged[speed]["reason"]
+    # σ of an uncertain estimate: RMS error of the flagged rows over their calibrated σ
+    flagged = rows[rows["unlike"] == LEVEL]
+    sigma = np.array([calib.sigma(HOURS.hours_of(t), 0.0) for t in flagged["ts"]])
+    assert sel.widen == pytest.approx(max(1.0, 1.0 / float(np.sqrt(np.mean(sigma ** 2)))))
+    # live, the kept criterion fires on an out-of-range reference, with the judged widening
+    judged = dataclasses.replace(trained, envelope=sel)
+    readings = day_readings(history)
+    twin, blind = Twin(judged), Twin(dataclasses.replace(trained, envelope=None))
+    t = _first_ok(twin, readings)
+    _first_ok(blind, readings[readings["ts"] <= t])
+    t2, hot = _hot_reading(judged, twin, t)
+    twin.observe(REF, t2, hot)
+    blind.observe(REF, t2, hot)
+    e, b = twin.estimate(t2)[trained.primary], blind.estimate(t2)[trained.primary]
+    assert e.quality is Quality.UNCERTAIN and e.std == pytest.approx(sel.widen * b.std)
+    # too few readings: dropped
+    few = select(env, _held_out({"": (0.2, 30, 5), LEVEL: (1.0, (MIN_ROWS - 1) // 3, 3)}),
+                 "triv", calib, HOURS)
+    assert few.kept == frozenset() and few.widen == 1.0
+    assert "never uncertain" in criteria_table(
+        {**env.keeping(few.kept, few.widen, few.judged).to_dict()}, "°C")
+    assert f"uncertain: {LEVEL}" in criteria_table(sel.to_dict(), "°C")
+
+
+def test_the_trained_artifact_keeps_only_criteria_its_held_out_days_support(trained) -> None:
+    env = trained.envelope
+    assert env is not None and env.kept is not None and env.widen >= 1.0
+    assert set(env.judged) == set(env.criteria) == {LEVEL, f"deviation:{REF}", f"speed:{REF}"}
+    for key, j in env.judged.items():
+        supported = j["n"] >= MIN_ROWS and j["days"] >= MIN_DAYS and j["ratio"] >= MIN_RATIO
+        assert j["kept"] == supported == (key in env.kept), key
+
+
+def test_the_envelope_survives_a_round_trip(art, trained, tmp_path) -> None:
     again = Artifact.load(art.save(tmp_path / "a.json"))
     assert again.envelope == art.envelope
+    assert again.envelope is not None and again.envelope.kept == frozenset({LEVEL})
+    assert again.envelope.widen == 3.0
+    again = Artifact.load(trained.save(tmp_path / "t.json"))
+    assert again.envelope is not None and trained.envelope is not None
+    assert again.envelope.judged == trained.envelope.judged
     d = art.to_dict()
     d["envelope"]["references"][REF]["level"] = [None, None]  # open bounds are stored as null
     opened = Artifact.from_dict(d).envelope
     assert opened is not None and opened.refs[REF].level == (-math.inf, math.inf)
+
+
+def test_a_format_5_envelope_keeps_every_criterion_with_sigma_doubled(art, history) -> None:
+    d = art.to_dict()
+    d["version"] = 5
+    for k in ("kept", "judged"):
+        del d["envelope"][k]
+    d["envelope"]["rule"]["widen"] = WIDEN
+    old = Artifact.from_dict(d)
+    assert old.envelope is not None and old.envelope.kept is None
+    readings = day_readings(history)
+    twin, blind = Twin(old), Twin(dataclasses.replace(old, envelope=None))
+    t = _first_ok(twin, readings)
+    _first_ok(blind, readings[readings["ts"] <= t])
+    t2, hot = _hot_reading(art, twin, t)
+    twin.observe(REF, t2, hot)
+    blind.observe(REF, t2, hot)
+    e, b = twin.estimate(t2)[art.primary], blind.estimate(t2)[art.primary]
+    assert e.quality is Quality.UNCERTAIN and e.std == pytest.approx(WIDEN * b.std)
 
 
 def test_an_older_artifact_loads_without_ranges_and_is_never_uncertain(art, history) -> None:

@@ -34,6 +34,7 @@ def replay_estimates(
     end: dt.date | None = None,
     thinning: Thinning | None = None,
     stale_after: dt.timedelta | None = None,
+    criteria: bool = False,
 ) -> pd.DataFrame:
     """Estimates at every true target reading in operating hours of days ``start``…``end``.
 
@@ -46,6 +47,8 @@ def replay_estimates(
     daemon's configuration sets it (default one point per sensor and minute). stale_after:
     the daemon's, to score what it publishes while a reference is silent (quality ``stale``,
     or a failover's ``fallback``); default None: a silent reference's last value is held.
+    criteria: add a column ``unlike``, the envelope criteria that fired on the row, joined by
+    spaces (live/envelope.py; what validation judges them on).
     """
     hours = artifact.hours
     thinning = thinning or Thinning()
@@ -91,10 +94,13 @@ def replay_estimates(
             if not e.finite:
                 continue
             slope = twin.slope(artifact.models[kind].references_, h)
-            rows.append((t, kind, e.value, e.std, truth, e.quality.value, slope))
+            fired = (" ".join(e.unlike),) if criteria else ()
+            rows.append((t, kind, e.value, e.std, truth, e.quality.value, slope, *fired))
             if kind == primary and e.publishable:
-                rows.append((t, ESTIMATE, e.value, e.std, truth, e.quality.value, slope))
+                rows.append((t, ESTIMATE, e.value, e.std, truth, e.quality.value, slope,
+                             *fired))
         for r in refs:
             if r in held:
-                rows.append((t, REF_PREFIX + r, held[r], np.nan, truth, "ok", np.nan))
-    return pd.DataFrame(rows, columns=COLUMNS)
+                rows.append((t, REF_PREFIX + r, held[r], np.nan, truth, "ok", np.nan,
+                             *(("",) if criteria else ())))
+    return pd.DataFrame(rows, columns=[*COLUMNS, *(["unlike"] if criteria else [])])

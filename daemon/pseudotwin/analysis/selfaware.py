@@ -1,7 +1,9 @@
 """Scores of the self-aware indication (quality ``uncertain``, live/envelope.py): does the twin
 know when today is unlike training? Its ``uncertain`` estimates should err more than its
 ``ok`` ones, it should hardly fire on the training days themselves, and ±2σ should cover
-the truth for both (the widened σ of ``uncertain`` included)."""
+the truth for both (the widened σ of ``uncertain`` included). Which criteria may fire at all is
+decided on the held-out training days (analysis/criteria.py); these are the scores on the days
+that decision never saw."""
 
 from __future__ import annotations
 

@@ -12,6 +12,7 @@ import numpy as np
 import pandas as pd
 
 from pseudotwin.analysis import validation
+from pseudotwin.analysis.criteria import select
 from pseudotwin.analysis.failover import train_failover
 from pseudotwin.analysis.validation import MIN_DAYS
 from pseudotwin.core.horizon import OperatingHours
@@ -179,12 +180,19 @@ def train_validated(
                             "own spread, which is not calibrated", kind)
     if checked or withheld:
         checked = {**checked, "withheld": withheld}
+    # `uncertain` acts only by criteria the held-out days show to flag larger errors; without
+    # validation nothing shows that, so no criterion acts.
+    envelope = Envelope.fit(ts)
+    envelope = (select(envelope, v.held_out, primary, calibration.get(primary), spec.hours)
+                if v is not None else envelope.keeping(frozenset(), 1.0))
+    log.info("self-aware indication (quality uncertain): %s",
+             ", ".join(sorted(envelope.kept or ())) or "no criterion kept")
     # Failover needs validated σ, like the primary it stands in for.
     failover = (train_failover(df, spec, days, fitted[primary].references_, options=opts)
                 if v is not None else {})
     return Artifact(
         spec, fitted, primary, calibration=calibration, validation=checked,
-        envelope=Envelope.fit(ts), failover=failover,
+        envelope=envelope, failover=failover,
         training={
             "start": str(days[0].day),
             "end": str(days[-1].day),

@@ -37,6 +37,7 @@ from pseudotwin.errors import DataError, FitError, NumericalError
 from pseudotwin.live import metrics
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.calibration import SigmaCalibration
+from pseudotwin.live.envelope import Envelope
 from pseudotwin.models.base import TrainingSet, TwinModel
 from pseudotwin.models.registry import MODELS, build
 
@@ -155,10 +156,13 @@ def _fold(df: pd.DataFrame, spec: TwinSpec, train: Sequence[DayReadings], held: 
             log.warning("validation: %s cannot be trained without %s (%s)", kind, held, exc)
     if not fitted:
         return pd.DataFrame()
-    art = Artifact(spec, fitted, next(iter(fitted)))
+    # The fold's own training ranges, none acting: the rows only record which criteria fired
+    # (column ``unlike``), so analysis/criteria.py can judge them on a day they have not seen.
+    envelope = Envelope.fit(ts).keeping(frozenset(), 1.0)
+    art = Artifact(spec, fitted, next(iter(fitted)), envelope=envelope)
     days, _ = spec.hours.day_and_hours(df["ts"])
     near = (days >= np.datetime64(held - dt.timedelta(days=1))) & (days <= np.datetime64(held))
-    est = replay_estimates(art, df[near], held, end=held)
+    est = replay_estimates(art, df[near], held, end=held, criteria=True)
     # The fold's ``estimate`` rows follow an arbitrary primary: dropped. The raw references
     # stay, for their own score.
     keep = est["model"].isin(list(fitted)) | est["model"].str.startswith(REF_PREFIX)

@@ -176,6 +176,11 @@ def cmd_train(a: argparse.Namespace) -> int:
 
         print("validation on the training days (each held out in turn):")
         print(validation_table(art.validation, art.unit))
+        from pseudotwin.analysis.criteria import criteria_table
+
+        print("self-aware indication: criteria of quality `uncertain`, judged on the held-out "
+              "days:")
+        print(criteria_table(art.envelope.to_dict() if art.envelope else None, art.unit))
     else:
         print(f"primary: {art.primary} (not validated)")
     for lost, f in art.failover.items():

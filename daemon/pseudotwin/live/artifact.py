@@ -29,7 +29,9 @@ FORMAT = "pseudotwin-artifact"
 # 3: the training envelope (live/envelope.py); older versions load without one.
 # 4: reference failover (live/failover.py); older versions load without any.
 # 5: covariates (twin.covariates, the triv-cov model); older versions have none.
-VERSION = 5
+# 6: the envelope's judged criteria (envelope.kept, .judged, rule.widen; analysis/criteria.py);
+#    older envelopes load with every criterion acting and σ × 2, as they were trained.
+VERSION = 6
 
 
 @dataclass(frozen=True)
@@ -41,8 +43,8 @@ class Artifact(OfTwin):
     calibration: kind → the σ of its estimates, from the training days (older artifacts
     have none: their models' own spread is published).
     validation: the candidates' leave-one-day-out scores and why the primary won.
-    envelope: the references' training ranges behind quality ``uncertain`` (older artifacts
-    have none: their estimates are never uncertain).
+    envelope: the references' training ranges behind quality ``uncertain`` and which of its
+    criteria act (format < 3: none, never uncertain; 3–5: every criterion acts, σ × 2).
     failover: lost reference → the validated candidate that answers without it (older
     artifacts and single-reference twins have none: a silent reference makes them stale).
     """

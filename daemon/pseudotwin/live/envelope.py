@@ -12,14 +12,22 @@ From the training days only, per reference, three ranges of what it did in opera
 
 Each range is fixed a priori, never tuned on test days: the robust quantiles
 [q(``Q_LO``), q(``Q_HI``)] of the training readings widened on both sides by ``MARGIN`` × their
-span (slope: the upper bound only). Live, a reference whose latest value, deviation or slope
-falls outside makes the twin's ``ok`` estimates ``uncertain`` with σ × ``WIDEN``.
+span (slope: the upper bound only). Each (kind, reference) is one *criterion*, keyed
+``"<kind>:<sensor>"`` with kind ``level``, ``deviation`` or ``speed``.
+
+Out of range is not necessarily a larger error, so a criterion only acts where the training
+days show it flags one (analysis/criteria.py judges each on the held-out days of validation):
+live, a reference whose latest value, deviation or slope falls outside a *kept* criterion makes
+the twin's ``ok`` estimates ``uncertain`` with σ × ``widen``. Criteria not kept are still
+evaluated (``Twin.estimate`` reports them in ``TwinEstimate.unlike``: what validation judges
+them on) but change nothing. An envelope saved before criteria were judged (``kept`` None)
+keeps every criterion and ``WIDEN``, the rule artifacts of format 3–5 were trained under.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -30,7 +38,13 @@ from pseudotwin.models.base import TrainingSet
 
 Q_LO, Q_HI = 0.005, 0.995  # robust: a glitch or two of the training days does not set a bound
 MARGIN = 0.25  # share of the inter-quantile span added on each side
-WIDEN = 2.0  # σ factor of an uncertain estimate: the calibration no longer describes today
+WIDEN = 2.0  # σ factor of an uncertain estimate under the unjudged rule (kept None)
+CRITERIA = ("level", "deviation", "speed")
+
+
+def criterion(kind: str, sensor: str) -> str:
+    """The key of one criterion: ``"<kind>:<sensor>"``."""
+    return f"{kind}:{sensor}"
 
 
 @dataclass(frozen=True)
@@ -43,22 +57,25 @@ class RefEnvelope:
     slope_hi: float
     profile: tuple[float, ...]
 
-    def why(self, sensor: str, hours: OperatingHours, h: float, value: float,
-            slope: float) -> list[str]:
-        """Why ``sensor`` reading ``value`` at wall-clock ``h`` and moving at ``slope`` is
-        unlike training (empty: it is like training)."""
+    def unlike(self, sensor: str, hours: OperatingHours, h: float, value: float,
+               slope: float) -> list[tuple[str, str]]:
+        """The criteria by which ``sensor`` reading ``value`` at wall-clock ``h`` and moving at
+        ``slope`` is unlike training, as (key, why) (empty: it is like training)."""
         out = []
         lo, hi = self.level
         if not lo <= value <= hi:
-            out.append(f"{sensor}: level {value:.4g} outside training {lo:.4g}…{hi:.4g}")
+            out.append((criterion("level", sensor),
+                        f"{sensor}: level {value:.4g} outside training {lo:.4g}…{hi:.4g}"))
         dev = value - self.profile[hours.window_slot_index(h)]
         lo, hi = self.deviation
         if not lo <= dev <= hi:
-            out.append(f"{sensor}: deviation from its daily profile {dev:+.3g} outside "
-                       f"training {lo:+.3g}…{hi:+.3g}")
+            out.append((criterion("deviation", sensor),
+                        f"{sensor}: deviation from its daily profile {dev:+.3g} outside "
+                        f"training {lo:+.3g}…{hi:+.3g}"))
         if slope > self.slope_hi:
-            out.append(f"{sensor}: moving at {slope:.3g}/h, faster than in training "
-                       f"(≤ {self.slope_hi:.3g}/h): σ above its validated level")
+            out.append((criterion("speed", sensor),
+                        f"{sensor}: moving at {slope:.3g}/h, faster than in training "
+                        f"(≤ {self.slope_hi:.3g}/h): σ above its validated level"))
         return out
 
     def to_dict(self) -> dict[str, Any]:
@@ -82,9 +99,32 @@ def _bound(x: float | None, sign: int) -> float:
 
 @dataclass(frozen=True)
 class Envelope:
-    """The training ranges of every reference: sensor → :class:`RefEnvelope`."""
+    """The training ranges of every reference: sensor → :class:`RefEnvelope`.
+
+    kept: the criteria that make an estimate ``uncertain`` (None: all of them, the rule of
+    envelopes saved before criteria were judged); widen: σ factor of an uncertain estimate;
+    judged: per criterion, the held-out numbers it was kept or dropped on (for ``train`` and
+    the report; analysis/criteria.py).
+    """
 
     refs: dict[str, RefEnvelope]
+    kept: frozenset[str] | None = None
+    widen: float = WIDEN
+    judged: dict[str, dict[str, Any]] = field(default_factory=dict, compare=False)
+
+    @property
+    def criteria(self) -> tuple[str, ...]:
+        """Every criterion this envelope evaluates."""
+        return tuple(criterion(k, s) for s in self.refs for k in CRITERIA)
+
+    def acts(self, key: str) -> bool:
+        """Whether criterion ``key`` makes an estimate uncertain."""
+        return self.kept is None or key in self.kept
+
+    def keeping(self, kept: frozenset[str], widen: float,
+                judged: dict[str, dict[str, Any]] | None = None) -> Envelope:
+        """This envelope with only ``kept`` acting, uncertain σ × ``widen``."""
+        return replace(self, kept=frozenset(kept), widen=float(widen), judged=judged or {})
 
     @classmethod
     def fit(cls, training: TrainingSet) -> Envelope:
@@ -114,13 +154,26 @@ class Envelope:
         return cls(out)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"rule": {"quantiles": [Q_LO, Q_HI], "margin": MARGIN, "widen": WIDEN},
-                "references": {s: r.to_dict() for s, r in self.refs.items()}}
+        out: dict[str, Any] = {
+            "rule": {"quantiles": [Q_LO, Q_HI], "margin": MARGIN, "widen": self.widen},
+            "references": {s: r.to_dict() for s, r in self.refs.items()},
+        }
+        if self.kept is not None:
+            out["kept"] = sorted(self.kept)
+            out["judged"] = self.judged
+        return out
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], hours: OperatingHours) -> Envelope:
         n = len(hours.window_slots())
-        return cls({str(s): RefEnvelope.from_dict(r, n) for s, r in d["references"].items()})
+        refs = {str(s): RefEnvelope.from_dict(r, n) for s, r in d["references"].items()}
+        if d.get("kept") is None:  # saved before criteria were judged: every one acts
+            return cls(refs)
+        kept = frozenset(str(k) for k in d["kept"])
+        widen = float(d["rule"]["widen"])
+        if not widen >= 1.0:
+            raise ValueError(f"envelope widen {widen} is below 1")
+        return cls(refs, kept, widen, dict(d.get("judged") or {}))
 
 
 def _range(x: np.ndarray) -> tuple[float, float]:

@@ -29,7 +29,6 @@ from pseudotwin.core.thinning import Action, Thinning, WindowThinner
 from pseudotwin.errors import NumericalError
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.calibration import SLOPE_WINDOW_H, SigmaCalibration
-from pseudotwin.live.envelope import WIDEN
 from pseudotwin.live.failover import ranked
 from pseudotwin.models.base import DayEstimator, TwinModel
 
@@ -46,9 +45,9 @@ class Quality(StrEnum):
     validated candidate without that reference answered, with its own calibrated σ
     (:attr:`TwinEstimate.lost` names the silent references; ``stale`` then only when no
     failover can answer from fresh references);
-    uncertain: a reference it needs is outside its training range (level, deviation from its
-    daily profile, or speed; live/envelope.py), so σ is widened by ``envelope.WIDEN`` and
-    :attr:`TwinEstimate.why` says why.
+    uncertain: a reference it needs is outside its training range by a criterion validation
+    kept (level, deviation from its daily profile, or speed; live/envelope.py), so σ is
+    widened by the envelope's ``widen`` and :attr:`TwinEstimate.why` says why.
 
     One estimate has one quality; precedence init > stale > fallback > uncertain > ok: the
     init phase is never published, a silent reference or a failed model is the bigger news.
@@ -67,7 +66,9 @@ class TwinEstimate:
     value, std: [°C] or [ppm]; model: what produced the value (``triv`` on fallback,
     ``var-fallback`` when VARMAX did not converge; the failover's kind when a reference is
     lost); refs: sensor → time of its last reading; why: what is unlike training when the
-    quality is ``uncertain``; lost: the silent references a failover answered without.
+    quality is ``uncertain``; lost: the silent references a failover answered without;
+    unlike: the keys of every envelope criterion that fired on an ``ok``/``uncertain``
+    estimate, kept or not (what validation judges the criteria on; live/envelope.py).
     """
 
     ts: dt.datetime
@@ -78,6 +79,7 @@ class TwinEstimate:
     refs: dict[str, dt.datetime | None] = field(default_factory=dict)
     why: tuple[str, ...] = ()
     lost: tuple[str, ...] = ()
+    unlike: tuple[str, ...] = ()
 
     @property
     def finite(self) -> bool:
@@ -352,7 +354,7 @@ class Twin:
         out: dict[str, TwinEstimate] = {}
         triv = None
         slopes: dict[tuple[str, ...], float] = {}
-        unlike: dict[str, list[str]] = {}  # reference → why it is unlike training, at h
+        unlike: dict[str, list[tuple[str, str]]] = {}  # reference → (criterion, why), at h
         for kind in self.kinds if kinds is None else kinds:
             refs = {s: (self.last[s][0] if s in self.last else None) for s in self._needs(kind)}
             name = self.artifact.models[kind].model_name
@@ -372,6 +374,7 @@ class Twin:
             # in the init phase must not publish early, nor hide a silent reference.
             why: tuple[str, ...] = ()
             lost: tuple[str, ...] = ()
+            fired: tuple[str, ...] = ()
             if h < self.hours.day_start:
                 quality = Quality.INIT
             elif self._stale(kind, ts):
@@ -381,16 +384,16 @@ class Twin:
                     value, std, name, lost = answer
                     quality = Quality.FALLBACK
             elif quality is Quality.OK:
-                why = self._unlike_training(self._needs(kind), h, unlike)
-                if why:
-                    quality, std = Quality.UNCERTAIN, std * WIDEN
+                fired, why = self._unlike_training(self._needs(kind), h, unlike)
+                if why and (env := self.artifact.envelope) is not None:
+                    quality, std = Quality.UNCERTAIN, std * env.widen
             if kind == self.artifact.primary:
                 self.uncertain_why = why
                 self.uncertain_since = (self.uncertain_since or ts) if why else None
                 self.failover_lost = lost
                 self.failover_since = (self.failover_since or ts) if lost else None
             out[kind] = TwinEstimate(ts, float(value), float(std), name, quality, refs, why,
-                                     lost)
+                                     lost, fired)
         return out
 
     def _answer_without(self, ts: dt.datetime, h: float, slopes: dict[tuple[str, ...], float]
@@ -414,20 +417,24 @@ class Twin:
         return None
 
     def _unlike_training(self, sensors: Sequence[str], h: float,
-                         cache: dict[str, list[str]]) -> tuple[str, ...]:
-        """Why the latest values of ``sensors`` at ``h`` are unlike the training days (empty:
-        like them, or the artifact records no training ranges)."""
+                         cache: dict[str, list[tuple[str, str]]]
+                         ) -> tuple[tuple[str, ...], tuple[str, ...]]:
+        """The criteria by which the latest values of ``sensors`` at ``h`` are unlike the
+        training days, and why for those that act (both empty: like them, or the artifact
+        records no training ranges)."""
         env = self.artifact.envelope
         if env is None:
-            return ()
+            return (), ()
         for s in sensors:
             if s in cache or s not in env.refs:
                 continue
             hs, vs = self._series.get(s, ([], []))
             i = bisect.bisect_right(hs, h) - 1
-            cache[s] = [] if i < 0 else env.refs[s].why(s, self.hours, h, vs[i],
-                                                        self.slope([s], h))
-        return tuple(w for s in sensors for w in cache.get(s, []))
+            cache[s] = [] if i < 0 else env.refs[s].unlike(s, self.hours, h, vs[i],
+                                                           self.slope([s], h))
+        found = [kw for s in sensors for kw in cache.get(s, [])]
+        return (tuple(k for k, _ in found),
+                tuple(w for k, w in found if env.acts(k)))
 
     def _fallback_model(self) -> TwinModel | None:
         """TRIV of the artifact, or else the first simpler model a model offers."""

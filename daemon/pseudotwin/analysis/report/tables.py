@@ -101,7 +101,25 @@ def selfaware_md(res: RunResult) -> str:
          "±2σ coverage uncertain %", "n ok", "n uncertain"],
         [[fmt(100 * sa.share, 1), fmt(100 * sa.train_share, 1), fmt(sa.mae_ok, 3),
           fmt(sa.mae_uncertain, 3), fmt(sa.mae_ratio), fmt(sa.cover2_ok, 1),
-          fmt(sa.cover2_uncertain, 1), str(sa.n_ok), str(sa.n_uncertain)]], left=0)
+          fmt(sa.cover2_uncertain, 1), str(sa.n_ok), str(sa.n_uncertain)]], left=0) \
+        + "\n\n" + criteria_md(res)
+
+
+def criteria_md(res: RunResult) -> str:
+    """Which criteria of ``uncertain`` validation kept, with the held-out numbers it judged
+    them on (analysis/criteria.py)."""
+    env = res.ev.artifact.envelope
+    if env is None:
+        return "No training ranges (artifact older than format 3): never `uncertain`."
+    if env.kept is None:
+        return "Criteria not judged on held-out days (artifact of format 3–5): every one acts."
+    rows = [[f"`{k}`", str(j["n"]), str(j["days"]), fmt(j["ratio"]),
+             "kept" if j["kept"] else "dropped"] for k, j in env.judged.items()]
+    kept = (f"σ of an uncertain estimate × {env.widen:.2f}." if env.kept else
+            "No criterion kept: the estimate is never `uncertain` on this run.")
+    return md_table(["criterion (held-out training days)", "readings fired", "days",
+                     "MAE fired / MAE where nothing fired", "verdict"], rows, text=(4,)) \
+        + "\n\n" + kept
 
 
 def monthly_md(res: RunResult) -> str:
