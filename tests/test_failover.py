@@ -302,16 +302,19 @@ def test_daemon_fails_over_on_a_silenced_reference_like_evaluate(
         stamp = {t: t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z") for t in wanted}
         wait_for(lambda: set(stamp.values()) <= {e["ts"] for e in viewer.all()},
                  what="an estimate at every reference reading")
-        last_tick = stamp_of(HOURS.at(TEST_DAY, 11.75))
-        wait_for(lambda: any(m["ts"] == last_tick for m in monitor.all()),
-                 what="the monitor of the last grid instant")
+        last_hourly = stamp_of(HOURS.at(TEST_DAY, 11.0))  # the default cadence: hourly
+        wait_for(lambda: any(m["ts"] == last_hourly for m in monitor.all()),
+                 what="the monitor of the last full hour")
     finally:
         svc.stop()
         viewer.close()
         monitor.close()
     # <twin>/monitor says which reference the estimate does without, from the first tick
-    # at which R2's last reading is older than stale_after; before, nothing is lost
+    # at which R2's last reading is older than stale_after (not waiting for the next full
+    # hour of the monitor's cadence); before, nothing is lost
     last_r2 = day.loc[day["sensor"] == R2, "ts"].max()
+    first_lost = min(dt.datetime.fromisoformat(m["ts"]) for m in monitor.all() if m["failover"])
+    assert first_lost.minute != 0 and first_lost - last_r2 <= STALE + dt.timedelta(minutes=15)
     for m in monitor.all():
         lost = m["failover"]
         if dt.datetime.fromisoformat(m["ts"]) - last_r2 > STALE:

@@ -63,7 +63,7 @@ class Loader:
     SERVICE_KEYS = ("timezone", "state_dir", "base_topic", "day_start", "day_end",
                     "init_minutes", "slot_minutes", "publish_every_minutes",
                     "stale_after_minutes", "max_skew_seconds", "log_level", "queue_size",
-                    "store", "baselines")
+                    "store", "baselines", "monitor_every_minutes")
     SENSOR_KEYS = ("id", "topic", "format", "ts_key", "value_key", "unit", "min", "max",
                    "min_interval_seconds")
     SENSOR_REQUIRED = ("id", "topic", "unit", "min", "max")
@@ -73,7 +73,8 @@ class Loader:
     HOMEASSISTANT_KEYS = ("enabled", "discovery_prefix", "baselines")
 
     SERVICE_SCALARS = ("base_topic", "publish_every_minutes", "stale_after_minutes",
-                       "max_skew_seconds", "queue_size", "log_level", "baselines")
+                       "max_skew_seconds", "queue_size", "log_level", "baselines",
+                       "monitor_every_minutes")
     HOURS_KEYS = ("day_start", "day_end", "init_minutes", "slot_minutes", "timezone")
 
     def __init__(self, base_dir: Path, *, artifact_check: ArtifactCheck | None = None) -> None:

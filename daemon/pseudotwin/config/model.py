@@ -413,6 +413,7 @@ def service_scalar_problems(
     queue_size: object,
     log_level: object,
     baselines: object = "grid",
+    monitor_every_minutes: object = 60,
 ) -> Found:
     found: Found = []
     if expect(found, "base_topic", base_topic, "string"):
@@ -450,6 +451,10 @@ def service_scalar_problems(
     if baselines not in BASELINE_CADENCES:
         found.append(("baselines", f"must be one of {', '.join(BASELINE_CADENCES)}, "
                                    f"got {baselines!r}"))
+    if expect(found, "monitor_every_minutes", monitor_every_minutes, "number"):
+        assert isinstance(monitor_every_minutes, int | float)
+        if monitor_every_minutes <= 0:
+            found.append(("monitor_every_minutes", "must be positive"))
     return found
 
 
@@ -532,6 +537,9 @@ class ServiceConfig:
     baselines: when the baseline models are published: "grid" (on the publishing grid
         only: they are for monitoring, and at every reading they would quintuple the
         messages) or "reading" (also at every reading that moves the twin).
+    monitor_every_minutes: ``<twin>/monitor`` goes out at the first grid instant at or
+        after each multiple of this since local midnight [min] (every grid instant when
+        it is not longer than publish_every_minutes).
     """
 
     broker: BrokerConfig
@@ -546,6 +554,9 @@ class ServiceConfig:
     queue_size: int = 10000
     log_level: str = "INFO"
     baselines: str = "grid"
+    # Hourly: the monitor's day figures move slowly, and at 1,000 twins one monitor per
+    # twin and grid step was a sixth of the daemon's messages (scripts/bench_daemon.py).
+    monitor_every_minutes: float = 60
     store: str | None = None  # history DB: SQLite path, postgresql:// or crate:// URL
     metrics: MetricsConfig = MetricsConfig()  # [metrics]: Prometheus endpoints
     homeassistant: HomeAssistantConfig = HomeAssistantConfig()  # [homeassistant]
@@ -561,6 +572,7 @@ class ServiceConfig:
             queue_size=self.queue_size,
             log_level=self.log_level,
             baselines=self.baselines,
+            monitor_every_minutes=self.monitor_every_minutes,
         )
         if not isinstance(self.broker, BrokerConfig):
             found.append(("broker", "expected a BrokerConfig"))

@@ -38,6 +38,7 @@ class Journal:
         self._lines_day: dt.date | None = None
         self._prev: tuple[dt.date, list[bytes]] | None = None
         self.recreated = 0  # times the journal file vanished and was rebuilt from memory
+        self._identity = (0, 0)  # (st_dev, st_ino) of the open file
 
     def _path(self, day: dt.date) -> Path:
         return self.folder / f"{day.isoformat()}.jsonl"
@@ -87,8 +88,7 @@ class Journal:
             st = os.stat(self._path(self._day))
         except FileNotFoundError:
             return True
-        own = os.fstat(self._fh.fileno())
-        return (st.st_dev, st.st_ino) != (own.st_dev, own.st_ino)
+        return (st.st_dev, st.st_ino) != self._identity
 
     def _abandon(self) -> None:
         if self._fh is not None:
@@ -136,6 +136,8 @@ class Journal:
             old += b"\n"
         # Only once the file is open: a failed open leaves the journal closed, not broken.
         self._fh, self._day, self._lines_day = fh, day, day
+        own = os.fstat(fh.fileno())  # an open file keeps its identity: one stat per check
+        self._identity = (own.st_dev, own.st_ino)
         self._lines = old.splitlines(keepends=True)
         self.prune(day)
 

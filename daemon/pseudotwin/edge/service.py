@@ -39,6 +39,7 @@ from pseudotwin.edge.mqttconn import make_client, refused_fatally
 from pseudotwin.edge.outputs import estimate_payload, monitor_payload
 from pseudotwin.edge.prometheus import DaemonMetrics
 from pseudotwin.edge.sdnotify import notify, watchdog_interval
+from pseudotwin.edge.wakeup import WakeCoalescer
 from pseudotwin.errors import ConfigError
 from pseudotwin.live.artifact import Artifact, artifact_hash
 from pseudotwin.live.monitor import TwinMonitor
@@ -101,6 +102,9 @@ class TwinRuntime:
     estimate_topic: str
     monitor_topic: str
     baseline_topics: dict[str, str]
+    # (uncertain since, failover since) as last published on the monitor: a change goes out
+    # at the next grid instant, whatever monitor_every_minutes says.
+    monitor_state: tuple[object, object] = (None, None)
 
 
 class Service:
@@ -155,9 +159,9 @@ class Service:
         self._journal_retry_at = 0.0
         self._journal_recreated = 0
         # Grid work of the current tick(s) not done yet: the twins in the order to do them,
-        # and per twin its pending (instant, health snapshot).
+        # and per twin its pending (instant, health snapshot; None: no monitor then).
         self._tick_work: deque[TwinRuntime] = deque()
-        self._tick_due: dict[str, list[tuple[dt.datetime, dict[str, Any]]]] = {}
+        self._tick_due: dict[str, list[tuple[dt.datetime, dict[str, Any] | None]]] = {}
         self._paced_since: float | None = None
         # QoS 1 messages handed to paho / acknowledged by the broker (see TICK_BACKLOG).
         self._sent = 0
@@ -179,6 +183,7 @@ class Service:
         self._lock = threading.Lock()
         self._threads: list[threading.Thread] = []
         self.client = self._make_client()
+        self.wakeups = WakeCoalescer(self.client)
         self.discovery, self.undiscovery = self._plan_discovery()
 
     # -- MQTT (network thread: no model work here) -----------------------------------------
@@ -371,22 +376,30 @@ class Service:
             if not batch and not self._tick_work:
                 self.health.idle()
                 continue
-            messages: list[tuple[Any, ...]] = []
-            for item in batch:
-                kind = item[0]
-                if kind == "stop":
+            # The batch's acks and messages wake paho's network thread once (wakeup.py).
+            with self.wakeups.held():
+                if not self._work(batch, paced):
                     return
-                if kind == "msg":
-                    messages.append(item)
-                # ("wake",): the broker took enough of what was sent; the loop goes on
-                elif kind == "tick":  # readings before it go first, as they arrived
-                    self._guarded("msg", self._handle_messages, messages)
-                    messages = []
-                    self._start_tick(item[1])
-            self._guarded("msg", self._handle_messages, messages)
-            # Then a slice of the grid work, so no reading waits behind every twin's tick.
-            if not paced:
-                self._guarded("tick", self._tick_step)
+
+    def _work(self, batch: list[tuple[Any, ...]], paced: bool) -> bool:
+        """Handle a batch of queue items, then a slice of grid work; False on stop."""
+        messages: list[tuple[Any, ...]] = []
+        for item in batch:
+            kind = item[0]
+            if kind == "stop":
+                return False
+            if kind == "msg":
+                messages.append(item)
+            # ("wake",): the broker took enough of what was sent; the loop goes on
+            elif kind == "tick":  # readings before it go first, as they arrived
+                self._guarded("msg", self._handle_messages, messages)
+                messages = []
+                self._start_tick(item[1])
+        self._guarded("msg", self._handle_messages, messages)
+        # Then a slice of the grid work, so no reading waits behind every twin's tick.
+        if not paced:
+            self._guarded("tick", self._tick_step)
+        return True
 
     def _take(self, wait: float) -> list[tuple[Any, ...]]:
         """The next queue items: the first within ``wait`` seconds (0: only what is there),
@@ -439,7 +452,7 @@ class Service:
 
     def _accept(self, r: Reading, token: tuple[int, int, int]) -> None:
         self.accepted += 1
-        self.metrics.accepted.labels(r.sensor).inc()
+        self.metrics.accepted_one(r.sensor)
         try:
             self._apply(r, publish=True)
         finally:
@@ -566,10 +579,17 @@ class Service:
         at a time between batches of readings (one health snapshot for all of them), and a
         twin's own before any later reading reaches it (see _apply): the estimate at the
         instant sees exactly the readings that arrived before the tick."""
-        health = self.health.snapshot()
+        health = self.health.snapshot() if self._monitor_at(instant) else None
         for rt in self.twins.values():
             self._tick_due.setdefault(rt.cfg.id, []).append((instant, health))
             self._tick_work.append(rt)
+
+    def _monitor_at(self, instant: dt.datetime) -> bool:
+        """Whether ``<twin>/monitor`` goes out at grid instant ``instant``: the first one at
+        or after each multiple of ``monitor_every_minutes`` since local midnight."""
+        every = self.cfg.monitor_every_minutes * 60.0
+        s = round(self.hours.hours_of(instant) * 3600.0, 3)
+        return s // every != (s - self.cfg.publish_every.total_seconds()) // every
 
     def _tick_step(self) -> None:
         done = 0
@@ -585,9 +605,15 @@ class Service:
             self._handle_tick_of(rt, instant, health)
 
     def _handle_tick_of(self, rt: TwinRuntime, instant: dt.datetime,
-                        health: dict[str, Any]) -> None:
+                        health: dict[str, Any] | None) -> None:
         with twin_context(rt.cfg.id):
             self._publish_estimates(rt, rt.twin.estimate(instant))
+        state = (rt.twin.uncertain_since, rt.twin.failover_since)
+        if health is None:  # not a monitor instant (_monitor_at) ...
+            if state == rt.monitor_state:
+                return
+            health = self.health.snapshot()  # ... but why the estimate changed must not wait
+        rt.monitor_state = state
         self._publish(rt.monitor_topic,
                       monitor_payload({**rt.monitor.snapshot(instant, self.rejections.counts),
                                        "health": health}),
@@ -689,6 +715,9 @@ class Service:
         b = self.cfg.broker
         self.client.connect_async(b.host, b.port, keepalive=b.keepalive)
         self.client.loop_start()
+        if not self.wakeups.install():
+            log.info("this paho-mqtt has no wake-up socket pair: every message wakes its "
+                     "network thread")
         for target, args in ((self._worker, ()), (self._ticker, ())):
             th = threading.Thread(target=target, args=args, daemon=True,
                                   name=target.__name__.strip("_"))

@@ -1,0 +1,56 @@
+"""<twin>/monitor goes out every ``monitor_every_minutes`` (default hourly), not at every grid
+instant; estimates and baselines keep the grid."""
+
+from __future__ import annotations
+
+import datetime as dt
+
+import pytest
+
+from daemon_support import DAY, HOURS, config, wait_for
+from pseudotwin.errors import ConfigError
+from test_daemon import Viewer, publisher, reading
+
+
+def stamp(t: dt.datetime) -> str:
+    return t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")
+
+
+@pytest.mark.parametrize(("every", "hours"), [
+    (None, (10.0, 11.0)),  # the default: hourly
+    (30, (10.0, 10.5, 11.0)),
+    (20, (10.0, 10.5, 10.75, 11.0)),  # the first grid instant at or after 10:20, 10:40, ...
+    (10, (10.0, 10.25, 10.5, 10.75, 11.0)),  # shorter than the grid: every instant
+])
+def test_the_monitor_follows_its_own_cadence_on_the_grid(
+    service_factory, mosquitto, every: int | None, hours: tuple[float, ...]
+) -> None:
+    kw = {} if every is None else {"monitor_every_minutes": every}
+    svc = service_factory(HOURS.at(DAY, 10.0), 1.0, **kw)  # ticks come from the test
+    assert svc.cfg.monitor_every_minutes == (every or 60)
+    viewer = Viewer(mosquitto.port, "pt/desk/#")
+    pub = publisher(mosquitto.port, f"cadence-bridge-{every}")
+    first = HOURS.at(DAY, 9.9)
+    pub.publish("house/dining/temp", reading(first, 17.0), qos=1).wait_for_publish(10)
+    wait_for(lambda: any(e["ts"] == stamp(first) for e in viewer.on("/estimate")),
+             what="the reading's estimate")  # before the ticks: theirs need its value
+    ticks = [HOURS.at(DAY, 10.0 + 0.25 * k) for k in range(5)]
+    for t in ticks:
+        svc.queue.put(("tick", t))
+    # a twin's monitor follows its estimate of the same instant; the last tick has both
+    wait_for(lambda: {stamp(t) for t in ticks} <= {e["ts"] for e in viewer.on("/estimate")},
+             what=lambda: f"the estimate of every grid instant (got "
+                          f"{sorted({e['ts'] for e in viewer.on('/estimate')})})")
+    wait_for(lambda: any(m["ts"] == stamp(ticks[-1]) for m in viewer.on("/monitor")),
+             what="the monitor of the last grid instant")
+    assert [m["ts"] for m in viewer.on("/monitor")] == [stamp(HOURS.at(DAY, h))
+                                                          for h in hours]
+    pub.loop_stop()
+    viewer.close()
+
+
+@pytest.mark.parametrize("value", [0, -15, "hourly"])
+def test_a_bad_monitor_cadence_is_a_clear_config_error(tmp_path, desk_artifact,
+                                                         value: object) -> None:
+    with pytest.raises(ConfigError, match="service.monitor_every_minutes"):
+        config(tmp_path, 1883, desk_artifact, monitor_every_minutes=value)
