@@ -5,7 +5,9 @@ daemon runs, in the order the daemon would have seen them, and what the daemon w
 published is written to the estimates table: at every reference reading that moves the twin
 the primary model's estimate (every model's with ``[service] baselines = "reading"``), at
 every instant of the publish grid every model's (upserted on twin, model, ts — a rerun
-rewrites, never duplicates). Each finished day is
+rewrites, never duplicates). Readings outside the operating window are skipped but each
+sensor's last before it and after it (:func:`window_frame`): the twin would only have
+noted them as the sensor's latest value. Each finished day is
 recorded (per artifact version) after its rows are written, so an interrupted backfill
 continues with the days not yet finished, and a retrained twin is backfilled anew. One day
 of readings is in memory at a time.
@@ -29,9 +31,11 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
+import numpy as np
 import pandas as pd
 
 from pseudotwin.config import ServiceConfig
+from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.twinlog import twin_context
 from pseudotwin.errors import ConfigError, PseudotwinError
 from pseudotwin.history.store import EstimateRow, Store
@@ -224,11 +228,42 @@ def _publishable(ests: dict[str, TwinEstimate]) -> Iterator[tuple[str, TwinEstim
     return ((kind, e) for kind, e in ests.items() if e.publishable)
 
 
+#: Slack around the operating window when dropping readings outside it [h]: a reading this
+#: close to its edge is left for the twin to judge, so rounding can never drop one it keeps.
+_EDGE_H = 1e-6
+
+
+def window_frame(frame: pd.DataFrame, hours: OperatingHours) -> pd.DataFrame:
+    """The readings of one local day (time order) that can change what the twin estimates:
+    those in the operating window (init start … day end), and of those before it and of
+    those after it only each sensor's last with a finite value.
+
+    A reading outside the window only becomes its sensor's last value (the next window's
+    carry-over, and how long the sensor has been silent), and readings outside the window
+    come in a block before it and a block after it: the last of each block per sensor
+    leaves the twin exactly as all of them would, at half the readings of a 1-minute day.
+    """
+    if frame.empty:
+        return frame
+    _, h = hours.day_and_hours(frame["ts"])
+    before = h < hours.init_start - _EDGE_H
+    after = h > hours.day_end + _EDGE_H
+    keep = ~(before | after)
+    finite = np.isfinite(frame["value"].to_numpy(dtype=float))
+    sensors = frame["sensor"].to_numpy()
+    for block in (before, after):
+        pos = np.flatnonzero(block & finite)[::-1]  # newest first: unique keeps the last
+        _, newest = np.unique(sensors[pos], return_index=True)
+        keep[pos[newest]] = True
+    return frame if keep.all() else frame[keep]
+
+
 def day_rows(cfg: ServiceConfig, job: TwinJob, twin: Twin, day: dt.date,
              frame: pd.DataFrame) -> list[EstimateRow]:
     """The rows of one day: one per (model, instant)."""
     rows: dict[tuple[str, dt.datetime], EstimateRow] = {}
-    for kind, e in day_estimates(twin, frame, grid_instants(cfg, day),
+    for kind, e in day_estimates(twin, window_frame(frame, twin.hours),
+                                 grid_instants(cfg, day),
                                  cfg.per_reading_kinds(twin.artifact.primary)):
         rows[(kind, e.ts)] = EstimateRow.from_estimate(job.twin_id, kind, e, job.digest)
     return list(rows.values())

@@ -697,6 +697,8 @@ class VarmaDay(DayEstimator):
         self._init = hours.window_slots() * hours.slot_hours < hours.day_start  # [S]
         self._last_init = int(np.flatnonzero(self._init).max(initial=-1))
         self.shift = 0.0  # today's level shift δ (target_mode "shifted")
+        # Reference column → earliest reading time not yet in the held values (_flush).
+        self._pending: dict[int, float] = {}
 
     # -- readings ---------------------------------------------------------------------
     def observe(self, sensor: str, hours: float, value: float) -> None:
@@ -717,7 +719,7 @@ class VarmaDay(DayEstimator):
             pos = int(np.searchsorted(times, hours, side="right"))
             times.insert(pos, hours)
             values.insert(pos, value)
-        self._refresh(j, hours)
+        self._mark(j, hours)
 
     def revise(self, sensor: str, hours: float, value: float) -> None:
         j = self._col.get(sensor)
@@ -731,7 +733,18 @@ class VarmaDay(DayEstimator):
         if i < 0:
             raise KeyError(f"no reading of {sensor} at {hours} h to revise")
         values[i] = value
-        self._refresh(j, hours)
+        self._mark(j, hours)
+
+    def _mark(self, j: int, hours: float) -> None:
+        # The held values are brought up to date when next read (_flush), once per estimate
+        # rather than once per reading: a 1-minute reference is estimated every 15 minutes.
+        # The same refresh from the earliest reading since gives the same arrays.
+        self._pending[j] = min(self._pending.get(j, hours), hours)
+
+    def _flush(self) -> None:
+        pending, self._pending = self._pending, {}
+        for j, hours in pending.items():
+            self._refresh(j, hours)
 
     def _refresh(self, j: int, hours: float) -> None:
         """Update the held values of reference column j from the first slot at or after
@@ -780,6 +793,8 @@ class VarmaDay(DayEstimator):
         Before the first window slot no reading may be used yet: the stationary prior of
         the first slot is returned.
         """
+        if self._pending:
+            self._flush()
         slot = self.model.hours_.slot_index_of(hours) - self._first
         if slot < 0:
             a, p = self._pred[0]
@@ -845,8 +860,10 @@ class VarmaDay(DayEstimator):
     @property
     def n_filtered(self) -> int:
         """How many window slots (from the first) hold a cached filtered state."""
+        self._flush()
         return len(self._filt)
 
     def observations(self) -> np.ndarray:
         """The deseasonalized observation vectors of the window slots: [S, k] (copy)."""
+        self._flush()
         return self._obs.copy()
