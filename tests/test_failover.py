@@ -17,6 +17,7 @@ import pandas as pd
 import pytest
 
 from daemon_support import Viewer, wait_for
+from pseudotwin.analysis.failover import FAILOVER_KINDS
 from pseudotwin.analysis.replay import ESTIMATE, replay_estimates
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.cli import main
@@ -100,7 +101,7 @@ def test_training_keeps_a_validated_failover_per_reference(artifact: Artifact) -
     assert set(artifact.failover) == {R1, R2}
     for lost, f in artifact.failover.items():
         assert lost not in f.model.references_ and f.model.references_
-        assert f.kind in ("ref", "triv") and f.calibration is not None
+        assert f.kind in FAILOVER_KINDS and f.calibration is not None
         assert math.isfinite(f.nrmse_pct) and f.reason
 
 

@@ -4,8 +4,9 @@ without it (live/failover.py says how the twin uses them).
 For each such reference r, the candidates ``FAILOVER_KINDS`` are trained on the twin with r
 removed and validated exactly like the twin's own candidates (leave-one-day-out over the
 training days, the same tie rule, σ calibrated on the held-out errors: analysis/validation.py).
-Only cheap kinds by default: TRIV and the raw reference need no GP fit, so failover adds a few
-seconds to ``train``, not minutes.
+Only cheap kinds by default: the raw reference and the TRIV family (TRIV, its shrunk offset
+profile, TRIV with covariates) need no GP fit, so failover adds seconds to ``train``, not
+minutes; a kind that cannot serve the reduced twin (triv-cov without covariates) is skipped.
 """
 
 from __future__ import annotations
@@ -24,12 +25,12 @@ from pseudotwin.core.spec import TwinSpec
 from pseudotwin.errors import DataError
 from pseudotwin.live.failover import Failover
 from pseudotwin.models.base import TrainingSet
-from pseudotwin.models.registry import build
+from pseudotwin.models.registry import build, model_class
 
 log = logging.getLogger(__name__)
 
 # Cheap candidates (no GP fit): a failover answers for hours at most, until the sensor is back.
-FAILOVER_KINDS: tuple[str, ...] = ("ref", "triv")
+FAILOVER_KINDS: tuple[str, ...] = ("ref", "triv", "triv-shrunk", "triv-cov")
 
 
 def train_failover(
@@ -51,8 +52,9 @@ def train_failover(
     out: dict[str, Failover] = {}
     for lost in needed:
         others = replace(spec, references=tuple(r for r in spec.references if r != lost))
+        usable = [k for k in kinds if not model_class(k).not_applicable(others)]
         try:
-            v = validation.validate(df, others, days, list(kinds), opts)
+            v = validation.validate(df, others, days, usable, opts)
         except DataError as exc:
             log.warning("no failover for %s: %s", lost, exc)
             continue
