@@ -20,7 +20,7 @@ from pseudotwin.edge.outputs import monitor_payload
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.envelope import MARGIN, Q_HI, Q_LO, WIDEN, Envelope
 from pseudotwin.live.monitor import TwinMonitor
-from pseudotwin.live.twin import Quality, Twin
+from pseudotwin.live.twin import Quality, Twin, TwinEstimate
 
 LEVEL = f"level:{REF}"
 
@@ -125,17 +125,25 @@ def test_the_monitor_says_why_and_since_when(art, history) -> None:
 def test_a_criterion_not_kept_is_reported_but_changes_nothing(art, history) -> None:
     assert art.envelope is not None
     dropped = dataclasses.replace(art, envelope=art.envelope.keeping(frozenset(), 1.0))
+    twin, e, b = _hot_against_blind(dropped, history)
+    assert e.quality is Quality.OK and e.why == () and e.std == b.std
+    assert LEVEL in e.unlike  # what validation judges it on
+    assert twin.uncertain_since is None
+
+
+def _hot_against_blind(art: Artifact, history: pd.DataFrame
+                       ) -> tuple[Twin, TwinEstimate, TwinEstimate]:
+    """A twin of ``art`` and one without training ranges, fed the same day up to its first
+    ok estimate and then an out-of-range reference reading: the twin and both primaries'
+    estimates at that reading."""
     readings = day_readings(history)
-    twin, blind = Twin(dropped), Twin(dataclasses.replace(art, envelope=None))
+    twin, blind = Twin(art), Twin(dataclasses.replace(art, envelope=None))
     t = _first_ok(twin, readings)
     _first_ok(blind, readings[readings["ts"] <= t])
     t2, hot = _hot_reading(art, twin, t)
     twin.observe(REF, t2, hot)
     blind.observe(REF, t2, hot)
-    e, b = twin.estimate(t2)[art.primary], blind.estimate(t2)[art.primary]
-    assert e.quality is Quality.OK and e.why == () and e.std == b.std
-    assert LEVEL in e.unlike  # what validation judges it on
-    assert twin.uncertain_since is None
+    return twin, twin.estimate(t2)[art.primary], blind.estimate(t2)[art.primary]
 
 
 def test_the_training_days_themselves_are_rarely_uncertain(art, trained, history) -> None:
@@ -179,15 +187,7 @@ def test_a_criterion_that_flags_larger_held_out_errors_is_kept_one_that_does_not
     sigma = np.array([calib.sigma(HOURS.hours_of(t), 0.0) for t in flagged["ts"]])
     assert sel.widen == pytest.approx(max(1.0, 1.0 / float(np.sqrt(np.mean(sigma ** 2)))))
     # live, the kept criterion fires on an out-of-range reference, with the judged widening
-    judged = dataclasses.replace(trained, envelope=sel)
-    readings = day_readings(history)
-    twin, blind = Twin(judged), Twin(dataclasses.replace(trained, envelope=None))
-    t = _first_ok(twin, readings)
-    _first_ok(blind, readings[readings["ts"] <= t])
-    t2, hot = _hot_reading(judged, twin, t)
-    twin.observe(REF, t2, hot)
-    blind.observe(REF, t2, hot)
-    e, b = twin.estimate(t2)[trained.primary], blind.estimate(t2)[trained.primary]
+    _, e, b = _hot_against_blind(dataclasses.replace(trained, envelope=sel), history)
     assert e.quality is Quality.UNCERTAIN and e.std == pytest.approx(sel.widen * b.std)
     # too few readings: dropped
     few = select(env, _held_out({"": (0.2, 30, 5), LEVEL: (1.0, (MIN_ROWS - 1) // 3, 3)}),

@@ -18,19 +18,21 @@ def _drain(sock: socket.socket) -> int:
             return got
 
 
-def _pair() -> tuple[socket.socket, socket.socket]:
+def _coalesced() -> tuple[socket.socket, _Waker, WakeCoalescer]:
+    """A non-blocking socket pair's reading end, and a coalescer wrapping its writing end as
+    install() wraps paho's."""
     r, w = socket.socketpair()
     r.setblocking(False)
     w.setblocking(False)
-    return r, w
-
-
-def test_a_held_burst_wakes_once_per_hold_interval_and_once_at_the_end() -> None:
-    r, w = _pair()
     hold = _Hold()
     waker = _Waker(w, hold)
     coalescer = WakeCoalescer.__new__(WakeCoalescer)
     coalescer._hold, coalescer._waker = hold, waker
+    return r, waker, coalescer
+
+
+def test_a_held_burst_wakes_once_per_hold_interval_and_once_at_the_end() -> None:
+    r, waker, coalescer = _coalesced()
     t0 = time.monotonic()
     with coalescer.held():
         for _ in range(200):
@@ -46,11 +48,7 @@ def test_a_held_burst_wakes_once_per_hold_interval_and_once_at_the_end() -> None
 
 
 def test_other_threads_wake_at_once_while_one_holds() -> None:
-    r, w = _pair()
-    hold = _Hold()
-    waker = _Waker(w, hold)
-    coalescer = WakeCoalescer.__new__(WakeCoalescer)
-    coalescer._hold, coalescer._waker = hold, waker
+    r, waker, coalescer = _coalesced()
     with coalescer.held():
         waker.send(b"0")  # deferred: this thread holds
         other = threading.Thread(target=lambda: [waker.send(b"0") for _ in range(3)])
