@@ -229,14 +229,7 @@ def test_a_format_5_envelope_keeps_every_criterion_with_sigma_doubled(art, histo
     d["envelope"]["rule"]["widen"] = WIDEN
     old = Artifact.from_dict(d)
     assert old.envelope is not None and old.envelope.kept is None
-    readings = day_readings(history)
-    twin, blind = Twin(old), Twin(dataclasses.replace(old, envelope=None))
-    t = _first_ok(twin, readings)
-    _first_ok(blind, readings[readings["ts"] <= t])
-    t2, hot = _hot_reading(art, twin, t)
-    twin.observe(REF, t2, hot)
-    blind.observe(REF, t2, hot)
-    e, b = twin.estimate(t2)[art.primary], blind.estimate(t2)[art.primary]
+    _, e, b = _hot_against_blind(old, history)
     assert e.quality is Quality.UNCERTAIN and e.std == pytest.approx(WIDEN * b.std)
 
 
