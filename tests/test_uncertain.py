@@ -125,19 +125,23 @@ def test_the_monitor_says_why_and_since_when(art, history) -> None:
 def test_a_criterion_not_kept_is_reported_but_changes_nothing(art, history) -> None:
     assert art.envelope is not None
     dropped = dataclasses.replace(art, envelope=art.envelope.keeping(frozenset(), 1.0))
-    twin, e, b = _hot_against_blind(dropped, history)
+    twin, e, b = _hot_against_blind(dropped, history, record_unlike=True)
     assert e.quality is Quality.OK and e.why == () and e.std == b.std
     assert LEVEL in e.unlike  # what validation judges it on
     assert twin.uncertain_since is None
+    # the daemon's twin does not record them: with no criterion acting it skips the checks
+    _, e, b = _hot_against_blind(dropped, history)
+    assert e.quality is Quality.OK and e.unlike == () and e.std == b.std
 
 
-def _hot_against_blind(art: Artifact, history: pd.DataFrame
+def _hot_against_blind(art: Artifact, history: pd.DataFrame, record_unlike: bool = False
                        ) -> tuple[Twin, TwinEstimate, TwinEstimate]:
     """A twin of ``art`` and one without training ranges, fed the same day up to its first
     ok estimate and then an out-of-range reference reading: the twin and both primaries'
     estimates at that reading."""
     readings = day_readings(history)
-    twin, blind = Twin(art), Twin(dataclasses.replace(art, envelope=None))
+    twin = Twin(art, record_unlike=record_unlike)
+    blind = Twin(dataclasses.replace(art, envelope=None))
     t = _first_ok(twin, readings)
     _first_ok(blind, readings[readings["ts"] <= t])
     t2, hot = _hot_reading(art, twin, t)

@@ -52,7 +52,8 @@ def replay_estimates(
     """
     hours = artifact.hours
     thinning = thinning or Thinning()
-    twin = Twin(artifact, models=models, thinning=thinning, stale_after=stale_after)
+    twin = Twin(artifact, models=models, thinning=thinning, stale_after=stale_after,
+                record_unlike=criteria)
     refs = list(artifact.references)
     primary = artifact.primary
     sub = history[history["sensor"].isin([*artifact.inputs, artifact.target])]

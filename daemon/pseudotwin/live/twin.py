@@ -120,8 +120,13 @@ class Twin:
         stale_after: dt.timedelta | None = None,
         max_carry: dt.timedelta = dt.timedelta(hours=24),
         thinning: Thinning | None = None,
+        record_unlike: bool = False,
     ) -> None:
+        """record_unlike: fill :attr:`TwinEstimate.unlike` even when no criterion of the
+        envelope acts (validation judges the criteria on it); otherwise such a twin skips the
+        checks, which change nothing it publishes."""
         self.artifact = artifact
+        self.record_unlike = record_unlike
         self.hours = artifact.hours
         kinds = list(models) if models is not None else artifact.published
         missing = [k for k in kinds if k not in artifact.models]
@@ -423,7 +428,7 @@ class Twin:
         training days, and why for those that act (both empty: like them, or the artifact
         records no training ranges)."""
         env = self.artifact.envelope
-        if env is None:
+        if env is None or (env.kept is not None and not env.kept and not self.record_unlike):
             return (), ()
         for s in sensors:
             if s in cache or s not in env.refs:
