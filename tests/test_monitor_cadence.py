@@ -16,25 +16,31 @@ def stamp(t: dt.datetime) -> str:
     return t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")
 
 
-@pytest.mark.parametrize(("every", "hours"), [
-    (None, (10.0, 11.0)),  # the default: hourly
-    (30, (10.0, 10.5, 11.0)),
-    (20, (10.0, 10.5, 10.75, 11.0)),  # the first grid instant at or after 10:20, 10:40, ...
-    (10, (10.0, 10.25, 10.5, 10.75, 11.0)),  # shorter than the grid: every instant
+MIDDAY = (10.0, 10.25, 10.5, 10.75, 11.0)  # grid instants [h] the test ticks
+
+
+@pytest.mark.parametrize(("every", "at", "hours"), [
+    (None, MIDDAY, (10.0, 11.0)),  # the default: hourly
+    (30, MIDDAY, (10.0, 10.5, 11.0)),
+    (20, MIDDAY, (10.0, 10.5, 10.75, 11.0)),  # the first instant at or after 10:20, 10:40, …
+    (10, MIDDAY, (10.0, 10.25, 10.5, 10.75, 11.0)),  # shorter than the grid: every instant
+    # daily: the day's first and last grid instants only (the last carries the day's figures)
+    (1440, (8.0, 8.25, 12.0, 18.75, 19.0), (8.0, 19.0)),
 ])
 def test_the_monitor_follows_its_own_cadence_on_the_grid(
-    service_factory, mosquitto, every: int | None, hours: tuple[float, ...]
+    service_factory, mosquitto, every: int | None, at: tuple[float, ...],
+    hours: tuple[float, ...]
 ) -> None:
     kw = {} if every is None else {"monitor_every_minutes": every}
-    svc = service_factory(HOURS.at(DAY, 10.0), 1.0, **kw)  # ticks come from the test
+    svc = service_factory(HOURS.at(DAY, at[0]), 1.0, **kw)  # ticks come from the test
     assert svc.cfg.monitor_every_minutes == (every or 60)
     viewer = Viewer(mosquitto.port, "pt/desk/#")
     pub = publisher(mosquitto.port, f"cadence-bridge-{every}")
-    first = HOURS.at(DAY, 9.9)
+    first = HOURS.at(DAY, max(at[0] - 0.1, HOURS.day_start))  # after the unpublished init
     pub.publish("house/dining/temp", reading(first, 17.0), qos=1).wait_for_publish(10)
     wait_for(lambda: any(e["ts"] == stamp(first) for e in viewer.on("/estimate")),
              what="the reading's estimate")  # before the ticks: theirs need its value
-    ticks = [HOURS.at(DAY, 10.0 + 0.25 * k) for k in range(5)]
+    ticks = [HOURS.at(DAY, h) for h in at]
     for t in ticks:
         svc.queue.put(("tick", t))
     # a twin's monitor follows its estimate of the same instant; the last tick has both

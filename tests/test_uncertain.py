@@ -15,6 +15,7 @@ import pytest
 
 from daemon_support import DAY, HOURS, REF, day_readings, sml
 from pseudotwin.analysis.criteria import MIN_DAYS, MIN_RATIO, MIN_ROWS, criteria_table, select
+from pseudotwin.analysis.replay import UNLIKE_SEP
 from pseudotwin.analysis.selfaware import selfaware, training_share
 from pseudotwin.edge.outputs import monitor_payload
 from pseudotwin.live.artifact import Artifact
@@ -168,6 +169,17 @@ def _held_out(errors: dict[str, tuple[float, int, int]]) -> pd.DataFrame:
                              "std": 1.0, "truth": 20.0, "quality": "ok", "slope": 0.0,
                              "day": str(ts.date()), "unlike": key})
     return pd.DataFrame(rows)
+
+
+def test_criteria_of_a_sensor_id_with_a_space_are_judged(trained) -> None:
+    """Sensor ids may contain spaces; the held-out rows' criteria must still be told apart."""
+    env = trained.envelope
+    assert env is not None
+    spaced = dataclasses.replace(env, refs={"desk wall/temp": env.refs[REF]})
+    level, speed = "level:desk wall/temp", "speed:desk wall/temp"
+    rows = _held_out({"": (0.2, 30, 5), UNLIKE_SEP.join([level, speed]): (1.0, 10, 3)})
+    sel = select(spaced, rows, "triv", trained.calibration["triv"], HOURS)
+    assert sel.kept == frozenset({level, speed})
 
 
 def test_a_criterion_that_flags_larger_held_out_errors_is_kept_one_that_does_not_dropped(

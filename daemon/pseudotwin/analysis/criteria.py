@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from pseudotwin.analysis.replay import UNLIKE_SEP
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.live.calibration import SigmaCalibration
 from pseudotwin.live.envelope import Envelope
@@ -90,7 +91,8 @@ def select(envelope: Envelope, held_out: pd.DataFrame, primary: str,
     their ``unlike`` column) show to flag larger errors, and the σ widening of those rows."""
     rows = held_out[(held_out["model"] == primary) & (held_out["quality"] == "ok")] \
         if not held_out.empty and "unlike" in held_out else held_out.iloc[0:0]
-    fired_sets = [set(str(u).split()) for u in rows.get("unlike", pd.Series(dtype=str))]
+    fired_sets = [set(str(u).split(UNLIKE_SEP)) - {""}
+                  for u in rows.get("unlike", pd.Series(dtype=str))]
     err = (rows["value"] - rows["truth"]).abs().to_numpy(dtype=float) if len(rows) else \
         np.zeros(0)
     day = rows["day"].astype(str).to_numpy() if len(rows) else np.zeros(0, dtype=str)

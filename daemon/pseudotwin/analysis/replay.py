@@ -22,6 +22,9 @@ from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.twin import Twin
 
 REF_PREFIX = "ref:"
+# Joins the criteria of a row's ``unlike``: a control character, which sensor ids (and so
+# criterion keys) cannot contain, unlike a space.
+UNLIKE_SEP = "\x1f"
 ESTIMATE = "estimate"  # the rows of what the daemon publishes on <twin>/estimate
 COLUMNS = ["ts", "model", "value", "std", "truth", "quality", "slope"]
 
@@ -48,7 +51,7 @@ def replay_estimates(
     the daemon's, to score what it publishes while a reference is silent (quality ``stale``,
     or a failover's ``fallback``); default None: a silent reference's last value is held.
     criteria: add a column ``unlike``, the envelope criteria that fired on the row, joined by
-    spaces (live/envelope.py; what validation judges them on).
+    ``UNLIKE_SEP`` (live/envelope.py; what validation judges them on).
     """
     hours = artifact.hours
     thinning = thinning or Thinning()
@@ -95,7 +98,7 @@ def replay_estimates(
             if not e.finite:
                 continue
             slope = twin.slope(artifact.models[kind].references_, h)
-            fired = (" ".join(e.unlike),) if criteria else ()
+            fired = (UNLIKE_SEP.join(e.unlike),) if criteria else ()
             rows.append((t, kind, e.value, e.std, truth, e.quality.value, slope, *fired))
             if kind == primary and e.publishable:
                 rows.append((t, ESTIMATE, e.value, e.std, truth, e.quality.value, slope,

@@ -102,9 +102,9 @@ class TwinRuntime:
     estimate_topic: str
     monitor_topic: str
     baseline_topics: dict[str, str]
-    # (uncertain since, failover since) as last published on the monitor: a change goes out
-    # at the next grid instant, whatever monitor_every_minutes says.
-    monitor_state: tuple[object, object] = (None, None)
+    # (uncertain since and why, failover since and lost) as last published on the monitor:
+    # a change goes out at the next grid instant, whatever monitor_every_minutes says.
+    monitor_state: tuple[object, ...] = (None, (), None, ())
 
 
 class Service:
@@ -585,11 +585,15 @@ class Service:
             self._tick_work.append(rt)
 
     def _monitor_at(self, instant: dt.datetime) -> bool:
-        """Whether ``<twin>/monitor`` goes out at grid instant ``instant``: the first one at
-        or after each multiple of ``monitor_every_minutes`` since local midnight."""
+        """Whether ``<twin>/monitor`` goes out at grid instant ``instant``: the day's first and
+        last grid instants (the day's final figures), and the first one at or after each
+        multiple of ``monitor_every_minutes`` since local midnight."""
         every = self.cfg.monitor_every_minutes * 60.0
+        step = self.cfg.publish_every.total_seconds()
         s = round(self.hours.hours_of(instant) * 3600.0, 3)
-        return s // every != (s - self.cfg.publish_every.total_seconds()) // every
+        first = s - step < self.hours.day_start * 3600.0 - 1e-3
+        last = s + step > self.hours.day_end * 3600.0 + 1e-3
+        return first or last or s // every != (s - step) // every
 
     def _tick_step(self) -> None:
         done = 0
@@ -608,7 +612,8 @@ class Service:
                         health: dict[str, Any] | None) -> None:
         with twin_context(rt.cfg.id):
             self._publish_estimates(rt, rt.twin.estimate(instant))
-        state = (rt.twin.uncertain_since, rt.twin.failover_since)
+        tw = rt.twin
+        state = (tw.uncertain_since, tw.uncertain_why, tw.failover_since, tw.failover_lost)
         if health is None:  # not a monitor instant (_monitor_at) ...
             if state == rt.monitor_state:
                 return

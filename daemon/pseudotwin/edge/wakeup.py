@@ -10,8 +10,10 @@ of the worker's CPU and most of the network thread's at 1,000 twins
 
 :class:`WakeCoalescer` replaces the socket pair's writing end with :class:`_Waker`, which
 passes the byte on at once except on a thread inside :meth:`WakeCoalescer.held`: there the
-first packet's wake-up is deferred until the block ends or :data:`MAX_HOLD_SECONDS` have
-passed, whichever is first, so a packet waits no longer than that for the network thread.
+first packet's wake-up is deferred until the block ends, or until the thread queues another
+packet at least :data:`MAX_HOLD_SECONDS` after it. A packet therefore waits at most for the
+rest of its block: the service's blocks are one worker batch (at most a queue batch of
+readings and one slice of grid work), a few milliseconds.
 Every other thread (the network thread itself, the main thread's status messages) wakes it
 as before. It relies on paho's ``_sockpairW`` attribute (paho-mqtt 2.x); without it
 :meth:`WakeCoalescer.install` returns False and the client works unchanged.

@@ -246,6 +246,9 @@ def window_frame(frame: pd.DataFrame, hours: OperatingHours) -> pd.DataFrame:
     if frame.empty:
         return frame
     _, h = hours.day_and_hours(frame["ts"])
+    if (np.diff(h) < 0).any():
+        # A DST fold: outside readings need not come in one block per side; keep them all.
+        return frame
     before = h < hours.init_start - _EDGE_H
     after = h > hours.day_end + _EDGE_H
     keep = ~(before | after)

@@ -18,10 +18,11 @@ span (slope: the upper bound only). Each (kind, reference) is one *criterion*, k
 Out of range is not necessarily a larger error, so a criterion only acts where the training
 days show it flags one (analysis/criteria.py judges each on the held-out days of validation):
 live, a reference whose latest value, deviation or slope falls outside a *kept* criterion makes
-the twin's ``ok`` estimates ``uncertain`` with σ × ``widen``. Criteria not kept are still
-evaluated (``Twin.estimate`` reports them in ``TwinEstimate.unlike``: what validation judges
-them on) but change nothing. An envelope saved before criteria were judged (``kept`` None)
-keeps every criterion and ``WIDEN``, the rule artifacts of format 3–5 were trained under.
+the twin's ``ok`` estimates ``uncertain`` with σ × ``widen``. Criteria not kept change
+nothing; a twin asked to record them (``Twin(record_unlike=True)``, validation's replays)
+still reports them in ``TwinEstimate.unlike``, which is what validation judges them on.
+An envelope saved before criteria were judged (``kept`` None) keeps every criterion and
+``WIDEN``, the rule artifacts of format 3–5 were trained under.
 """
 
 from __future__ import annotations

@@ -68,7 +68,8 @@ class TwinEstimate:
     lost); refs: sensor → time of its last reading; why: what is unlike training when the
     quality is ``uncertain``; lost: the silent references a failover answered without;
     unlike: the keys of every envelope criterion that fired on an ``ok``/``uncertain``
-    estimate, kept or not (what validation judges the criteria on; live/envelope.py).
+    estimate, kept or not, when the twin records them (``record_unlike``, or a criterion
+    acts); what validation judges the criteria on (live/envelope.py).
     """
 
     ts: dt.datetime
