@@ -537,9 +537,11 @@ class ServiceConfig:
     baselines: when the baseline models are published: "grid" (on the publishing grid
         only: they are for monitoring, and at every reading they would quintuple the
         messages) or "reading" (also at every reading that moves the twin).
-    monitor_every_minutes: ``<twin>/monitor`` goes out at the first grid instant at or
-        after each multiple of this since local midnight [min] (every grid instant when
-        it is not longer than publish_every_minutes).
+    monitor_every_minutes: ``<twin>/monitor`` goes out at the day's first and last grid
+        instants and at the first grid instant at or after each multiple of this since
+        local midnight [min] (every grid instant when it is not longer than
+        publish_every_minutes), and at the next one when the estimate's uncertain or
+        failover state changes.
     """
 
     broker: BrokerConfig
