@@ -192,6 +192,8 @@ def validate(
             frames.append(_fold(df, spec, rest, d.day, models, opts, failures))
     held = pd.concat([f for f in frames if not f.empty], ignore_index=True)
     offset_var = offset_variance(spec, days)
+    offset_var_without = {d.day: offset_variance(spec, [x for x in days if x.day != d.day])
+                          for d in days}
     scores: dict[str, CandidateScore] = {}
     calibration: dict[str, SigmaCalibration] = {}
     for kind in models:
@@ -205,7 +207,7 @@ def validate(
         err = (rows["value"] - rows["truth"]).to_numpy()
         calibration[kind] = SigmaCalibration.fit(rows["day"].to_numpy(), hours, err,
                                                  rows["slope"].to_numpy(), offset_var)
-        sigma = _nested_sigma(spec, days, rows, hours, err)
+        sigma = _nested_sigma(offset_var_without, rows, hours, err)
         daily = [metrics.nrmse_pct(g["truth"], g["value"]) for _, g in rows.groupby("day")]
         scores[kind] = CandidateScore(
             kind, is_candidate,
@@ -219,12 +221,12 @@ def validate(
                       time.perf_counter() - t0, _withheld(scores, chosen), held)
 
 
-def _nested_sigma(spec: TwinSpec, days: Sequence[DayReadings], rows: pd.DataFrame,
+def _nested_sigma(offset_var_without: Mapping[dt.date, float], rows: pd.DataFrame,
                   hours: np.ndarray, err: np.ndarray) -> np.ndarray:
     """σ [n] of each held-out row from a calibration that never saw the row's day: fit on
-    the other days' held-out errors (and their offset spread), as the artifact's is fit on
-    all of them. Scored against the rows it is an honest check of σ; σ calibrated on the
-    same rows would cover them by construction."""
+    the other days' held-out errors (and their offset spread, ``offset_var_without`` the
+    row's day), as the artifact's is fit on all of them. Scored against the rows it is an
+    honest check of σ; σ calibrated on the same rows would cover them by construction."""
     sigma = np.full(len(rows), np.nan)
     day = rows["day"].to_numpy()
     slope = rows["slope"].to_numpy()
@@ -232,9 +234,8 @@ def _nested_sigma(spec: TwinSpec, days: Sequence[DayReadings], rows: pd.DataFram
         test, rest = day == d, day != d
         if len(np.unique(day[rest])) < 2:
             continue  # one day cannot tell a day level from noise
-        others = [x for x in days if x.day != d]
         calib = SigmaCalibration.fit(day[rest], hours[rest], err[rest], slope[rest],
-                                     offset_variance(spec, others))
+                                     offset_var_without[d])
         sigma[test] = [calib.sigma(h, s) for h, s in zip(hours[test], slope[test], strict=True)]
     return sigma
 

@@ -75,7 +75,8 @@ class Artifact(OfTwin):
         return [k for k in self.models if k == self.primary or k not in self.withheld]
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        """The artifact as JSON data (NaN/inf as null, so it round-trips through from_dict)."""
+        return _finite({
             "format": FORMAT,
             "version": VERSION,
             "created": self.created or dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
@@ -89,12 +90,12 @@ class Artifact(OfTwin):
             **({"envelope": self.envelope.to_dict()} if self.envelope else {}),
             **({"failover": {r: f.to_dict() for r, f in self.failover.items()}}
                if self.failover else {}),
-        }
+        })
 
     def save(self, path: str | Path) -> Path:
         p = Path(path)
         p.parent.mkdir(parents=True, exist_ok=True)
-        text = json.dumps(_finite(self.to_dict()), indent=1, ensure_ascii=False)
+        text = json.dumps(self.to_dict(), indent=1, ensure_ascii=False)
         tmp = p.with_suffix(p.suffix + ".tmp")
         tmp.write_text(text + "\n", encoding="utf-8")
         tmp.replace(p)  # atomic: a daemon never loads half an artifact

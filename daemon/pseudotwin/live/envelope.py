@@ -161,10 +161,7 @@ class Envelope:
         }
         if self.kept is not None:
             out["kept"] = sorted(self.kept)
-            # A criterion that never fired has no MAE: null, as JSON has no NaN.
-            out["judged"] = {k: {f: (None if isinstance(v, float) and not math.isfinite(v)
-                                     else v) for f, v in j.items()}
-                             for k, j in self.judged.items()}
+            out["judged"] = self.judged
         return out
 
     @classmethod
