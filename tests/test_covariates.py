@@ -31,7 +31,7 @@ from pseudotwin.edge.service import Service
 from pseudotwin.errors import ConfigError, DataError
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.twin import Twin
-from pseudotwin.models.covariate import MAX_AGE_H, TrivCovModel
+from pseudotwin.models.covariate import MAX_AGE_H, TrivCovModel, _consistent
 
 HOURS = OperatingHours(timezone="UTC")
 DAY0 = dt.date(2024, 3, 4)
@@ -134,6 +134,49 @@ def test_artifact_round_trip_and_live_twin(with_co2: Artifact, tmp_path: Path,
     triv_only = Twin(loaded, models=["triv"])
     triv_only.observe("ref", late, 21.5)
     assert twin.estimate(late)["triv-cov"].value == triv_only.estimate(late)["triv"].value
+
+
+def test_a_covariate_far_outside_the_training_days_corrects_no_more_than_they_showed(
+        with_co2: Artifact) -> None:
+    model = with_co2.models["triv-cov"]
+    assert isinstance(model, TrivCovModel)
+    (lo, hi), = model.dev_range_
+    assert lo < 0 < hi  # the training days' deviations, both ways
+    t = dt.datetime.combine(DAY0 + dt.timedelta(days=7), dt.time(10), dt.UTC)
+    twin = Twin(with_co2, models=["triv"])
+    assert twin.observe("ref", t, 21.5)
+    triv = twin.estimate(t)["triv"].value
+    corrections = []
+    for ppm in (3000.0, 30000.0, -5000.0):  # a drifted or broken CO2 sensor
+        twin = Twin(with_co2, models=["triv-cov"])
+        twin.observe("ref", t, 21.5)
+        twin.observe("room/co2", t, ppm)
+        corrections.append(twin.estimate(t)["triv-cov"].value - triv)
+    beta = float(model.beta_[0])
+    assert corrections[0] == pytest.approx(beta * hi) == pytest.approx(corrections[1])
+    assert corrections[2] == pytest.approx(beta * lo)
+    assert abs(corrections[1]) < 0.5 * abs(beta * (30000.0 - 1000.0))  # not extrapolated
+
+
+def test_a_gain_on_average_only_or_a_flipping_relation_is_not_kept() -> None:
+    before = np.array([1.0, 1.0, 1.0, 1.0, 1.0])
+    steady = np.array([[0.5], [0.4], [0.6], [0.5], [0.5]])  # each fold's β of the covariate
+    assert _consistent(before, np.array([0.9, 0.8, 0.9, 0.9, 1.1]), steady)  # one day worse
+    # the mean drops by a third, carried by two days; two others get worse
+    assert not _consistent(before, np.array([0.2, 0.3, 1.0, 1.1, 1.2]), steady)
+    flipping = np.array([[0.5], [0.4], [-0.6], [0.5], [0.5]])
+    assert not _consistent(before, np.array([0.9, 0.8, 0.9, 0.9, 0.9]), flipping)
+    # an earlier covariate's β may flip: only the one just added is judged
+    two = np.column_stack([np.array([1.0, -1.0, 1.0, 1.0, 1.0]), steady[:, 0]])
+    assert _consistent(before, np.array([0.9, 0.8, 0.9, 0.9, 0.9]), two)
+
+
+def test_an_older_artifact_without_deviation_ranges_still_loads(with_co2: Artifact) -> None:
+    d = with_co2.to_dict()
+    del d["models"]["triv-cov"]["dev_range"]
+    model = Artifact.from_dict(d).models["triv-cov"]
+    assert isinstance(model, TrivCovModel)
+    assert np.all(np.isinf(model.dev_range_))  # unclipped, as it was trained
 
 
 def test_a_twin_without_covariates_does_not_train_the_model(house: pd.DataFrame) -> None:

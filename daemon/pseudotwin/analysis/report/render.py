@@ -123,8 +123,10 @@ HOW_TO_READ = f"""\
   with its offset profile shrunk towards the mean offset as far as the training days
   disagree on its shape (James–Stein; the factor is in the artifact); `triv-cov` = TRIV plus
   a linear term in the run's covariates' deviations from their typical day, each covariate
-  kept only when it lowers TRIV's held-out error on the training days (it is TRIV, and not
-  published, when none does; the validation section says which helped); `varma` = VARMAX(4, 4)
+  kept only when it lowers TRIV's held-out error on the training days, on all held-out days
+  but one and with a β of one sign, each deviation clipped to the training days' range (it
+  is TRIV, and not published, when none is kept; the validation section says which helped);
+  `varma` = VARMAX(4, 4)
   with trend `n` (no constant, no drift) on the 15-min grid, every series re-levelled each
   day by the references' init-phase shift (its fallback: VAR(4) by least squares).
   `ref:<sensor> (raw)` is the raw reference value held at the reading's time, without σ,

@@ -1,0 +1,178 @@
+#!/usr/bin/env python3
+"""Rolling origins: the shared runs trained from many start days, not only the report's one.
+
+docs/results.md trains each run once, on the five days from a fixed start, and scores the
+days after. One origin says little about a method whose σ and choice of primary come from
+five days: this script moves the start through each dataset (every ``--step-days``), trains
+as results.py does (validation picks the primary and calibrates σ on the five training days
+only) and scores the next ``--test-days`` days. Per origin: the published estimate's mean
+daily NRMSE against TRIV's and the floor (the lower of TRIV's and the best raw reference's),
+the ±2σ coverage of the estimate on the test days next to the nested coverage validation
+measured on the training days, and mean σ / RMSE. Then per run and over all origins: how
+often each figure of docs/results.md holds.
+
+The default models are the quick candidates (no GP: a Corr-GP fit per origin and fold would
+take hours); ``--models`` adds others. Prints the origins' table, the summary table and, last,
+one JSON line.
+
+    .venv/bin/python scripts/origins.py [--runs NAME,...] [--step-days 4] [--test-days 14]
+                                        [--models ref,triv,triv-shrunk,triv-cov] [--jobs 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import logging
+import math
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+import pseudotwin  # noqa: F401  (one BLAS thread, before numpy does any work)
+from pseudotwin.analysis.evaluate import ESTIMATE, REF_PREFIX, evaluate
+from pseudotwin.analysis.report.runs import RUNS, RunSpec
+from pseudotwin.errors import DataError
+from pseudotwin.history.convert import load
+from pseudotwin.live import metrics
+from tables import cell, print_table
+
+QUICK = ("ref", "triv", "triv-shrunk", "triv-cov")
+SLACK_DAYS = 16  # calendar days beyond the test days: training skips days a sensor missed
+
+
+def _origins(spec: RunSpec, history: pd.DataFrame, step: int, test_days: int) -> list[dt.date]:
+    """Start days from the target's first day on, while a full training and test span fits."""
+    days, _ = spec.twin.hours.day_and_hours(history.loc[history["sensor"] == spec.target, "ts"])
+    have = sorted(set(pd.to_datetime(days).date))
+    out, start = [], have[0]
+    while start + dt.timedelta(days=5 + test_days // 2) <= have[-1]:
+        out.append(start)
+        start += dt.timedelta(days=step)
+    return out
+
+
+def one(name: str, start: dt.date, test_days: int, models: tuple[str, ...]) -> dict[str, Any]:
+    """Train from ``start``, score the next ``test_days`` days after the training days."""
+    t0 = time.perf_counter()
+    spec = next(r for r in RUNS if r.name == name)
+    history = load(spec.dataset)
+    row: dict[str, Any] = {"run": name, "start": str(start)}
+    cut = pd.Timestamp(start + dt.timedelta(days=5 + test_days + SLACK_DAYS), tz="UTC")
+    try:
+        ev = evaluate(history[history["ts"] < cut], spec.twin, start, spec.train_days, models)
+    except DataError as exc:
+        return {**row, "error": str(exc)}
+    end = dt.date.fromisoformat(ev.artifact.training["end"])
+    scored = [d for d in ev.daily["day"].unique()
+              if (dt.date.fromisoformat(d) - end).days <= test_days]
+    daily = ev.daily[ev.daily["day"].isin(scored)]
+    mean = daily.groupby("model")["nrmse_pct"].mean()
+    refs = [m for m in mean.index if m.startswith(REF_PREFIX) or m == "ref"]
+    floor = min([float(mean["triv"])] + [float(mean[m]) for m in refs])
+    days, _ = spec.twin.hours.day_and_hours(ev.estimates["ts"])
+    est = ev.estimates[(ev.estimates["model"] == ESTIMATE)
+                       & pd.Series(pd.to_datetime(days).strftime("%Y-%m-%d"),
+                                   index=ev.estimates.index).isin(scored)]
+    rmse = float(np.sqrt(np.mean((est["value"] - est["truth"]) ** 2)))
+    v = ev.artifact.validation
+    return {
+        **row, "training_days": ",".join(ev.artifact.training["days"]),
+        "training_end": str(end), "test_days": len(scored), "primary": v["primary"],
+        "estimate_pct": float(mean[ESTIMATE]), "triv_pct": float(mean["triv"]),
+        "floor_pct": floor, "ratio_floor": float(mean[ESTIMATE]) / floor,
+        "ratio_triv": float(mean[ESTIMATE] / mean["triv"]),
+        "cover2_pct": metrics.coverage_pct(est["truth"], est["value"], est["std"], 2.0),
+        "nested_cover2_pct": float(v["scores"][v["primary"]]["cover2_pct"]),
+        "std_over_rmse": float(est["std"].mean()) / rmse if rmse > 0 else math.nan,
+        "seconds": round(time.perf_counter() - t0, 1),
+    }
+
+
+def summary(rows: list[dict[str, Any]], name: str) -> dict[str, Any]:
+    ok = [r for r in rows if "error" not in r]
+    cov = np.array([r["cover2_pct"] for r in ok])
+
+    def share(mask: Any) -> float:
+        return 100.0 * float(np.mean(mask)) if ok else math.nan
+
+    return {
+        "run": name, "origins": len(ok), "failed": len(rows) - len(ok),
+        "floor_ok_pct": share([r["ratio_floor"] <= 1.02 for r in ok]),
+        "triv_0_9_pct": share([r["ratio_triv"] <= 0.9 for r in ok]),
+        "median_ratio_floor": float(np.median([r["ratio_floor"] for r in ok])) if ok else math.nan,
+        "worst_ratio_floor": max((r["ratio_floor"] for r in ok), default=math.nan),
+        "cover_in_pct": share((cov >= 90) & (cov <= 98)), "cover_low_pct": share(cov < 90),
+        "cover_high_pct": share(cov > 98),
+        "median_cover2_pct": float(np.median(cov)) if ok else math.nan,
+        "median_nested_pct": (float(np.median([r["nested_cover2_pct"] for r in ok]))
+                              if ok else math.nan),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    names = [r.name for r in RUNS]
+    ap.add_argument("--runs", default=",".join(names), help="comma-separated runs (default: all)")
+    ap.add_argument("--step-days", type=int, default=4, help="days between origins (%(default)s)")
+    ap.add_argument("--test-days", type=int, default=14,
+                    help="calendar days scored after the training days (%(default)s)")
+    ap.add_argument("--models", default=",".join(QUICK), help="models trained (%(default)s)")
+    ap.add_argument("--jobs", type=int, default=2, help="processes (%(default)s)")
+    a = ap.parse_args()
+    logging.basicConfig(level=logging.ERROR, stream=sys.stderr)
+    wanted = [r.strip() for r in a.runs.split(",") if r.strip()]
+    if unknown := sorted(set(wanted) - set(names)):
+        ap.error(f"unknown run(s) {', '.join(unknown)}; runs: {', '.join(names)}")
+    if a.step_days < 1 or a.test_days < 1 or a.jobs < 1:
+        ap.error("--step-days, --test-days and --jobs must be at least 1")
+    models = tuple(m.strip() for m in a.models.split(",") if m.strip())
+    if "triv" not in models:
+        ap.error("--models must include triv (the floor and the ratios are against it)")
+    t0 = time.perf_counter()
+    work = [(spec.name, start) for spec in RUNS if spec.name in wanted
+            for start in _origins(spec, load(spec.dataset), a.step_days, a.test_days)]
+    with ProcessPoolExecutor(a.jobs) as pool:
+        rows = list(pool.map(one, *zip(*work, strict=True), [a.test_days] * len(work),
+                             [models] * len(work)))
+    # a start day without data trains on the same days as the next one: count those once
+    unique: dict[tuple[str, str], dict[str, Any]] = {}
+    for r in rows:
+        unique.setdefault((r["run"], r.get("training_days", r["start"])), r)
+    rows = list(unique.values())
+    cols = [("run", "run", None), ("start", "start", None), ("trained to", "training_end", None),
+            ("days", "test_days", 0), ("primary", "primary", None),
+            ("estimate %", "estimate_pct", 2), ("triv %", "triv_pct", 2),
+            ("floor %", "floor_pct", 2), ("est / floor", "ratio_floor", 3),
+            ("est / triv", "ratio_triv", 3), ("±2σ cover %", "cover2_pct", 1),
+            ("nested cover % (training)", "nested_cover2_pct", 1),
+            ("mean σ / RMSE", "std_over_rmse", 2)]
+    print("| " + " | ".join(h for h, _, _ in cols) + " |")
+    print("|" + "|".join("---" if d is None else "---:" for _, _, d in cols) + "|")
+    for r in rows:
+        if "error" in r:
+            print(f"| {r['run']} | {r['start']} | failed: {r['error']} |")
+            continue
+        print("| " + " | ".join(cell(r[k], 2 if d is None else d) for _, k, d in cols) + " |")
+    print()
+    summaries = [summary([r for r in rows if r["run"] == n], n) for n in wanted]
+    summaries.append(summary(rows, "all"))
+    print(f"{len(rows)} origins, {len(models)} models ({', '.join(models)}), test span "
+          f"{a.test_days} days, {time.perf_counter() - t0:.0f} s")
+    print_table("origins", summaries, [
+        ("run", "run", None), ("origins", "origins", 0), ("failed", "failed", 0),
+        ("est ≤ 1.02 × floor %", "floor_ok_pct", 0), ("est ≤ 0.9 × triv %", "triv_0_9_pct", 0),
+        ("median est / floor", "median_ratio_floor", 3),
+        ("worst est / floor", "worst_ratio_floor", 2),
+        ("cover 90–98 %", "cover_in_pct", 0), ("cover < 90 %", "cover_low_pct", 0),
+        ("cover > 98 %", "cover_high_pct", 0), ("median ±2σ cover %", "median_cover2_pct", 1),
+        ("median nested cover %", "median_nested_pct", 1)])
+
+
+if __name__ == "__main__":
+    main()
