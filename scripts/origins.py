@@ -34,14 +34,15 @@ import numpy as np
 import pandas as pd
 
 import pseudotwin  # noqa: F401  (one BLAS thread, before numpy does any work)
-from pseudotwin.analysis.evaluate import ESTIMATE, REF_PREFIX, evaluate
-from pseudotwin.analysis.report.runs import RUNS, RunSpec
+from pseudotwin.analysis.evaluate import evaluate
+from pseudotwin.analysis.report.runs import RUNS, RunResult, RunSpec
+from pseudotwin.analysis.report.verdicts import COVER2_RANGE, figures
 from pseudotwin.errors import DataError
 from pseudotwin.history.convert import load
-from pseudotwin.live import metrics
-from tables import cell, print_table
+from tables import print_markdown, print_table
 
 QUICK = ("ref", "triv", "triv-shrunk", "triv-cov")
+TRIV_RATIO = 0.9  # Trust II: the estimate ≤ this × TRIV's mean daily NRMSE
 SLACK_DAYS = 16  # calendar days beyond the test days: training skips days a sensor missed
 
 
@@ -70,25 +71,20 @@ def one(name: str, start: dt.date, test_days: int, models: tuple[str, ...]) -> d
     end = dt.date.fromisoformat(ev.artifact.training["end"])
     scored = [d for d in ev.daily["day"].unique()
               if (dt.date.fromisoformat(d) - end).days <= test_days]
-    daily = ev.daily[ev.daily["day"].isin(scored)]
-    mean = daily.groupby("model")["nrmse_pct"].mean()
-    refs = [m for m in mean.index if m.startswith(REF_PREFIX) or m == "ref"]
-    floor = min([float(mean["triv"])] + [float(mean[m]) for m in refs])
     days, _ = spec.twin.hours.day_and_hours(ev.estimates["ts"])
-    est = ev.estimates[(ev.estimates["model"] == ESTIMATE)
-                       & pd.Series(pd.to_datetime(days).strftime("%Y-%m-%d"),
-                                   index=ev.estimates.index).isin(scored)]
-    rmse = float(np.sqrt(np.mean((est["value"] - est["truth"]) ** 2)))
+    in_span = pd.to_datetime(days).strftime("%Y-%m-%d").isin(scored)
+    # the report's own figures (floor, coverage, their thresholds) over the scored span
+    f = figures(RunResult(spec, ev, ev.daily[ev.daily["day"].isin(scored)], ev.monthly,
+                          ev.estimates[in_span], ev.seconds))
     v = ev.artifact.validation
     return {
         **row, "training_days": ",".join(ev.artifact.training["days"]),
-        "training_end": str(end), "test_days": len(scored), "primary": v["primary"],
-        "estimate_pct": float(mean[ESTIMATE]), "triv_pct": float(mean["triv"]),
-        "floor_pct": floor, "ratio_floor": float(mean[ESTIMATE]) / floor,
-        "ratio_triv": float(mean[ESTIMATE] / mean["triv"]),
-        "cover2_pct": metrics.coverage_pct(est["truth"], est["value"], est["std"], 2.0),
-        "nested_cover2_pct": float(v["scores"][v["primary"]]["cover2_pct"]),
-        "std_over_rmse": float(est["std"].mean()) / rmse if rmse > 0 else math.nan,
+        "training_end": str(end), "test_days": f.days, "primary": f.primary,
+        "estimate_pct": f.estimate, "triv_pct": f.triv, "floor_pct": f.floor,
+        "ratio_floor": f.ratio, "ratio_triv": f.estimate / f.triv, "floor_met": f.floor_met,
+        "cover2_pct": f.cover2, "cover_met": f.cover_met,
+        "nested_cover2_pct": float(v["scores"][f.primary]["cover2_pct"]),
+        "std_over_rmse": f.mean_std / f.rmse if f.rmse > 0 else math.nan,
         "seconds": round(time.perf_counter() - t0, 1),
     }
 
@@ -102,12 +98,13 @@ def summary(rows: list[dict[str, Any]], name: str) -> dict[str, Any]:
 
     return {
         "run": name, "origins": len(ok), "failed": len(rows) - len(ok),
-        "floor_ok_pct": share([r["ratio_floor"] <= 1.02 for r in ok]),
-        "triv_0_9_pct": share([r["ratio_triv"] <= 0.9 for r in ok]),
+        "floor_ok_pct": share([r["floor_met"] for r in ok]),
+        "triv_0_9_pct": share([r["ratio_triv"] <= TRIV_RATIO for r in ok]),
         "median_ratio_floor": float(np.median([r["ratio_floor"] for r in ok])) if ok else math.nan,
         "worst_ratio_floor": max((r["ratio_floor"] for r in ok), default=math.nan),
-        "cover_in_pct": share((cov >= 90) & (cov <= 98)), "cover_low_pct": share(cov < 90),
-        "cover_high_pct": share(cov > 98),
+        "cover_in_pct": share([r["cover_met"] for r in ok]),
+        "cover_low_pct": share(cov < COVER2_RANGE[0]),
+        "cover_high_pct": share(cov > COVER2_RANGE[1]),
         "median_cover2_pct": float(np.median(cov)) if ok else math.nan,
         "median_nested_pct": (float(np.median([r["nested_cover2_pct"] for r in ok]))
                               if ok else math.nan),
@@ -152,13 +149,10 @@ def main() -> None:
             ("est / triv", "ratio_triv", 3), ("±2σ cover %", "cover2_pct", 1),
             ("nested cover % (training)", "nested_cover2_pct", 1),
             ("mean σ / RMSE", "std_over_rmse", 2)]
-    print("| " + " | ".join(h for h, _, _ in cols) + " |")
-    print("|" + "|".join("---" if d is None else "---:" for _, _, d in cols) + "|")
+    print_markdown([r for r in rows if "error" not in r], cols)
     for r in rows:
         if "error" in r:
-            print(f"| {r['run']} | {r['start']} | failed: {r['error']} |")
-            continue
-        print("| " + " | ".join(cell(r[k], 2 if d is None else d) for _, k, d in cols) + " |")
+            print(f"{r['run']} from {r['start']}: failed: {r['error']}")
     print()
     summaries = [summary([r for r in rows if r["run"] == n], n) for n in wanted]
     summaries.append(summary(rows, "all"))

@@ -19,12 +19,17 @@ def cell(x: Any, digits: int = 2) -> str:
     return f"{x:.{digits}f}" if isinstance(x, float) else str(x)
 
 
-def print_table(key: str, rows: Sequence[Mapping[str, Any]], columns: Sequence[Column]) -> None:
-    """The table, then ``{key: rows}`` as the last line."""
+def print_markdown(rows: Sequence[Mapping[str, Any]], columns: Sequence[Column]) -> None:
+    """The rows as a Markdown table."""
     print("| " + " | ".join(h for h, _, _ in columns) + " |")
     print("|" + "|".join("---" if d is None else "---:" for _, _, d in columns) + "|")
     for r in rows:
         print("| " + " | ".join(cell(r[k], 2 if d is None else d) for _, k, d in columns)
               + " |")
+
+
+def print_table(key: str, rows: Sequence[Mapping[str, Any]], columns: Sequence[Column]) -> None:
+    """The table, then ``{key: rows}`` as the last line."""
+    print_markdown(rows, columns)
     print(json.dumps({key: [{k: (None if isinstance(v, float) and not math.isfinite(v) else v)
                              for k, v in r.items()} for r in rows]}))
