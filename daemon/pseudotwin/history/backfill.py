@@ -308,6 +308,7 @@ def run_chunk(cfg: ServiceConfig, chunk: Chunk, store: Store, artifact: Artifact
                     continue
                 n = store.write_estimates(day_rows(cfg, job, twin, day, frame))
                 store.mark_day_done(job.progress_key, day, n)
+                log.debug("day %s written: %d estimates", day, n)
                 res.days += 1
                 res.estimates += n
         except KeyboardInterrupt:
