@@ -61,6 +61,11 @@ def publisher(port: int, client_id: str = "bridge") -> mqtt.Client:
     return c
 
 
+def stamp(t: dt.datetime) -> str:
+    """An instant as the daemon's payloads write it (UTC, "Z")."""
+    return t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")
+
+
 def reading(ts: dt.datetime, value: float) -> bytes:
     return json.dumps({"ts": ts.isoformat(), "value": value}).encode()
 
@@ -107,6 +112,54 @@ def test_live_estimates_equal_evaluate(service_factory, mosquitto, desk_artifact
     mon = viewer.on("/monitor")
     assert mon and mon[-1]["target"]["n"] > 40
     assert all(e["quality"] != "init" for e in viewer.on("/estimate"))
+    viewer.close()
+
+
+class StalledTicker(ReplayClock):
+    """A replay clock on which the ticker never wakes: a ticker thread starved under load,
+    made certain. Grid instants then start only from readings stamped past them."""
+
+    def wait_until(self, instant: dt.datetime, stop: threading.Event) -> bool:
+        stop.wait()
+        return False
+
+
+def test_a_late_grid_tick_does_not_see_later_readings(mosquitto, desk_artifact,
+                                                      tmp_path: Path) -> None:
+    df = sml()
+    start, end = HOURS.at(DAY, 7.0), HOURS.at(DAY, 11.0)
+    speed = 4000.0
+    viewer = Viewer(mosquitto.port)
+    svc = Service(config(tmp_path, mosquitto.port, desk_artifact),
+                  clock=StalledTicker(start, speed))
+    svc.start(wait_connected=15)
+    try:
+        ours = df[df["sensor"].isin([REF, TARGET])]
+        replay(svc.cfg, ours, start, end, speed)
+        last = ours.loc[(ours["sensor"] == REF) & (ours["ts"] < end), "ts"].max()
+        # the grid-only baselines at every instant from 8:00 up to the last reading (not at
+        # it: nothing after it says its instant is over)
+        art = Artifact.load(desk_artifact)
+        grid = [g for g in svc.cfg.hours.grid(DAY, svc.cfg.publish_every.total_seconds()
+                                               / 3600.0) if HOURS.at(DAY, 8.0) <= g < last]
+        kinds = [k for k in art.published if k != art.primary]
+        assert kinds and len(grid) >= 10
+        want = {stamp(g) for g in grid}
+        wait_for(lambda: all(want <= {e["ts"] for e in viewer.on(f"/baseline/{k}")}
+                             for k in kinds), what="grid estimates without a tick")
+    finally:
+        svc.stop()
+    offline = replay_estimates(art, df[df["ts"] < end], DAY)
+    offline = offline[offline["ts"].isin(grid)]
+    checked = 0
+    for kind in kinds:
+        live = {e["ts"]: e for e in viewer.on(f"/baseline/{kind}")}
+        assert set(live) == want  # nothing at or after the last reading's time
+        for _, row in offline[offline["model"] == kind].iterrows():
+            e = live[stamp(row["ts"])]
+            assert (e["value"], e["std"]) == (round(row["value"], 6), round(row["std"], 6))
+            checked += 1
+    assert checked == len(kinds) * len(grid)
     viewer.close()
 
 
@@ -299,7 +352,6 @@ def test_a_grid_estimate_sees_only_readings_that_arrived_before_its_tick(
         svc.queue.put(("tick", tick))
         pub.publish(topic, reading(later, 17.3), qos=1)
         wait_for(lambda: svc.health.received == 3, what="the later reading received")
-    stamp = lambda t: t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")  # noqa: E731
     wait_for(lambda: any(e["ts"] == stamp(later) for e in viewer.on("/estimate")),
              what="the later reading's estimate")
     at_tick = [e for e in viewer.on("/estimate") if e["ts"] == stamp(tick)]
@@ -322,7 +374,6 @@ def test_baselines_are_published_on_the_grid_only_by_default(
     assert baselines
     viewer = Viewer(mosquitto.port, "pt/desk/#")
     pub = publisher(mosquitto.port, "grid-bridge")
-    stamp = lambda t: t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")  # noqa: E731
     first = HOURS.at(DAY, 9.9)
     pub.publish("house/dining/temp", reading(first, 17.0), qos=1).wait_for_publish(10)
     wait_for(lambda: any(e["ts"] == stamp(first) for e in viewer.on("/estimate")),

@@ -5,6 +5,9 @@ Threads, and why:
 - one worker owns every twin and does all model work, in arrival order, so estimates are
   deterministic and equal to ``evaluate``'s for the same readings;
 - a ticker enqueues the publish-grid instants; a watchdog tells systemd the worker is alive.
+  A reading stamped past a grid instant the ticker has not delivered yet (a starved ticker
+  thread, a burst) starts that instant's grid work first, so a grid estimate never sees a
+  later reading, however late its tick: the same as ``evaluate`` and backfill.
 
 Delivery: QoS 1, persistent session (clean_session False, stable client id), manual acks. A
 reading is acknowledged only after it is journaled (see journal.py) and applied, so neither
@@ -162,6 +165,10 @@ class Service:
         # and per twin its pending (instant, health snapshot; None: no monitor then).
         self._tick_work: deque[TwinRuntime] = deque()
         self._tick_due: dict[str, list[tuple[dt.datetime, dict[str, Any] | None]]] = {}
+        # The last grid instant started (None: none yet), and the next one the ticker or a
+        # reading past it will start (see _catch_up_grid; set again by start()).
+        self._grid_started: dt.datetime | None = None
+        self._grid_next = self._next_grid(self.clock.now())
         self._paced_since: float | None = None
         # QoS 1 messages handed to paho / acknowledged by the broker (see TICK_BACKLOG).
         self._sent = 0
@@ -394,7 +401,9 @@ class Service:
             elif kind == "tick":  # readings before it go first, as they arrived
                 self._guarded("msg", self._handle_messages, messages)
                 messages = []
-                self._start_tick(item[1])
+                if self._grid_started is None or item[1] > self._grid_started:
+                    # (else a reading past it started it already)
+                    self._start_tick(item[1])
         self._guarded("msg", self._handle_messages, messages)
         # Then a slice of the grid work, so no reading waits behind every twin's tick.
         if not paced:
@@ -454,6 +463,8 @@ class Service:
         self.accepted += 1
         self.metrics.accepted_one(r.sensor)
         try:
+            if r.ts > self._grid_next:
+                self._catch_up_grid(r.ts)
             self._apply(r, publish=True)
         finally:
             self._ack(token)  # journaled: a restart replays it, whatever happened here
@@ -574,11 +585,22 @@ class Service:
             if kind == primary:
                 self.metrics.published(rt.cfg.id, e.quality, e.ts)
 
+    def _catch_up_grid(self, ts: dt.datetime) -> None:
+        """Start the grid instants before reading time ``ts`` that are due by the clock but
+        whose tick has not come yet (a late ticker): their estimates must not see this
+        reading. Not those still ahead of the clock: a sensor whose clock runs fast does
+        not move the grid."""
+        now = self.clock.now()
+        while self._grid_next < ts and self._grid_next <= now:
+            self._start_tick(self._grid_next)
+
     def _start_tick(self, instant: dt.datetime) -> None:
         """Queue every twin's grid work for ``instant``; the worker does it TICK_CHUNK twins
         at a time between batches of readings (one health snapshot for all of them), and a
         twin's own before any later reading reaches it (see _apply): the estimate at the
         instant sees exactly the readings that arrived before the tick."""
+        self._grid_started = instant
+        self._grid_next = self._next_grid(instant)
         health = self.health.snapshot() if self._monitor_at(instant) else None
         for rt in self.twins.values():
             self._tick_due.setdefault(rt.cfg.id, []).append((instant, health))
@@ -634,8 +656,8 @@ class Service:
                     return t
         raise RuntimeError("no grid instant in three days")  # unreachable with valid config
 
-    def _ticker(self) -> None:
-        t = self.clock.now()
+    def _ticker(self, origin: dt.datetime) -> None:
+        t = origin
         while not self.stop_event.is_set():
             t = self._next_grid(t)
             if not self.clock.wait_until(t, self.stop_event):
@@ -723,7 +745,9 @@ class Service:
         if not self.wakeups.install():
             log.info("this paho-mqtt has no wake-up socket pair: every message wakes its "
                      "network thread")
-        for target, args in ((self._worker, ()), (self._ticker, ())):
+        origin = self.clock.now()  # the grid's first instant is the first after it
+        self._grid_next = self._next_grid(origin)
+        for target, args in ((self._worker, ()), (self._ticker, (origin,))):
             th = threading.Thread(target=target, args=args, daemon=True,
                                   name=target.__name__.strip("_"))
             th.start()
