@@ -7,6 +7,7 @@ from __future__ import annotations
 import logging
 import sys
 import time
+from collections.abc import Callable
 from typing import Any
 
 import paho.mqtt.client as mqtt
@@ -68,3 +69,33 @@ def make_client(broker: BrokerConfig, client_id: str, status_topic: str,
     c.max_inflight_messages_set(MAX_INFLIGHT)
     c.on_connect_fail = _log_connect_failures(broker)
     return c
+
+
+class Subscription:
+    """The sensor topics a client subscribes to on every connect, and ``ready`` called once
+    the broker's SUBACK is back (at once when there are none): only then does a message
+    published to them reach the client, so "connected" (systemd's READY=1, ``start``'s
+    wait) means receiving. Topics the broker refused (its ACL) are logged as errors."""
+
+    def __init__(self, topics: list[tuple[str, int]], ready: Callable[[], None]) -> None:
+        self.topics = topics
+        self.ready = ready
+        self._mid: int | None = None
+
+    def subscribe(self, client: mqtt.Client) -> None:
+        if not self.topics:  # a fleet instance may own no twin (paho refuses an empty list)
+            self.ready()
+            return
+        _, self._mid = client.subscribe(self.topics)
+
+    def on_subscribe(self, client: mqtt.Client, userdata: Any, mid: int,
+                     reason_codes: list[Any], properties: Any) -> None:
+        if mid != self._mid:
+            return
+        self._mid = None
+        refused = [t for (t, _), rc in zip(self.topics, reason_codes, strict=False)
+                   if rc.is_failure]
+        if refused:
+            log.error("the broker refused the subscription to %s (its ACL?): no readings "
+                      "from them", ", ".join(refused))
+        self.ready()

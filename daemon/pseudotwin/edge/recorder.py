@@ -24,7 +24,7 @@ import paho.mqtt.client as mqtt
 
 from pseudotwin.config import SensorConfig, ServiceConfig
 from pseudotwin.edge.clock import Clock, SystemClock
-from pseudotwin.edge.mqttconn import make_client, refused_fatally
+from pseudotwin.edge.mqttconn import Subscription, make_client, refused_fatally
 from pseudotwin.edge.prometheus import RecorderMetrics
 from pseudotwin.edge.sdnotify import notify
 from pseudotwin.errors import ConfigError, PseudotwinError
@@ -116,6 +116,9 @@ class Recorder:
         self.client.on_connect = self._on_connect
         self.client.on_disconnect = lambda *a: self.connected.clear()
         self.client.on_message = self._on_message
+        self._subscription = Subscription([(s.topic, 1) for s in cfg.sensors.values()],
+                                          self._subscribed)
+        self.client.on_subscribe = self._subscription.on_subscribe
         self._worker = threading.Thread(target=self._run, name="recorder", daemon=True)
         self.metrics.watch(queue_size=self.queue.qsize, connected=self.connected.is_set,
                            spool=self.spool.path)
@@ -128,13 +131,15 @@ class Recorder:
             log.error("broker refused the connection: %s%s", reason_code,
                       "; giving up (fix the credentials)" if self.fatal else "; retrying")
             return
-        if not self._ready:
-            self._ready = True
-            notify("READY=1")  # only once connected
         self._gen += 1
-        client.subscribe([(s.topic, 1) for s in self.cfg.sensors.values()])
+        self._subscription.subscribe(client)
         client.publish(self.status_topic, "online", qos=1, retain=True)
         log.info("recorder connected; recording %d sensor topics", len(self.cfg.sensors))
+
+    def _subscribed(self) -> None:
+        if not self._ready:
+            self._ready = True
+            notify("READY=1")  # only once receiving
         self.connected.set()
 
     def _on_message(self, client: mqtt.Client, userdata: Any, msg: mqtt.MQTTMessage) -> None:
@@ -294,7 +299,7 @@ class Recorder:
         b = self.cfg.broker
         self.client.connect_async(b.host, b.port, keepalive=b.keepalive)
         self.client.loop_start()
-        # READY=1 comes from _on_connect.
+        # READY=1 comes once subscribed (_subscribed).
         if wait_connected is not None and not self.connected.wait(wait_connected):
             log.warning("recorder not connected to %s:%d yet; still trying", b.host, b.port)
 

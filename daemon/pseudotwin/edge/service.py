@@ -38,7 +38,7 @@ from pseudotwin.edge.clock import Clock, SystemClock
 from pseudotwin.edge.fleet import FleetMember
 from pseudotwin.edge.health import Health
 from pseudotwin.edge.journal import Journal
-from pseudotwin.edge.mqttconn import make_client, refused_fatally
+from pseudotwin.edge.mqttconn import Subscription, make_client, refused_fatally
 from pseudotwin.edge.outputs import estimate_payload, monitor_payload
 from pseudotwin.edge.prometheus import DaemonMetrics
 from pseudotwin.edge.sdnotify import notify, watchdog_interval
@@ -189,6 +189,8 @@ class Service:
         self._gen = 0
         self._lock = threading.Lock()
         self._threads: list[threading.Thread] = []
+        self._subscription = Subscription([(s.topic, 1) for s in self.cfg.sensors.values()],
+                                          self._subscribed)
         self.client = self._make_client()
         self.wakeups = WakeCoalescer(self.client)
         self.discovery, self.undiscovery = self._plan_discovery()
@@ -204,6 +206,7 @@ class Service:
         c.on_disconnect = self._on_disconnect
         c.on_message = self._on_message
         c.on_publish = self._on_publish
+        c.on_subscribe = self._subscription.on_subscribe
         return c
 
     def _on_connect(self, client: mqtt.Client, userdata: Any, flags: mqtt.ConnectFlags,
@@ -217,19 +220,20 @@ class Service:
             self._gen += 1
         with self._sent_lock:
             self._unwritten_qos0.clear()
-        topics = [(s.topic, 1) for s in self.cfg.sensors.values()]
-        if topics:  # a fleet instance may own no twin (paho refuses an empty list)
-            client.subscribe(topics)
+        self._subscription.subscribe(client)
         self._send(self.status_topic, self.health.status)
         for topic in self.undiscovery:  # Home Assistant entities of twins no longer configured
             self._send(topic, b"")
         for topic, body in self.discovery.items():
             self._send(topic, body)
-        log.info("connected to %s:%d (session present: %s); subscribed to %d sensor topics",
-                 self.cfg.broker.host, self.cfg.broker.port, flags.session_present, len(topics))
-        if not self.connected.is_set() and not self._ready:
+        log.info("connected to %s:%d (session present: %s); subscribing to %d sensor topics",
+                 self.cfg.broker.host, self.cfg.broker.port, flags.session_present,
+                 len(self._subscription.topics))
+
+    def _subscribed(self) -> None:
+        if not self._ready:
             self._ready = True
-            notify("READY=1")  # only once connected: before, the daemon serves nobody
+            notify("READY=1")  # only once receiving: before, the daemon serves nobody
         self.connected.set()
 
     def _plan_discovery(self) -> tuple[dict[str, bytes], list[str]]:
@@ -757,8 +761,8 @@ class Service:
             th = threading.Thread(target=self._watchdog, args=(interval,), daemon=True,
                                   name="watchdog")
             th.start()
-        # READY=1 is sent from _on_connect: systemd's start waits for the broker (bounded by
-        # TimeoutStartSec). Connection failures are logged as they happen (mqttconn.py).
+        # READY=1 is sent once subscribed (_subscribed): systemd's start waits for the
+        # broker (bounded by TimeoutStartSec). Connection failures are logged as they happen (mqttconn.py).
         if wait_connected is not None and not self.connected.wait(wait_connected):
             log.warning("not connected to %s:%d yet; still trying", b.host, b.port)
         log.info("pseudotwin started: %d twin(s), %d sensor(s)%s", len(self.twins),
