@@ -762,7 +762,8 @@ class Service:
                                   name="watchdog")
             th.start()
         # READY=1 is sent once subscribed (_subscribed): systemd's start waits for the
-        # broker (bounded by TimeoutStartSec). Connection failures are logged as they happen (mqttconn.py).
+        # broker (bounded by TimeoutStartSec). Connection failures are logged as they
+        # happen (mqttconn.py).
         if wait_connected is not None and not self.connected.wait(wait_connected):
             log.warning("not connected to %s:%d yet; still trying", b.host, b.port)
         log.info("pseudotwin started: %d twin(s), %d sensor(s)%s", len(self.twins),
