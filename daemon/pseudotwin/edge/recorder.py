@@ -193,7 +193,10 @@ class Recorder:
             return False
         return _file_ident(self.store) != self._store_ident
 
-    def _write(self, readings: list[Reading]) -> bool:
+    def _write(self, readings: list[Reading], spooled: bool = False) -> bool:
+        """Store ``readings``; False (logged, to be spooled or kept in the spool: ``spooled``,
+        readings taken from it) when the store cannot take them."""
+        then = "they stay in the spool" if spooled else "spooling them to disk"
         try:
             n = self._store().write_readings(readings)
             self.written += n
@@ -201,14 +204,14 @@ class Recorder:
             return True
         except (PseudotwinError, OSError) as exc:
             self.metrics.store_errors.inc()
-            log.warning("history store unavailable (%s); spooling %d readings to disk",
-                        exc, len(readings))
+            log.warning("history store unavailable (%s); %d readings: %s", exc,
+                        len(readings), then)
             self._drop_store()
             return False
         except Exception as exc:  # e.g. the crate client's connection errors
             self.metrics.store_errors.inc()
-            log.warning("history store write failed (%s: %s); spooling %d readings",
-                        type(exc).__name__, exc, len(readings))
+            log.warning("history store write failed (%s: %s); %d readings: %s",
+                        type(exc).__name__, exc, len(readings), then)
             self._drop_store()
             return False
 
@@ -229,7 +232,7 @@ class Recorder:
             log.error("cannot read the spool %s (%s); retrying", self.spool.path, exc)
             self._next_retry = time.monotonic() + self.retry_seconds
             return
-        if pending and self._write(pending):
+        if pending and self._write(pending, spooled=True):
             log.info("wrote %d spooled readings to the history store", len(pending))
             self.spool.clear()
         elif not pending:
