@@ -261,7 +261,7 @@ def test_the_daemon_reads_the_covariates_like_evaluate(
     svc = Service(cfg, clock=ReplayClock(start, speed))
     svc.start(wait_connected=15)
     try:
-        replay(cfg, readings, start, end, speed)
+        replay(cfg, readings, start, end, speed, clock=svc.clock)
         # Until the last reading's estimate is out: stopping earlier (the first version of
         # this test) left the last instant without its covariates' estimates.
         wait_for(lambda: all(last_per_instant().get(ts) == w for ts, w in want.items()),

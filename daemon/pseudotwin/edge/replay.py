@@ -16,7 +16,7 @@ import pandas as pd
 from paho.mqtt.enums import CallbackAPIVersion
 
 from pseudotwin.config import ServiceConfig
-from pseudotwin.edge.clock import ReplayClock
+from pseudotwin.edge.clock import Clock, ReplayClock
 from pseudotwin.errors import DataError
 
 log = logging.getLogger(__name__)
@@ -39,8 +39,15 @@ def replay(
     speed: float,
     stop: threading.Event | None = None,
     client_id: str = "pseudotwin-replay",
+    clock: Clock | None = None,
 ) -> int:
-    """Publish readings with start ≤ ts < end; returns how many were published."""
+    """Publish readings with start ≤ ts < end; returns how many were published.
+
+    clock: what publishes each reading at its time (default: a ReplayClock from ``start``
+    at ``speed``). An in-process daemon's own clock puts both on one time line: with two
+    clocks, the daemon's runs ahead by however long the replay took to start (at 3000×,
+    0.1 s is 5 minutes), and its grid ticks see readings that late.
+    """
     stop = stop or threading.Event()
     known = {s.id: s for s in cfg.sensors.values()}
     sub = history[history["sensor"].isin(list(known)) & (history["ts"] >= start)
@@ -54,7 +61,7 @@ def replay(
         c.tls_set(ca_certs=str(cfg.broker.ca_file) if cfg.broker.ca_file else None)
     c.connect(cfg.broker.host, cfg.broker.port, keepalive=30)
     c.loop_start()
-    clock = ReplayClock(start, speed)
+    clock = clock or ReplayClock(start, speed)
     n = 0
     try:
         for sensor, ts, value in zip(sub["sensor"], sub["ts"], sub["value"], strict=True):
