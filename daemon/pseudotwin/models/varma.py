@@ -54,7 +54,8 @@ import math
 import time
 import warnings
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -176,12 +177,34 @@ class _StateSpace:
     trend_degrees: np.ndarray
     trend_params: np.ndarray
     init_cov: np.ndarray
+    # The filter's per-slot matrices, by which series are seen (see observed); not data.
+    _observed: dict[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(
+        default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         # One memory layout whether read off statsmodels or an artifact: BLAS rounds a
         # product by layout, and a fitted and a loaded model must predict the same bits.
         for name in _STATE_SPACE_FIELDS:
             object.__setattr__(self, name, np.ascontiguousarray(getattr(self, name), float))
+        self._zero_intercept.setflags(write=False)
+
+    @cached_property
+    def _zero_intercept(self) -> np.ndarray:
+        return np.zeros(self.k_states)
+
+    def observed(self, seen: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Z [n, m], H [n, n] and d [n] of the ``seen`` series (bool [k], n of them true).
+
+        Cached per pattern: every slot of a day asks for the same one or two (the target is
+        never seen live), and indexing them out anew was a third of a filter step.
+        """
+        key = seen.tobytes()
+        got = self._observed.get(key)
+        if got is None:
+            got = (self.design[seen], self.obs_cov[np.ix_(seen, seen)],
+                   self.obs_intercept[seen])
+            self._observed[key] = got
+        return got
 
     @property
     def k_endog(self) -> int:
@@ -193,9 +216,10 @@ class _StateSpace:
 
     def state_intercept(self, tau: float) -> np.ndarray:
         """c(τ) [m] for the state at trend time τ [slots since 00:00 of the first day]."""
+        if not self.trend_params.size:
+            return self._zero_intercept  # read-only, shared: no allocation per filter step
         c = np.zeros(self.k_states)
-        if self.trend_params.size:
-            c[: self.k_endog] = (float(tau) ** self.trend_degrees) @ self.trend_params
+        c[: self.k_endog] = (float(tau) ** self.trend_degrees) @ self.trend_params
         return c
 
     def initial_state(self, tau0: float) -> tuple[np.ndarray, np.ndarray]:
@@ -693,6 +717,10 @@ class VarmaDay(DayEstimator):
         self._weights[-1] = 1.0
         if model.target_mode == "offset":
             self._weights[:-1] = 1.0 / (k - 1)
+        # The estimate's parts that do not change within a day: z = w·Z [m], w·d, w·H·w.
+        self._z = self._weights @ self._ss.design
+        self._wd = self._weights @ self._ss.obs_intercept
+        self._whw = self._weights @ self._ss.obs_cov @ self._weights
         self._raw = np.full((S, k - 1), np.nan)  # [S, M] held reference values
         self._init = hours.window_slots() * hours.slot_hours < hours.day_start  # [S]
         self._last_init = int(np.flatnonzero(self._init).max(initial=-1))
@@ -754,13 +782,15 @@ class VarmaDay(DayEstimator):
         first = bisect.bisect_left(self._start_list, hours)
         if first >= len(self._start_list):
             return
-        if times[-1] == hours:
-            # The sensor's newest reading (the usual case): every later slot holds it.
-            self._raw[first:, j] = values[-1]
-        else:
-            idx = np.searchsorted(times, self._starts[first:], side="right") - 1
+        # Every slot from the one after the sensor's newest reading on holds that reading;
+        # only slots before it (readings since the last flush spanning a slot start, or an
+        # out-of-order one) need a search.
+        newest = max(first, bisect.bisect_left(self._start_list, times[-1]))
+        if newest > first:
+            idx = np.searchsorted(times, self._starts[first:newest], side="right") - 1
             held = np.where(idx >= 0, np.asarray(values)[np.clip(idx, 0, None)], np.nan)
-            self._raw[first:, j] = held
+            self._raw[first:newest, j] = held
+        self._raw[newest:, j] = values[-1]
         # δ depends on the init slots, or else on the earliest slot with a value: only a
         # change there can move it.
         if self.model.target_mode == "shifted" and (
@@ -822,10 +852,9 @@ class VarmaDay(DayEstimator):
         return list_mean(d)
 
     def _estimate(self, slot: int, a: np.ndarray, p: np.ndarray) -> Estimate:
-        ss, w = self._ss, self._weights
-        z = w @ ss.design  # [m]
-        mean = float(z @ a + w @ ss.obs_intercept + w @ self.model.profile_[slot]) + self.shift
-        var = float(z @ p @ z + w @ ss.obs_cov @ w)
+        z, w = self._z, self._weights
+        mean = float(z @ a + self._wd + w @ self.model.profile_[slot]) + self.shift
+        var = float(z @ p @ z + self._whw)
         return Estimate(mean, math.sqrt(max(var, 0.0)))
 
     def _step(self) -> None:
@@ -836,16 +865,22 @@ class VarmaDay(DayEstimator):
         y = self._obs[i]
         seen = np.isfinite(y)
         if seen.any():
-            z = ss.design[seen]
-            f = z @ p @ z.T + ss.obs_cov[np.ix_(seen, seen)]
-            v = y[seen] - z @ a - ss.obs_intercept[seen]
+            z, h, d = ss.observed(seen)
+            f = z @ p @ z.T + h
+            v = y[seen] - z @ a - d
             pz = p @ z.T
-            try:
-                gain = np.linalg.solve(f, pz.T).T  # P Zᵀ F⁻¹ [m, n_seen]
-            except np.linalg.LinAlgError as exc:
-                raise NumericalError(
-                    f"VARMA filter: singular innovation covariance ({exc})"
-                ) from None
+            if f.shape[0] == 1:  # one reference (the usual twin): no LAPACK call
+                if f[0, 0] == 0.0:
+                    raise NumericalError("VARMA filter: singular innovation covariance")
+                # bit for bit what LAPACK's solve gives (OpenBLAS multiplies by 1/f too)
+                gain = pz * (1.0 / f[0, 0])
+            else:
+                try:
+                    gain = np.linalg.solve(f, pz.T).T  # P Zᵀ F⁻¹ [m, n_seen]
+                except np.linalg.LinAlgError as exc:
+                    raise NumericalError(
+                        f"VARMA filter: singular innovation covariance ({exc})"
+                    ) from None
             a = a + gain @ v
             p = p - gain @ pz.T
             p = 0.5 * (p + p.T)
