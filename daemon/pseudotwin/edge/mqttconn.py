@@ -6,14 +6,15 @@ from __future__ import annotations
 
 import logging
 import sys
+import threading
 import time
-from collections.abc import Callable
 from typing import Any
 
 import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 
 from pseudotwin.config import BrokerConfig
+from pseudotwin.edge.sdnotify import notify
 
 log = logging.getLogger(__name__)
 
@@ -72,15 +73,23 @@ def make_client(broker: BrokerConfig, client_id: str, status_topic: str,
 
 
 class Subscription:
-    """The sensor topics a client subscribes to on every connect, and ``ready`` called once
-    the broker's SUBACK is back (at once when there are none): only then does a message
-    published to them reach the client, so "connected" (systemd's READY=1, ``start``'s
-    wait) means receiving. Topics the broker refused (its ACL) are logged as errors."""
+    """The sensor topics a client subscribes to on every connect; once the broker's SUBACK
+    is back (at once when there are none) ``connected`` is set and, the first time,
+    systemd hears READY=1: only then does a message published to them reach the client, so
+    "connected" (READY=1, ``start``'s wait) means receiving. Topics the broker refused (its
+    ACL) are logged as errors."""
 
-    def __init__(self, topics: list[tuple[str, int]], ready: Callable[[], None]) -> None:
+    def __init__(self, topics: list[tuple[str, int]], connected: threading.Event) -> None:
         self.topics = topics
-        self.ready = ready
+        self.connected = connected
         self._mid: int | None = None
+        self._notified = False
+
+    def ready(self) -> None:
+        if not self._notified:
+            self._notified = True
+            notify("READY=1")  # once: a reconnect is no new start
+        self.connected.set()
 
     def subscribe(self, client: mqtt.Client) -> None:
         if not self.topics:  # a fleet instance may own no twin (paho refuses an empty list)

@@ -107,7 +107,6 @@ class Recorder:
         self.spooled = 0
         self.fatal: tuple[int, str] | None = None  # (exit status, why): the process must end
         self._store_ident: tuple[int, int] | None = None
-        self._ready = False
         self._gen = 0
         self._next_retry = 0.0
         self.status_topic = f"{cfg.base_topic}/recorder/status"
@@ -117,7 +116,7 @@ class Recorder:
         self.client.on_disconnect = lambda *a: self.connected.clear()
         self.client.on_message = self._on_message
         self._subscription = Subscription([(s.topic, 1) for s in cfg.sensors.values()],
-                                          self._subscribed)
+                                          self.connected)
         self.client.on_subscribe = self._subscription.on_subscribe
         self._worker = threading.Thread(target=self._run, name="recorder", daemon=True)
         self.metrics.watch(queue_size=self.queue.qsize, connected=self.connected.is_set,
@@ -136,11 +135,6 @@ class Recorder:
         client.publish(self.status_topic, "online", qos=1, retain=True)
         log.info("recorder connected; recording %d sensor topics", len(self.cfg.sensors))
 
-    def _subscribed(self) -> None:
-        if not self._ready:
-            self._ready = True
-            notify("READY=1")  # only once receiving
-        self.connected.set()
 
     def _on_message(self, client: mqtt.Client, userdata: Any, msg: mqtt.MQTTMessage) -> None:
         item = (self.cfg.sensor_for_topic(msg.topic), msg.payload, self.clock.now(),
@@ -302,7 +296,7 @@ class Recorder:
         b = self.cfg.broker
         self.client.connect_async(b.host, b.port, keepalive=b.keepalive)
         self.client.loop_start()
-        # READY=1 comes once subscribed (_subscribed).
+        # READY=1 comes once subscribed (mqttconn.Subscription).
         if wait_connected is not None and not self.connected.wait(wait_connected):
             log.warning("recorder not connected to %s:%d yet; still trying", b.host, b.port)
 

@@ -181,7 +181,6 @@ class Service:
         self.dropped = 0  # messages paho refused to queue
         self._sent_lock = threading.Lock()
         self._not_before_cache: tuple[dt.date | None, dt.datetime] = (None, dt.datetime.min)
-        self._ready = False
         self.fatal: tuple[int, str] | None = None  # (exit status, why): the process must end
         self.accepted = 0
         self.published = 0
@@ -190,7 +189,7 @@ class Service:
         self._lock = threading.Lock()
         self._threads: list[threading.Thread] = []
         self._subscription = Subscription([(s.topic, 1) for s in self.cfg.sensors.values()],
-                                          self._subscribed)
+                                          self.connected)
         self.client = self._make_client()
         self.wakeups = WakeCoalescer(self.client)
         self.discovery, self.undiscovery = self._plan_discovery()
@@ -230,11 +229,6 @@ class Service:
                  self.cfg.broker.host, self.cfg.broker.port, flags.session_present,
                  len(self._subscription.topics))
 
-    def _subscribed(self) -> None:
-        if not self._ready:
-            self._ready = True
-            notify("READY=1")  # only once receiving: before, the daemon serves nobody
-        self.connected.set()
 
     def _plan_discovery(self) -> tuple[dict[str, bytes], list[str]]:
         """Home Assistant discovery: (config topic → payload, config topics to clear)."""
@@ -761,7 +755,7 @@ class Service:
             th = threading.Thread(target=self._watchdog, args=(interval,), daemon=True,
                                   name="watchdog")
             th.start()
-        # READY=1 is sent once subscribed (_subscribed): systemd's start waits for the
+        # READY=1 is sent once subscribed (mqttconn.Subscription): systemd's start waits for the
         # broker (bounded by TimeoutStartSec). Connection failures are logged as they
         # happen (mqttconn.py).
         if wait_connected is not None and not self.connected.wait(wait_connected):
