@@ -136,6 +136,14 @@ def test_the_page_renders_in_chromium_with_its_tables_and_images(
     assert np.isfinite(float(refs[1][1])) and -1.0 <= float(refs[1][2]) <= 1.0
     assert len(tables["days"]) == 1 + len(TRAINING_DAYS)
 
+    # the self-aware criteria validation judged, each with its verdict as the artifact has it
+    env = art.envelope
+    assert env is not None and env.kept is not None and env.judged
+    criteria = tables["criteria"]
+    assert criteria[0][0] == "criterion"
+    assert {r[0]: (int(r[1]), r[5]) for r in criteria[1:]} == {
+        k: (j["n"], "kept" if k in env.kept else "dropped") for k, j in env.judged.items()}
+
     found = re.search(r'<pre id="image-probe">([^<]*)</pre>', dom)
     assert found, "the image probe did not run"
     images = json.loads(html.unescape(found.group(1)))
@@ -217,4 +225,5 @@ def test_too_few_days_to_validate_say_so(tmp_path: Path) -> None:
     assert rc == 0
     text = (tmp_path / "r" / "desk.html").read_text(encoding="utf-8")
     assert "Not enough: 2 training day(s)" in text and "Not validated." in text
+    assert "none acts, and the estimate is never uncertain" in text  # nothing judged them
     assert "<img" not in text and 'id="config"' in text

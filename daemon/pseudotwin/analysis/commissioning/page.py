@@ -222,6 +222,46 @@ def days_section(p: Page) -> str:
     )
 
 
+def selfaware_section(p: Page) -> str:
+    """Which training-range criteria make the live estimate ``uncertain`` (live/envelope.py),
+    with the held-out numbers validation kept or dropped each on (analysis/criteria.py)."""
+    env = p.artifact.envelope
+    head = ("<h2>Self-aware indication</h2>"
+            "<p>Live, a reference outside what it did on the training days (its level, its "
+            "deviation from its daily profile, how fast it moves) can make the estimate "
+            "<code>uncertain</code>, with a wider σ, and <code>&lt;twin&gt;/monitor</code> says "
+            "why. A criterion acts only where the held-out training days show that it flags "
+            "larger errors.</p>")
+    if env is None:
+        return head + verdict(Level.MISSING, "No training ranges.",
+                              "The artifact predates them: the estimate is never uncertain.")
+    if env.kept is None:
+        return head + verdict(Level.THIN, "Not judged.",
+                              f"An artifact of an older format: every criterion acts and σ of "
+                              f"an uncertain estimate is × {env.widen:g}. Train again to judge "
+                              "them on held-out days.")
+    if not env.judged:
+        return head + verdict(Level.MISSING, "Not judged.",
+                              "Without held-out days (fewer than three training days, or "
+                              "validation off) no criterion could show that it flags larger "
+                              "errors: none acts, and the estimate is never uncertain.")
+    rows = [(key, j.get("n", 0), j.get("days", 0), num(j.get("mae"), 3), num(j.get("ratio")),
+             "kept" if j.get("kept") else "dropped", j.get("reason", ""))
+            for key, j in env.judged.items()]
+    if env.kept:
+        level, text = Level.GOOD, (f"{', '.join(sorted(env.kept))} act(s) live; σ of an "
+                                   f"uncertain estimate × {env.widen:.2f}.")
+    else:
+        level, text = Level.THIN, ("No criterion flagged larger errors on the held-out days: "
+                                   "the estimate is never uncertain live, and σ alone says "
+                                   "how far to trust it.")
+    return (head + verdict(level, "Criteria:", text)
+            + table("criteria", ["criterion", "readings fired", "days",
+                                 f"MAE fired {p.artifact.unit}",
+                                 "MAE fired / MAE where none fired", "verdict", "why"], rows,
+                    numeric=(1, 2, 3, 4)))
+
+
 def render(p: Page) -> str:
     a = p.artifact
     tr = a.training
@@ -242,7 +282,7 @@ def render(p: Page) -> str:
     )
     body = (f"<h1>Commissioning report: twin {esc(p.twin)}</h1>" + meta
             + data_section(p) + validation_section(p) + reference_section(p)
-            + days_section(p) + snippet)
+            + days_section(p) + selfaware_section(p) + snippet)
     return (
         '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
         f"<title>pseudotwin commissioning: {esc(p.twin)}</title>"
