@@ -15,7 +15,7 @@ from daemon_support import DAY, HOURS, REF, TARGET, config, day_readings, sml, w
 from pseudotwin.analysis.evaluate import replay_estimates
 from pseudotwin.edge.clock import ReplayClock
 from pseudotwin.edge.replay import replay
-from pseudotwin.edge.service import Service
+from pseudotwin.edge.service import TICK_GRACE, Service
 from pseudotwin.errors import NumericalError
 from pseudotwin.gp.posterior import IncrementalPosterior
 from pseudotwin.live.artifact import Artifact
@@ -172,6 +172,73 @@ def test_a_late_grid_tick_does_not_see_later_readings(mosquitto, desk_artifact,
             checked += 1
     assert checked == len(kinds) * len(grid)
     viewer.close()
+
+
+class HandClock:
+    """A clock the test moves: the ticker wakes only once the test sets a time past the
+    instant it waits for, so what the daemon was given before a tick is certain."""
+
+    def __init__(self, start: dt.datetime) -> None:
+        self._t = start
+        self._moved = threading.Condition()
+
+    def now(self) -> dt.datetime:
+        with self._moved:
+            return self._t
+
+    def set(self, t: dt.datetime) -> None:
+        with self._moved:
+            self._t = t
+            self._moved.notify_all()
+
+    def wait_until(self, instant: dt.datetime, stop: threading.Event) -> bool:
+        with self._moved:
+            while self._t < instant and not stop.is_set():
+                self._moved.wait(0.05)
+        return not stop.is_set()
+
+
+def test_a_reading_stamped_at_a_grid_instant_is_in_its_grid_estimates(
+        mosquitto, desk_artifact, tmp_path: Path) -> None:
+    """A reading stamped exactly at grid instant g (a bridge polling on the quarter hour)
+    reaches the daemon after the clock passed g, within TICK_GRACE: g's grid estimates
+    include it, as evaluate's and backfill's do."""
+    df = sml()
+    g = HOURS.at(DAY, 9.0)
+    # g's reading moved well away from the one before: its absence would show in every model
+    at_g = (df["sensor"] == REF) & (df["ts"] == g)
+    assert at_g.sum() == 1  # SML2010 reports on the quarter hour
+    df = df[df["ts"] <= g].assign(value=df["value"].where(~at_g, df["value"] + 1.5))
+    ours = df[(df["sensor"] == REF) & (df["ts"] >= HOURS.at(DAY, 7.0))]
+    clock = HandClock(HOURS.at(DAY, 7.0) - dt.timedelta(minutes=1))
+    viewer = Viewer(mosquitto.port)
+    svc = Service(config(tmp_path, mosquitto.port, desk_artifact), clock=clock)
+    svc.start(wait_connected=15)
+    pub = publisher(mosquitto.port, client_id="bridge-on-the-quarter-hour")
+    topic = next(s.topic for s in svc.cfg.sensors.values() if s.id == REF)
+    art = Artifact.load(desk_artifact)
+    kinds = [k for k in art.published if k != art.primary]  # grid only: one message at g
+    try:
+        for i, (ts, value) in enumerate(zip(ours["ts"], ours["value"], strict=True)):
+            t = ts.to_pydatetime()
+            clock.set(t + dt.timedelta(seconds=1))  # arrives a second after its stamp
+            pub.publish(topic, reading(t, float(value)), qos=1)
+            wait_for(lambda n=i + 1: svc.accepted == n, what=f"reading {i + 1} accepted")
+        clock.set(g + TICK_GRACE)
+        wait_for(lambda: all(stamp(g) in {e["ts"] for e in viewer.on(f"/baseline/{k}")}
+                             for k in kinds), what="the grid estimates at g")
+    finally:
+        svc.stop()
+        pub.disconnect()
+        pub.loop_stop()
+        viewer.close()
+    offline = replay_estimates(art, df, DAY)
+    offline = offline[offline["ts"] == g]
+    assert kinds and set(kinds) <= set(offline["model"])
+    for kind in kinds:
+        row = offline[offline["model"] == kind].iloc[-1]
+        (e,) = [e for e in viewer.on(f"/baseline/{kind}") if e["ts"] == stamp(g)]
+        assert (e["value"], e["std"]) == (round(row["value"], 6), round(row["std"], 6)), kind
 
 
 def test_bad_payloads_are_counted_logged_once_and_never_block(

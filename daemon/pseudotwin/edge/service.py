@@ -81,6 +81,11 @@ TICK_MAX_PAUSE = 0.05
 # this is ~15 % of the daemon's CPU and most of the grid's burst (scripts/bench_daemon.py).
 # Estimates and status stay QoS 1.
 MONITORING_QOS = 0
+# A grid instant's estimates are made this long after it (clock time): a reading stamped
+# exactly at the instant (a bridge polling on the quarter hour) reaches the daemon a little
+# after it, and evaluate and backfill count it in. A reading stamped past the instant
+# starts the instant's work at once (_catch_up_grid): it must not be in it.
+TICK_GRACE = dt.timedelta(seconds=2)
 
 
 def check_artifact(
@@ -585,9 +590,9 @@ class Service:
 
     def _catch_up_grid(self, ts: dt.datetime) -> None:
         """Start the grid instants before reading time ``ts`` that are due by the clock but
-        whose tick has not come yet (a late ticker): their estimates must not see this
-        reading. Not those still ahead of the clock: a sensor whose clock runs fast does
-        not move the grid."""
+        whose tick has not come yet (within its TICK_GRACE, or a late ticker): their
+        estimates must not see this reading. Not those still ahead of the clock: a sensor
+        whose clock runs fast does not move the grid."""
         now = self.clock.now()
         while self._grid_next < ts and self._grid_next <= now:
             self._start_tick(self._grid_next)
@@ -658,7 +663,7 @@ class Service:
         t = origin
         while not self.stop_event.is_set():
             t = self._next_grid(t)
-            if not self.clock.wait_until(t, self.stop_event):
+            if not self.clock.wait_until(t + TICK_GRACE, self.stop_event):
                 return
             while not self.stop_event.is_set():  # never block a stop on a full queue
                 try:
