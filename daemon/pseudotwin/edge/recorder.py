@@ -135,7 +135,6 @@ class Recorder:
         client.publish(self.status_topic, "online", qos=1, retain=True)
         log.info("recorder connected; recording %d sensor topics", len(self.cfg.sensors))
 
-
     def _on_message(self, client: mqtt.Client, userdata: Any, msg: mqtt.MQTTMessage) -> None:
         item = (self.cfg.sensor_for_topic(msg.topic), msg.payload, self.clock.now(),
                 (self._gen, msg.mid, msg.qos))

@@ -234,7 +234,6 @@ class Service:
                  self.cfg.broker.host, self.cfg.broker.port, flags.session_present,
                  len(self._subscription.topics))
 
-
     def _plan_discovery(self) -> tuple[dict[str, bytes], list[str]]:
         """Home Assistant discovery: (config topic → payload, config topics to clear)."""
         hc = self.cfg.homeassistant
