@@ -55,7 +55,6 @@ import time
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -180,17 +179,16 @@ class _StateSpace:
     # The filter's per-slot matrices, by which series are seen (see observed); not data.
     _observed: dict[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(
         default_factory=dict, init=False, repr=False, compare=False)
+    _zero_intercept: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         # One memory layout whether read off statsmodels or an artifact: BLAS rounds a
         # product by layout, and a fitted and a loaded model must predict the same bits.
         for name in _STATE_SPACE_FIELDS:
             object.__setattr__(self, name, np.ascontiguousarray(getattr(self, name), float))
-        self._zero_intercept.setflags(write=False)
-
-    @cached_property
-    def _zero_intercept(self) -> np.ndarray:
-        return np.zeros(self.k_states)
+        zeros = np.zeros(self.k_states)
+        zeros.setflags(write=False)  # shared by every filter step (state_intercept)
+        object.__setattr__(self, "_zero_intercept", zeros)
 
     def observed(self, seen: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Z [n, m], H [n, n] and d [n] of the ``seen`` series (bool [k], n of them true).
