@@ -87,7 +87,9 @@ class Action(Enum):
 class _Bucket:
     index: int
     point_ts: dt.datetime  # the point's time: the bucket's first reading
-    stamps: set[dt.datetime]
+    # The readings' times as offsets from the epoch: a timedelta hashes without the
+    # utcoffset() call an aware datetime's hash makes, and a chatty sensor hashes one each.
+    stamps: set[dt.timedelta]
     total: float
 
     @property
@@ -113,21 +115,22 @@ class WindowThinner:
               ) -> tuple[Action, dt.datetime, float]:
         """The action for reading (``ts`` aware, ``value``) and the point it yields:
         (action, point time, point value). For DROP the point is the reading itself."""
-        k = (ts - _EPOCH) // self.policy.interval(sensor)
+        since = ts - _EPOCH
+        k = since // self.policy.interval(sensor)
         newest = self._newest.get(sensor)
-        filled = self._filled.setdefault(sensor, set())
         if newest is not None and k == newest.index:
-            if ts in newest.stamps:
+            if since in newest.stamps:
                 self.dropped += 1
                 return Action.DROP, ts, value
-            newest.stamps.add(ts)
+            newest.stamps.add(since)
             newest.total += value
             self.revised += 1
             return Action.REVISE, newest.point_ts, newest.mean
+        filled = self._filled.setdefault(sensor, set())
         if k in filled:
             self.dropped += 1
             return Action.DROP, ts, value
         filled.add(k)
         if newest is None or k > newest.index:
-            self._newest[sensor] = _Bucket(k, ts, {ts}, value)
+            self._newest[sensor] = _Bucket(k, ts, {since}, value)
         return Action.NEW, ts, value

@@ -169,7 +169,8 @@ class IncrementalPosterior:
         """Replace observation ``i``'s residual by ``r`` (L depends on the times only)."""
         if not 0 <= i < self.n:
             raise IndexError(f"no observation {i} of {self.n}")
-        if not np.isfinite(r):
+        # A scalar: math, not numpy's overhead (every reading of a chatty sensor revises).
+        if not math.isfinite(r):
             raise NumericalError(f"non-finite residual r={r}")
         self._r[i] = r
         self._a_fresh = False

@@ -192,12 +192,13 @@ class Twin:
                 est.observe(r.sensor, r.hours, r.value)
             except NumericalError as exc:
                 self._break(kind, exc)
-        self._each_failover(lambda est: est.observe(r.sensor, r.hours, r.value))
+        if self._failover:  # no closure per reading when none runs (the usual case)
+            self._each_failover(lambda est: est.observe(r.sensor, r.hours, r.value))
 
     def _each_failover(self, step: Callable[[DayEstimator], None]) -> None:
         """``step`` on every running failover. Failovers are cheap models: one that fails
         anyway (or lost a point: KeyError) sits out the rest of the day."""
-        for lost, est in list(self._failover.items()) if self._failover else ():
+        for lost, est in list(self._failover.items()):
             try:
                 step(est)
             except (NumericalError, KeyError) as exc:
@@ -281,7 +282,8 @@ class Twin:
                 # KeyError: the estimator lost the point (never expected); rebuilt from the
                 # window at the next reading like a numerical failure.
                 self._break(kind, exc)
-        self._each_failover(lambda est: est.revise(sensor, old.hours, value))
+        if self._failover:
+            self._each_failover(lambda est: est.revise(sensor, old.hours, value))
 
     # -- monitoring -------------------------------------------------------------------
     def slot_values(self) -> dict[str, np.ndarray]:
