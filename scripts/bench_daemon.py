@@ -13,8 +13,14 @@ reading = the daemon's CPU from "online" to the last estimate / the readings pub
 its peak RSS (VmHWM). The CPU is also split by thread, largest first: the worker (models,
 payloads, publish calls), then paho's network thread (reading the broker's messages and
 PUBACKs, writing ours). Prints a table and, last, one JSON line.
+
+``--profile FILE`` also samples the running daemon with py-spy (``pip install -e
+'.[profile]'``; non-blocking, 100 Hz, idle samples left out) while the readings go in, keeps
+py-spy's raw stacks in FILE and prints, for each busy thread, the functions its CPU went to
+(inclusive, in ms per reading: the thread's share of samples in the function × the thread's
+measured CPU). Sampling costs the daemon a little CPU: compare figures of runs without it.
 Usage: .venv/bin/python scripts/bench_daemon.py [--twins 100] [--hours 2] [--speed 60]
-       [--artifact FILE]
+       [--artifact FILE] [--profile FILE]
 """
 
 from __future__ import annotations
@@ -87,6 +93,51 @@ def thread_cpu(pid: int) -> dict[int, float]:
     return out
 
 
+def start_profiler(pid: int, out: Path) -> subprocess.Popen[bytes]:
+    """py-spy recording ``pid``'s threads into ``out`` (raw stacks) until SIGINT."""
+    exe = shutil.which("py-spy") or str(ROOT / ".venv" / "bin" / "py-spy")
+    if not Path(exe).exists():
+        raise SystemExit("--profile needs py-spy: .venv/bin/pip install -e '.[profile]'")
+    return subprocess.Popen(
+        [exe, "record", "--pid", str(pid), "--threads", "--nonblocking", "--rate", "100",
+         "--format", "raw", "--output", str(out)],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=die_with_parent)
+
+
+def profile_table(raw: Path, cpu_by_tid: dict[int, float], readings: int, top: int = 15
+                  ) -> dict[str, list[tuple[str, float]]]:
+    """Per thread (by name, busiest first): its ``top`` functions by inclusive CPU [ms per
+    reading], from py-spy's raw stacks (``thread (tid): name;frame;…;frame count``) and the
+    thread's measured CPU. Frames in ≥ 90 % of a thread's samples (its run loop) say nothing
+    about where the time goes and are left out. py-spy counts a thread inside a system call
+    (socket I/O, select) as idle: for paho's network thread the functions seen are only the
+    Python part of its CPU."""
+    samples: dict[int, int] = {}
+    names: dict[int, str] = {}
+    incl: dict[int, dict[str, int]] = {}
+    for line in raw.read_text().splitlines():
+        stack, _, count = line.rpartition(" ")
+        head, *frames = stack.split(";")
+        tid_text, _, name = head.removeprefix("thread (").partition("): ")
+        tid, n = int(tid_text.rstrip(")"), 0), int(count)
+        names[tid] = name or str(tid)
+        samples[tid] = samples.get(tid, 0) + n
+        seen = incl.setdefault(tid, {})
+        # "Twin.estimate (pseudotwin/live/twin.py:373)" → per function, not per line
+        for f in {f.rsplit(":", 1)[0] + ")" if f.endswith(")") else f for f in frames}:
+            seen[f] = seen.get(f, 0) + n
+    out = {}
+    for tid in sorted(samples, key=lambda t: -cpu_by_tid.get(t, 0.0)):
+        ms = 1e3 * cpu_by_tid.get(tid, 0.0) / readings
+        if ms < 0.01:
+            continue
+        rows = [(f, round(ms * c / samples[tid], 3)) for f, c in incl[tid].items()
+                if c < 0.9 * samples[tid]]
+        key = f"{names[tid]} ({ms:.3f} ms, {samples[tid]} samples)"
+        out[key] = sorted(rows, key=lambda r: -r[1])[:top]
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--twins", type=int, default=100)
@@ -95,6 +146,9 @@ def main() -> int:
     ap.add_argument("--artifact", type=Path, default=None,
                     help="the trained twin to copy: read from this file if it exists, else "
                          "trained (≈ 1 min) and written there, so that reruns skip training")
+    ap.add_argument("--profile", type=Path, default=None, metavar="FILE",
+                    help="sample the daemon with py-spy while the readings go in, keep the "
+                         "raw stacks in FILE and print where each thread's CPU went")
     a = ap.parse_args()
     exit_on_signals()
     hours = OperatingHours(timezone=TZ)
@@ -190,6 +244,10 @@ def main() -> int:
         cpu0, _ = proc_stats(daemon.pid)
         counted0 = dict(counts)
         threads0 = thread_cpu(daemon.pid)
+        profiler = None
+        if a.profile is not None:
+            profiler = start_profiler(daemon.pid, a.profile)
+            cleanup.callback(stop_process, profiler, signal.SIGINT, 60)
         pub = mqtt.Client(CallbackAPIVersion.VERSION2, client_id="bench-pub")
         pub.max_queued_messages_set(0)
         pub.connect("127.0.0.1", port)
@@ -218,8 +276,10 @@ def main() -> int:
         # QoS 1 message it sent (estimates); out, the reading's PUBACK and its messages.
         out = {k: round((counts[k] - counted0[k]) / published, 3) for k in counts}
         threads1 = thread_cpu(daemon.pid)
-        by_thread = sorted((round(c - threads0.get(t, 0.0), 2) for t, c in threads1.items()),
-                           reverse=True)
+        cpu_by_tid = {t: c - threads0.get(t, 0.0) for t, c in threads1.items()}
+        by_thread = sorted((round(c, 2) for c in cpu_by_tid.values()), reverse=True)
+        # SIGINT: py-spy writes its file and exits (before the daemon goes: its pid)
+        stop_process(profiler, signal.SIGINT, 60)
         stop_process(daemon, signal.SIGTERM, 60)  # before the figures: its exit status
         ms = np.array(lat) * 1e3
         fig = {
@@ -253,6 +313,13 @@ def main() -> int:
               + ", ".join(f"{k} {v}" for k, v in out.items()) + ")")
         print(f"  daemon CPU by thread [s], largest first (worker, network): "
               f"{', '.join(map(str, fig['daemon_cpu_threads_s']))}")
+        if a.profile is not None:
+            fig["profile_ms_per_reading"] = profile_table(a.profile, cpu_by_tid, published)
+            print("  where each thread's CPU went (py-spy, inclusive) [ms per reading]:")
+            for thread, rows in fig["profile_ms_per_reading"].items():
+                print(f"    {thread}")
+                for func, ms in rows:
+                    print(f"      {ms:>7.3f}  {func}")
         print(json.dumps(fig))
         return 0
     finally:
