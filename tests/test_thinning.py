@@ -14,7 +14,7 @@ from pseudotwin.analysis.replay import replay_estimates
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
-from pseudotwin.core.thinning import Action, Thinning, WindowThinner
+from pseudotwin.core.thinning import Action, Thinning, WindowThinner, thin_history
 from pseudotwin.gp.points import INTERVAL_H
 from pseudotwin.history.convert import load
 from pseudotwin.live.artifact import Artifact
@@ -182,3 +182,52 @@ def test_thinned_and_unthinned_estimates_agree_on_raw_room_climate(room_climate)
     diff = (both["value"] - both["value_all"]).abs()
     assert diff.max() <= 0.1
     assert diff.mean() <= 0.03
+
+
+def test_thin_history_holds_the_windows_points() -> None:
+    """One row per sensor and bucket: its first reading's time, the mean of its readings, a
+    repeated timestamp counted once (its first value); per-sensor widths; input order free."""
+    t0 = pd.Timestamp("2024-01-08 09:00:00", tz="UTC")
+    s = pd.Timedelta(seconds=1)
+    rows = [
+        ("a", t0 + 10 * s, 1.0), ("a", t0 + 20 * s, 2.0), ("a", t0 + 20 * s, 99.0),  # dup
+        ("a", t0 + 50 * s, 6.0),   # bucket [0, 60 s): mean of 1, 2, 6 = 3
+        ("a", t0 + 61 * s, 7.0),   # next bucket, alone
+        ("b", t0 + 1 * s, 1.0), ("b", t0 + 9 * s, 3.0), ("b", t0 + 11 * s, 5.0),  # 10-s buckets
+    ]
+    # out of time order, but a repeated timestamp's readings in the order they came
+    history = pd.DataFrame(rows[5:] + rows[4:5] + rows[:4], columns=["sensor", "ts", "value"])
+    policy = Thinning(per_sensor={"b": dt.timedelta(seconds=10)})
+    out = thin_history(history, policy)
+    got = {(r.sensor, r.ts, r.value) for r in out.itertuples()}
+    assert got == {("a", t0 + 10 * s, 3.0), ("a", t0 + 61 * s, 7.0),
+                   ("b", t0 + 1 * s, 2.0), ("b", t0 + 11 * s, 5.0)}
+    assert out["ts"].is_monotonic_increasing
+    # the live window ends the day with the same points
+    thinner = WindowThinner(policy)
+    points: dict[tuple[str, pd.Timestamp], float] = {}
+    for r in history.sort_values("ts", kind="stable").itertuples():
+        action, at, value = thinner.offer(r.sensor, r.ts.to_pydatetime(), r.value)
+        if action is not Action.DROP:
+            points[(r.sensor, pd.Timestamp(at))] = value
+    assert {(k[0], k[1], v) for k, v in points.items()} == got
+    # readings at most one per bucket come back as they were
+    once = out.copy()
+    assert thin_history(once, policy).equals(once)
+
+
+def test_training_on_raw_samples_learns_what_training_on_their_minute_means_does(
+        room_climate) -> None:
+    """Room Climate A's raw ~4-s samples train the TRIV of its 1-minute means: training
+    learns from the window's points (one a minute) and each slot's time-weighted level.
+    Measured: offsets within 0.005 °C (0.010 °C trained on every sample instead)."""
+    art_minute, raw = room_climate
+    spec = TwinSpec(RC_REFS, RC_TARGET, Quantity.TEMPERATURE, RC_HOURS)
+    art_raw = train_twin(raw, spec, dt.date(2016, 3, 15), 5, models=("ref", "triv"),
+                         validate=False)
+    assert art_raw.training["days"] == art_minute.training["days"]
+    assert art_raw.training["thinning"] == "one point per 60 s"
+    a, b = art_minute.models["triv"], art_raw.models["triv"]
+    np.testing.assert_allclose(b.offsets_, a.offsets_, atol=0.01)
+    np.testing.assert_allclose(b.std_, a.std_, atol=0.01)
+    assert art_raw.models["ref"].references_ == art_minute.models["ref"].references_

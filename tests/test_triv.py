@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 
 from pseudotwin.core.horizon import OperatingHours
-from pseudotwin.core.series import normalize, split_days
+from pseudotwin.core.series import DayReadings, normalize, split_days
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.models.base import TrainingSet
 from pseudotwin.models.triv import TrivModel, TrivShrunkModel
@@ -87,3 +87,44 @@ def test_shrunk_profile_falls_back_to_the_mean_offset_when_the_days_disagree() -
     again = TrivShrunkModel.from_dict(m.to_dict(), ts.spec)
     assert again.shrink_ == m.shrink_
     np.testing.assert_array_equal(again.offsets_, m.offsets_)
+
+
+def test_slot_means_weigh_each_value_by_how_long_it_held() -> None:
+    """The slot's level is the time-weighted mean of the held signal: a COV value counts
+    for as long as it held, 1-minute readings give the slot's mean, a reading at the slot's
+    start held all slot gives itself, and a slot wholly before the first reading is NaN."""
+    h = OperatingHours()  # slots of 15 min from 07:30
+    day = DayReadings(dt.date(2020, 1, 6), {
+        # COV: 20.0 from 08:00, 23.0 from 08:12 (the last 3 of the slot's 15 minutes)
+        "cov": (np.array([8.0, 8.2]), np.array([20.0, 23.0])),
+        # one reading a minute in 09:00–09:15: 0, 1, …, 14
+        "minute": (9.0 + np.arange(15) / 60, np.arange(15, dtype=float)),
+    })
+    slots = h.window_slots() * h.slot_hours
+    cov, minute = day.slot_means("cov", h), day.slot_means("minute", h)
+    k8 = int(np.flatnonzero(np.isclose(slots, 8.0))[0])
+    k9 = int(np.flatnonzero(np.isclose(slots, 9.0))[0])
+    assert cov[k8] == pytest.approx((12 * 20.0 + 3 * 23.0) / 15)
+    assert cov[k8 + 1] == pytest.approx(23.0)  # held on through the next slot
+    assert np.isnan(cov[:k8]).all()  # no reading yet
+    assert minute[k9] == pytest.approx(np.mean(np.arange(15)))
+    # sample-and-hold at the slot's start would have taken the first minute only
+    assert day.slot_values("minute", h)[k9] == 0.0
+
+
+def test_triv_learns_the_offset_of_the_whole_slot_from_dense_readings() -> None:
+    """Readings every minute whose offset wanders within each slot (±0.3 around 1.0): the
+    offset learnt is the slot's mean 1.0, not the value of its first minute (1.3)."""
+    h = OperatingHours()
+    rows = []
+    for d in range(3):
+        day = dt.date(2020, 1, 6) + dt.timedelta(days=d)
+        for minute in range(int(7.5 * 60), 19 * 60):
+            ts = h.at(day, minute / 60).isoformat()
+            wiggle = 0.3 * np.cos(2 * np.pi * (minute % 15) / 15)  # mean 0 over a slot
+            rows += [("r", ts, 20.0 + d), ("tgt", ts, 21.0 + d + wiggle)]
+    df = normalize(pd.DataFrame(rows, columns=["sensor", "ts", "value"]))
+    ts = TrainingSet(TwinSpec(("r",), "tgt", Quantity.TEMPERATURE, h),
+                     tuple(split_days(df, ["r", "tgt"], h)))
+    m = TrivModel().fit(ts)
+    np.testing.assert_allclose(m.offsets_[0], 1.0, atol=0.02)

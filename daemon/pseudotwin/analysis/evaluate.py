@@ -92,8 +92,9 @@ def evaluate(
 ) -> Evaluation:
     """Train on ``train_days`` days from ``train_start``, then score every later day.
 
-    thinning: the window's policy for the scored days (default: one point per sensor and
-    minute, the daemon's default); stale_after: the daemon's (replay_estimates)."""
+    thinning: the window's policy (default: one point per sensor and minute, the daemon's
+    default), for training (core/thinning.thin_history) and the scored days alike;
+    stale_after: the daemon's (replay_estimates)."""
     t0 = time.perf_counter()
     target, hours = spec.target, spec.hours
     require_sensors(history, list(spec.sensors))
@@ -102,7 +103,8 @@ def evaluate(
         if not np.any(days == np.datetime64(plot_day)):
             raise DataError(f"--plot-day {plot_day}: no readings of {target} on that day "
                             f"({hours.timezone}), nothing to plot")
-    artifact = train_twin(history, spec, train_start, train_days, models, options, primary)
+    artifact = train_twin(history, spec, train_start, train_days, models, options, primary,
+                          thinning=thinning)
     test_start = dt.date.fromisoformat(artifact.training["end"]) + dt.timedelta(days=1)
     if plot_day is not None and plot_day < test_start:
         raise DataError(f"--plot-day {plot_day} is not scored: the evaluated days begin on "

@@ -22,6 +22,7 @@ import pandas as pd
 from pseudotwin.analysis import validation
 from pseudotwin.core.series import DayReadings
 from pseudotwin.core.spec import TwinSpec
+from pseudotwin.core.thinning import Thinning
 from pseudotwin.errors import DataError
 from pseudotwin.live.failover import Failover
 from pseudotwin.models.base import TrainingSet
@@ -40,6 +41,7 @@ def train_failover(
     needed: Sequence[str],
     kinds: Sequence[str] = FAILOVER_KINDS,
     options: Mapping[str, Mapping[str, Any]] | None = None,
+    thinning: Thinning | None = None,
 ) -> dict[str, Failover]:
     """Lost reference → its validated failover, for each of ``needed`` (the references the
     primary reads). Empty for a single-reference twin; a reference whose candidates cannot be
@@ -54,7 +56,7 @@ def train_failover(
         others = replace(spec, references=tuple(r for r in spec.references if r != lost))
         usable = [k for k in kinds if not model_class(k).not_applicable(others)]
         try:
-            v = validation.validate(df, others, days, usable, opts)
+            v = validation.validate(df, others, days, usable, opts, thinning=thinning)
         except DataError as exc:
             log.warning("no failover for %s: %s", lost, exc)
             continue

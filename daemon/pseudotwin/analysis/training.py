@@ -18,6 +18,7 @@ from pseudotwin.analysis.validation import MIN_DAYS
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.series import DayReadings, require_sensors, split_days
 from pseudotwin.core.spec import Quantity, TwinSpec
+from pseudotwin.core.thinning import Thinning, thin_history
 from pseudotwin.errors import DataError
 from pseudotwin.history.store import Store
 from pseudotwin.live.artifact import Artifact
@@ -101,11 +102,12 @@ def train_twin(
     options: dict[str, dict[str, Any]] | None = None,
     primary: str | None = None,
     validate: bool = True,
+    thinning: Thinning | None = None,
 ) -> Artifact:
     """Train the requested models of one twin on the chosen days; returns the artifact.
     See :func:`train_validated`."""
     return train_validated(df, spec, train_start, train_days, models, options, primary,
-                           validate)[0]
+                           validate, thinning)[0]
 
 
 def train_validated(
@@ -117,6 +119,7 @@ def train_validated(
     options: dict[str, dict[str, Any]] | None = None,
     primary: str | None = None,
     validate: bool = True,
+    thinning: Thinning | None = None,
 ) -> tuple[Artifact, validation.Validation | None]:
     """Train the requested models of one twin on the chosen days; returns the artifact
     and the validation it came from (None when not validated), whose held-out estimates the
@@ -127,7 +130,10 @@ def train_validated(
     every model's σ (:mod:`pseudotwin.analysis.validation`); without it, or with fewer than
     three days, the primary is ``primary`` or the first candidate and σ is each model's own.
     Validated twins with several references also get a failover per reference the primary
-    reads (:mod:`pseudotwin.analysis.failover`).
+    reads (:mod:`pseudotwin.analysis.failover`). thinning: the live window's policy (default
+    one point per sensor and minute): the models learn from the points it holds
+    (:func:`~pseudotwin.core.thinning.thin_history`), and the held-out days are replayed
+    reading by reading through it, as the daemon would.
     """
     for kind in models:
         model_class(kind)  # an unknown kind fails before any training
@@ -140,10 +146,15 @@ def train_validated(
                         + "; ".join(f"{k}: {w}" for k, w in skipped.items()))
     sensors = list(spec.sensors)
     require_sensors(df, [*sensors, *spec.covariates])
-    days = pick_training_days(df, sensors, spec.hours, train_start, train_days, spec.covariates)
+    policy = thinning or Thinning()
+    # A chatty sensor's single samples are noisier than the points the window will hold:
+    # trained on them, every slot profile would carry one sample's noise.
+    points = thin_history(df[df["sensor"].isin([*sensors, *spec.covariates])], policy)
+    days = pick_training_days(points, sensors, spec.hours, train_start, train_days,
+                              spec.covariates)
     # Judged on the training days only: a sensor broken some other week must not stop this.
-    local_day, _ = spec.hours.day_and_hours(df["ts"])
-    check_plausible(df[np.isin(local_day, [np.datetime64(d.day) for d in days])], spec)
+    local_day, _ = spec.hours.day_and_hours(points["ts"])
+    check_plausible(points[np.isin(local_day, [np.datetime64(d.day) for d in days])], spec)
     ts = TrainingSet(spec, tuple(days))
     fitted: dict[str, TwinModel] = {}
     opts = options or {}
@@ -157,7 +168,7 @@ def train_validated(
     checked: dict[str, Any] = {}
     v: validation.Validation | None = None
     if validate and len(days) >= MIN_DAYS:
-        v = validation.validate(df, spec, days, list(fitted), opts, primary)
+        v = validation.validate(df, spec, days, list(fitted), opts, primary, policy)
         primary, calibration, checked = v.primary, v.calibration, v.to_dict()
         log.info("validated on the training days in %.1f s; primary %s", v.seconds, v.reason)
     elif primary is None:
@@ -188,7 +199,8 @@ def train_validated(
     log.info("self-aware indication (quality uncertain): %s",
              ", ".join(sorted(envelope.kept or ())) or "no criterion kept")
     # Failover needs validated σ, like the primary it stands in for.
-    failover = (train_failover(df, spec, days, fitted[primary].references_, options=opts)
+    failover = (train_failover(df, spec, days, fitted[primary].references_, options=opts,
+                               thinning=policy)
                 if v is not None else {})
     return Artifact(
         spec, fitted, primary, calibration=calibration, validation=checked,
@@ -198,6 +210,7 @@ def train_validated(
             "end": str(days[-1].day),
             "days": [str(d.day) for d in days],
             "sensors": [*sensors, *spec.covariates],
+            "thinning": policy.describe(),
         },
     ), v
 

@@ -32,6 +32,7 @@ import pandas as pd
 from pseudotwin.analysis.replay import REF_PREFIX, replay_estimates
 from pseudotwin.core.series import DayReadings
 from pseudotwin.core.spec import TwinSpec
+from pseudotwin.core.thinning import Thinning
 from pseudotwin.core.twinlog import collapsed
 from pseudotwin.errors import DataError, FitError, NumericalError
 from pseudotwin.live import metrics
@@ -141,7 +142,7 @@ def offset_variance(spec: TwinSpec, days: Sequence[DayReadings]) -> float:
 
 def _fold(df: pd.DataFrame, spec: TwinSpec, train: Sequence[DayReadings], held: dt.date,
           kinds: Sequence[str], options: Mapping[str, Mapping[str, Any]],
-          failures: dict[str, str]) -> pd.DataFrame:
+          failures: dict[str, str], thinning: Thinning | None = None) -> pd.DataFrame:
     """Train ``kinds`` on ``train``, replay the held-out day; rows as replay_estimates."""
     ts = TrainingSet(spec, tuple(train))
     fitted: dict[str, TwinModel] = {}
@@ -162,7 +163,7 @@ def _fold(df: pd.DataFrame, spec: TwinSpec, train: Sequence[DayReadings], held: 
     art = Artifact(spec, fitted, next(iter(fitted)), envelope=envelope)
     days, _ = spec.hours.day_and_hours(df["ts"])
     near = (days >= np.datetime64(held - dt.timedelta(days=1))) & (days <= np.datetime64(held))
-    est = replay_estimates(art, df[near], held, end=held, criteria=True)
+    est = replay_estimates(art, df[near], held, end=held, thinning=thinning, criteria=True)
     # The fold's ``estimate`` rows follow an arbitrary primary: dropped. The raw references
     # stay, for their own score.
     keep = est["model"].isin(list(fitted)) | est["model"].str.startswith(REF_PREFIX)
@@ -176,9 +177,11 @@ def validate(
     models: Sequence[str],
     options: Mapping[str, Mapping[str, Any]] | None = None,
     primary: str | None = None,
+    thinning: Thinning | None = None,
 ) -> Validation:
     """Hold out each training day, score and calibrate ``models``; choose the primary among
-    the candidates (``primary`` pins it). Raises DataError with fewer than MIN_DAYS days."""
+    the candidates (``primary`` pins it). Raises DataError with fewer than MIN_DAYS days.
+    thinning: the live window's policy the held-out days are replayed through."""
     t0 = time.perf_counter()
     if len(days) < MIN_DAYS:
         raise DataError(f"validation needs at least {MIN_DAYS} training days, got {len(days)}")
@@ -189,7 +192,7 @@ def validate(
     with collapsed(_FOLD_LOGGERS, f"validation's {len(days)} folds"):
         for d in days:
             rest = [x for x in days if x.day != d.day]
-            frames.append(_fold(df, spec, rest, d.day, models, opts, failures))
+            frames.append(_fold(df, spec, rest, d.day, models, opts, failures, thinning))
     held = pd.concat([f for f in frames if not f.empty], ignore_index=True)
     offset_var = offset_variance(spec, days)
     offset_var_without = {d.day: offset_variance(spec, [x for x in days if x.day != d.day])

@@ -22,6 +22,7 @@ if TYPE_CHECKING:
 
     from pseudotwin.config import ServiceConfig, TwinConfig
     from pseudotwin.core.horizon import OperatingHours
+    from pseudotwin.core.thinning import Thinning
     from pseudotwin.edge.recorder import Recorder
     from pseudotwin.edge.service import Service
 
@@ -156,6 +157,20 @@ def _training_history(a: argparse.Namespace,
                                   a.train_days)
 
 
+def _train_thinning(a: argparse.Namespace) -> Thinning:
+    """The window's policy training learns for: --min-interval, else the config's sensors'
+    (with --config), else the default."""
+    from pseudotwin.core.thinning import Thinning
+
+    if a.min_interval is not None:
+        return Thinning(dt.timedelta(seconds=a.min_interval))
+    if a.config is not None:
+        from pseudotwin.config import load_config
+
+        return load_config(a.config).thinning
+    return Thinning()
+
+
 def cmd_train(a: argparse.Namespace) -> int:
     from pseudotwin.analysis.training import train_validated
     from pseudotwin.core.twinlog import twin_context
@@ -164,7 +179,7 @@ def cmd_train(a: argparse.Namespace) -> int:
     df, start = _training_history(a, spec.hours)
     with twin_context(a.out.stem):  # the artifact's name is the twin's id by convention
         art, checked = train_validated(df, spec, start, a.train_days, a.models, _options(a),
-                                       a.primary)
+                                       a.primary, thinning=_train_thinning(a))
     path = art.save(a.out)
     days = ", ".join(art.training["days"])
     print(f"trained {', '.join(art.models)} on {days}; artifact written to {path}")
@@ -418,6 +433,12 @@ def build_parser() -> argparse.ArgumentParser:
                                    "in operating hours are chosen (and printed).")
     _add_twin_args(t, train=True)
     t.add_argument("--out", required=True, type=Path, help="artifact file to write (.json)")
+    t.add_argument("--min-interval", type=_positive_seconds, default=None, metavar="SECONDS",
+                   help="the daemon's window keeps at most one point per sensor and interval, "
+                        "the mean of its readings in it; training learns from those points, "
+                        "not from single samples of a chatty sensor, and replays the held-out "
+                        "days through that window (default: with --config, the sensors' "
+                        "min_interval_seconds; else 60)")
     t.add_argument("--report", type=Path, metavar="DIR",
                    help="also write a commissioning report, DIR/<twin>.html (<twin>: the "
                         "artifact's file name): one self-contained HTML page with the data "

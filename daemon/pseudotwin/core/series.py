@@ -134,6 +134,30 @@ class DayReadings:
         out = np.where(idx >= 0, v[np.clip(idx, 0, None)], np.nan)
         return out
 
+    def slot_means(self, sensor: str, hours: OperatingHours) -> np.ndarray:
+        """The slot's level: the time-weighted mean of the sample-and-hold signal over every
+        window slot [start, start + slot): [S] (over its part after the first reading; NaN
+        for a slot wholly before it). One reading per slot at its start (15-min means) gives
+        :meth:`slot_values`; 1-minute readings give the slot's mean, not one minute of it;
+        a COV sensor's value counts for as long as it held."""
+        starts = hours.window_slots() * hours.slot_hours
+        if not self.has(sensor):
+            return np.full(len(starts), np.nan)
+        h, v = self.series[sensor]
+        # integral of the held signal from the first reading up to each reading
+        at_reading = np.concatenate([[0.0], np.cumsum(v[:-1] * np.diff(h))])
+
+        def integral(x: np.ndarray) -> np.ndarray:  # from the first reading to x ≥ h[0]
+            i = np.clip(np.searchsorted(h, x, side="right") - 1, 0, None)
+            return at_reading[i] + v[i] * (x - h[i])
+
+        lo = np.maximum(starts, h[0])
+        ends = starts + hours.slot_hours
+        covered = ends - lo
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = (integral(ends) - integral(lo)) / covered
+        return np.where(covered > 0, mean, np.nan)
+
 
 def split_days(
     df: pd.DataFrame,

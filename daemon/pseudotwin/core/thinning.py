@@ -19,6 +19,9 @@ would make every update slower than the one before. The policy (DESIGN.md §2):
   time is already in its bucket (a duplicate) is dropped.
 
 The daemon, ``evaluate`` and ``backfill`` all thin here, inside :class:`~pseudotwin.live.twin.Twin`.
+Training thins its history with :func:`thin_history` (the same buckets, vectorized), so a
+chatty sensor's history trains the twin its 1-minute means would: the models learn from the
+points the live window will hold, not from single noisy samples.
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ import numpy as np
 import pandas as pd
 
 __all__ = ["DEFAULT_MIN_INTERVAL", "MIN_INTERVAL_SECONDS", "Action", "Thinning",
-           "WindowThinner"]
+           "WindowThinner", "thin_history"]
 
 #: One conditioning point per reference and minute: the resolution of the converters'
 #: means, far finer than the 15-minute slots and the GP's hour-scale lengthscales.
@@ -134,3 +137,32 @@ class WindowThinner:
         if newest is None or k > newest.index:
             self._newest[sensor] = _Bucket(k, ts, {since}, value)
         return Action.NEW, ts, value
+
+
+def thin_history(history: pd.DataFrame, policy: Thinning) -> pd.DataFrame:
+    """The points a live window holds once each bucket has closed, for a whole history.
+
+    history: canonical rows (sensor, ts aware, value). Per sensor and bucket of
+    ``policy``: one row at the bucket's first reading's time with the mean of its readings;
+    a repeated timestamp counts once (its first value), as the window drops duplicates.
+    Returns the rows in time order (per sensor); a history already at most one reading per
+    bucket comes back with the same readings.
+    """
+    if history.empty:
+        return history
+    # one stable sort by time: the first reading of a bucket and of a timestamp come first
+    rows = history.sort_values("ts", kind="stable")
+    rows = rows[~rows.duplicated(["sensor", "ts"], keep="first")]
+    stamps = pd.DatetimeIndex(rows["ts"])
+    bucket = np.empty(len(rows), dtype=np.int64)
+    sensors = rows["sensor"].to_numpy(dtype=object)
+    for sensor in pd.unique(sensors):
+        mine = sensors == sensor
+        bucket[mine] = policy.buckets(sensor, stamps[mine])
+    keyed = rows.assign(_bucket=bucket)
+    groups = keyed.groupby(["sensor", "_bucket"], sort=False)
+    if groups.ngroups == len(keyed):  # nothing shares a bucket: nothing to thin
+        return rows.reset_index(drop=True)
+    thinned = groups.agg(ts=("ts", "first"), value=("value", "mean")).reset_index()
+    return (thinned[["sensor", "ts", "value"]].sort_values("ts", kind="stable")
+            .reset_index(drop=True))

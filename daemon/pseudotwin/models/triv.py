@@ -27,8 +27,11 @@ def fill_slots(profile: np.ndarray) -> np.ndarray:
 
 
 def slot_matrix(training: TrainingSet, sensor: str) -> np.ndarray:
-    """Sample-and-hold values of one sensor: [days, S] over the window slots."""
-    return np.array([d.slot_values(sensor, training.hours) for d in training.days])
+    """One sensor's level per training day and window slot: [days, S], the mean of its
+    readings in the slot (DayReadings.slot_means). TRIV's offset holds for a whole slot, so
+    it is learnt from the whole slot: with 1-minute readings a value held at the slot's
+    start is one minute of fifteen, and its noise would become the offset's."""
+    return np.array([d.slot_means(sensor, training.hours) for d in training.days])
 
 
 class TrivModel(TwinModel):
