@@ -119,7 +119,8 @@ HOW_TO_READ = f"""\
   30-min init phase); `corrgp-multi` = the same over all references (an LCM on the
   deviations of every reference and the target; runs with two references);
   `corrgp-lcm` = zero-mean Corr-GP LCM over all references; `triv` =
-  training offset profile + live reference, averaged over references; `triv-shrunk` = TRIV
+  training offset profile (per 15-min slot, from each slot's time-weighted level on the
+  training days) + live reference, averaged over references; `triv-shrunk` = TRIV
   with its offset profile shrunk towards the mean offset as far as the training days
   disagree on its shape (James–Stein; the factor is in the artifact); `triv-cov` = TRIV plus
   a linear term in the run's covariates' deviations from their typical day, each covariate
