@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
+import json
 import os
 import subprocess
 import sys
@@ -79,6 +80,23 @@ def test_train_rejects_data_of_another_quantity(
     assert f"sensor {refs}: readings implausible for the quantity {quantity}" in err
     assert "Traceback" not in err
     assert not out.exists()
+
+
+def test_train_learns_for_the_window_it_is_given(sml: Path, tmp_path: Path, capsys) -> None:
+    """--min-interval sets the window policy training thins with; the artifact records it;
+    a width the daemon would refuse is refused here too."""
+    out = tmp_path / "a.json"
+    args = ("train", "--history", str(sml), "--references", "dining/temp", "--target",
+            "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
+            "--models", "triv", "--out", str(out))
+    assert run(*args, "--min-interval", "30") == 0
+    assert json.loads(out.read_text())["training"]["thinning"] == "one point per 30 s"
+    assert run(*args) == 0
+    assert json.loads(out.read_text())["training"]["thinning"] == "one point per 60 s"
+    with pytest.raises(SystemExit) as exc:
+        run(*args, "--min-interval", "0")
+    assert exc.value.code == 2
+    assert "--min-interval" in capsys.readouterr().err
 
 
 def _frame(values: dict[str, np.ndarray]) -> pd.DataFrame:

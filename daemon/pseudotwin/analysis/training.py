@@ -147,8 +147,8 @@ def train_validated(
     sensors = list(spec.sensors)
     require_sensors(df, [*sensors, *spec.covariates])
     policy = thinning or Thinning()
-    # A chatty sensor's single samples are noisier than the points the window will hold:
-    # trained on them, every slot profile would carry one sample's noise.
+    # The models learn from the points the live window will hold (one per sensor and
+    # interval), so a chatty sensor's history trains the twin its interval means would.
     points = thin_history(df[df["sensor"].isin([*sensors, *spec.covariates])], policy)
     days = pick_training_days(points, sensors, spec.hours, train_start, train_days,
                               spec.covariates)
