@@ -458,7 +458,6 @@ class TrivGpDay(DayEstimator):
         self.shifts = [_LevelShift(model) for _ in model.references_]
         self.values: list[float] = []  # raw reference values, in the posterior's order
         self.profile: list[float] = []  # each value's reference profile at its time
-        self.hours: list[float] = []  # each value's time [h]
         self.points = gp_points.merging()  # None: one GP point per window point
 
     def _residual(self, o: int, profile: float, value: float) -> float:
@@ -492,7 +491,6 @@ class TrivGpDay(DayEstimator):
         self.post.add(hours, o, self._residual(o, profile, value))
         self.values.append(value)
         self.profile.append(profile)
-        self.hours.append(hours)
 
     def revise(self, sensor: str, hours: float, value: float) -> None:
         o = self.index.get(sensor)
@@ -514,9 +512,9 @@ class TrivGpDay(DayEstimator):
         value)."""
         # A revised reading leaves its point's time as it was (a chatty sensor's usual
         # case): the profile there is known.
-        profile = (self.profile[i] if hours == self.hours[i]
+        profile = (self.profile[i] if hours == self.post.t[i]
                    else self.model.triv_.profile(self.model.references_[o], hours))
-        self.values[i], self.profile[i], self.hours[i] = value, profile, hours
+        self.values[i], self.profile[i] = value, profile
         moved = self.shifts[o].note(i, hours, value - profile)
         self.post.move(i, hours, self._residual(o, profile, value))
         if moved:
