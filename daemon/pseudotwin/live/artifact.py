@@ -31,7 +31,9 @@ FORMAT = "pseudotwin-artifact"
 # 5: covariates (twin.covariates, the triv-cov model); older versions have none.
 # 6: the envelope's judged criteria (envelope.kept, .judged, rule.widen; analysis/criteria.py);
 #    older envelopes load with every criterion acting and σ × 2, as they were trained.
-VERSION = 6
+# 7: the envelope's pairs of references (criterion ``disagreement``); older envelopes have
+#    none, so nothing about how their references relate can make them uncertain.
+VERSION = 7
 
 
 @dataclass(frozen=True)

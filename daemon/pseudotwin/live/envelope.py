@@ -10,10 +10,18 @@ From the training days only, per reference, three ranges of what it did in opera
   the calibrated σ (live/calibration.py): a reference moving faster than in any training hour
   puts σ above the level the validation measured.
 
+and, per pair of references (a twin with two or more), how far they drifted apart: the gap
+between their deviations from their daily profiles, (a − profile_a) − (b − profile_b) [unit],
+at every reading of either (the other's value held). References that move together as in
+training keep it small whatever the day's level; one that decouples from the other (a heater
+or an open window next to one of them, a sensor drifting) pushes it out of range: the
+"references decorrelated" of DESIGN.md §6, as it shows at an instant.
+
 Each range is fixed a priori, never tuned on test days: the robust quantiles
 [q(``Q_LO``), q(``Q_HI``)] of the training readings widened on both sides by ``MARGIN`` × their
 span (slope: the upper bound only). Each (kind, reference) is one *criterion*, keyed
-``"<kind>:<sensor>"`` with kind ``level``, ``deviation`` or ``speed``.
+``"<kind>:<sensor>"`` with kind ``level``, ``deviation`` or ``speed``; each pair of references
+is one more, ``"disagreement:<a>|<b>"`` (a, b in the twin's order of references).
 
 Out of range is not necessarily a larger error, so a criterion only acts where the training
 days show it flags one (analysis/criteria.py judges each on the held-out days of validation):
@@ -41,11 +49,17 @@ Q_LO, Q_HI = 0.005, 0.995  # robust: a glitch or two of the training days does n
 MARGIN = 0.25  # share of the inter-quantile span added on each side
 WIDEN = 2.0  # σ factor of an uncertain estimate under the unjudged rule (kept None)
 CRITERIA = ("level", "deviation", "speed")
+PAIR = "disagreement"  # the criterion of a pair of references
 
 
 def criterion(kind: str, sensor: str) -> str:
     """The key of one criterion: ``"<kind>:<sensor>"``."""
     return f"{kind}:{sensor}"
+
+
+def pair_criterion(a: str, b: str) -> str:
+    """The key of the disagreement criterion of references ``a`` and ``b``."""
+    return criterion(PAIR, f"{a}|{b}")
 
 
 @dataclass(frozen=True)
@@ -93,6 +107,39 @@ class RefEnvelope:
                    _bound(d["slope_hi"], 1), profile)
 
 
+@dataclass(frozen=True)
+class PairEnvelope:
+    """Two references a, b and the training range (lo, hi) [unit] of the gap between their
+    deviations from their daily profiles (a − profile_a) − (b − profile_b)."""
+
+    a: str
+    b: str
+    gap: tuple[float, float]
+
+    @property
+    def key(self) -> str:
+        return pair_criterion(self.a, self.b)
+
+    def unlike(self, dev_a: float, dev_b: float) -> list[tuple[str, str]]:
+        """(key, why) when deviations ``dev_a`` and ``dev_b`` [unit] are further apart (or
+        closer) than in training; empty otherwise."""
+        gap = dev_a - dev_b
+        lo, hi = self.gap
+        if lo <= gap <= hi:
+            return []
+        return [(self.key, f"{self.a} and {self.b} disagree: {gap:+.3g} apart from their "
+                           f"daily profiles, outside training {lo:+.3g}…{hi:+.3g}")]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"references": [self.a, self.b], "gap": list(self.gap)}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> PairEnvelope:
+        a, b = (str(x) for x in d["references"])
+        lo, hi = d["gap"]
+        return cls(a, b, (_bound(lo, -1), _bound(hi, 1)))
+
+
 def _bound(x: float | None, sign: int) -> float:
     """A stored bound; null is an open one (saved artifacts write ±inf as null)."""
     return sign * math.inf if x is None else float(x)
@@ -100,7 +147,8 @@ def _bound(x: float | None, sign: int) -> float:
 
 @dataclass(frozen=True)
 class Envelope:
-    """The training ranges of every reference: sensor → :class:`RefEnvelope`.
+    """The training ranges of every reference (sensor → :class:`RefEnvelope`) and of every
+    pair of references (:class:`PairEnvelope`; none in artifacts saved before pairs were).
 
     kept: the criteria that make an estimate ``uncertain`` (None: all of them, the rule of
     envelopes saved before criteria were judged); widen: σ factor of an uncertain estimate;
@@ -109,6 +157,7 @@ class Envelope:
     """
 
     refs: dict[str, RefEnvelope]
+    pairs: tuple[PairEnvelope, ...] = ()
     kept: frozenset[str] | None = None
     widen: float = WIDEN
     judged: dict[str, dict[str, Any]] = field(default_factory=dict, compare=False)
@@ -116,7 +165,8 @@ class Envelope:
     @property
     def criteria(self) -> tuple[str, ...]:
         """Every criterion this envelope evaluates."""
-        return tuple(criterion(k, s) for s in self.refs for k in CRITERIA)
+        return (tuple(criterion(k, s) for s in self.refs for k in CRITERIA)
+                + tuple(p.key for p in self.pairs))
 
     def acts(self, key: str) -> bool:
         """Whether criterion ``key`` makes an estimate uncertain."""
@@ -152,13 +202,18 @@ class Envelope:
             out[s] = RefEnvelope(_range(np.concatenate(levels)), _range(np.concatenate(devs)),
                                  _range(np.concatenate(slopes))[1],
                                  tuple(float(p) for p in profile))
-        return cls(out)
+        refs = list(training.references)
+        pairs = tuple(PairEnvelope(a, b, _range(_gaps(training, out[a], out[b], a, b)))
+                      for i, a in enumerate(refs) for b in refs[i + 1:])
+        return cls(out, pairs)
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {
             "rule": {"quantiles": [Q_LO, Q_HI], "margin": MARGIN, "widen": self.widen},
             "references": {s: r.to_dict() for s, r in self.refs.items()},
         }
+        if self.pairs:
+            out["pairs"] = [p.to_dict() for p in self.pairs]
         if self.kept is not None:
             out["kept"] = sorted(self.kept)
             out["judged"] = self.judged
@@ -168,13 +223,16 @@ class Envelope:
     def from_dict(cls, d: dict[str, Any], hours: OperatingHours) -> Envelope:
         n = len(hours.window_slots())
         refs = {str(s): RefEnvelope.from_dict(r, n) for s, r in d["references"].items()}
+        pairs = tuple(PairEnvelope.from_dict(p) for p in d.get("pairs") or ())
+        if unknown := {x for p in pairs for x in (p.a, p.b)} - set(refs):
+            raise ValueError(f"envelope pair of unknown reference {sorted(unknown)[0]}")
         if d.get("kept") is None:  # saved before criteria were judged: every one acts
-            return cls(refs)
+            return cls(refs, pairs)
         kept = frozenset(str(k) for k in d["kept"])
         widen = float(d["rule"]["widen"])
         if not widen >= 1.0:
             raise ValueError(f"envelope widen {widen} is below 1")
-        return cls(refs, kept, widen, dict(d.get("judged") or {}))
+        return cls(refs, pairs, kept, widen, dict(d.get("judged") or {}))
 
 
 def _range(x: np.ndarray) -> tuple[float, float]:
@@ -185,6 +243,31 @@ def _range(x: np.ndarray) -> tuple[float, float]:
     lo, hi = np.quantile(x, [Q_LO, Q_HI])
     m = MARGIN * (hi - lo)
     return float(lo - m), float(hi + m)
+
+
+def _gaps(training: TrainingSet, env_a: RefEnvelope, env_b: RefEnvelope, a: str,
+          b: str) -> np.ndarray:
+    """(a − profile_a) − (b − profile_b) [unit] at every operating-hours reading of either
+    reference on the training days, the other's value held (NaN before its first reading)."""
+    hours = training.hours
+    first = hours.window_slots()[0]
+    prof_a, prof_b = np.asarray(env_a.profile), np.asarray(env_b.profile)
+    out = []
+    for d in training.days:
+        if not (d.has(a) and d.has(b)):
+            continue
+        (ha, va), (hb, vb) = d.series[a], d.series[b]
+        h = np.union1d(ha, hb)
+        h = h[hours.in_operating_hours(h)]
+        slot = np.clip(hours.slot_of(h) - first, 0, len(prof_a) - 1)
+        out.append((_held(ha, va, h) - prof_a[slot]) - (_held(hb, vb, h) - prof_b[slot]))
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def _held(h: np.ndarray, v: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """The value of series (h, v) held at times ``at`` (NaN before its first reading)."""
+    i = np.searchsorted(h, at, side="right") - 1
+    return np.where(i >= 0, v[np.clip(i, 0, None)], np.nan)
 
 
 def _slopes(h: np.ndarray, v: np.ndarray) -> np.ndarray:
