@@ -25,6 +25,7 @@ from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.calibration import SigmaCalibration
 from pseudotwin.live.envelope import Envelope
 from pseudotwin.models.base import TrainingSet, TwinModel
+from pseudotwin.models.blend import BlendModel
 from pseudotwin.models.registry import ALL_MODELS, build, model_class
 
 log = logging.getLogger(__name__)
@@ -159,20 +160,38 @@ def train_validated(
     fitted: dict[str, TwinModel] = {}
     opts = options or {}
     for kind in models:
+        if model_class(kind).stacked:
+            continue  # made from the others after validation
         t0 = time.perf_counter()
         fitted[kind] = build(kind, opts.get(kind)).fit(ts)
         log.info("trained %s in %.1f s", kind, time.perf_counter() - t0)
-    if primary is not None and primary not in fitted:
+    if primary is not None and primary not in models:
         raise DataError(f"primary {primary!r} is not among the trained models")
+    validated = validate and len(days) >= MIN_DAYS
+    if primary is not None and model_class(primary).stacked and not validated:
+        raise DataError(f"primary {primary!r} is made from validation's held-out scores; "
+                        f"it needs validation on at least {MIN_DAYS} training days")
     calibration: dict[str, SigmaCalibration] = {}
     checked: dict[str, Any] = {}
     v: validation.Validation | None = None
-    if validate and len(days) >= MIN_DAYS:
-        v = validation.validate(df, spec, days, list(fitted), opts, primary, policy)
+    stacked = [k for k in models if model_class(k).stacked]
+    if validated:
+        v = validation.validate(df, spec, days, [*fitted, *stacked], opts, primary, policy)
         primary, calibration, checked = v.primary, v.calibration, v.to_dict()
         log.info("validated on the training days in %.1f s; primary %s", v.seconds, v.reason)
-    elif primary is None:
-        primary = next((k for k, m in fitted.items() if m.candidate), next(iter(fitted)))
+        if v.blend and "blend" in stacked:
+            fitted["blend"] = BlendModel({k: fitted[k] for k in v.blend}, v.blend).fit(ts)
+        elif "blend" in stacked:
+            log.info("blend is not built: %s", v.scores["blend"].error)
+        if primary not in fitted:  # pinned, but it could not be made
+            raise DataError(f"primary {primary!r} could not be built: "
+                            f"{v.scores[primary].error}")
+    else:
+        if stacked:
+            log.info("%s not built: made from validation's held-out scores, and there is no "
+                     "validation", ", ".join(stacked))
+        if primary is None:
+            primary = next((k for k, m in fitted.items() if m.candidate), next(iter(fitted)))
     withheld = dict(checked.get("withheld", {}))
     for kind, m in fitted.items():
         if (problem := m.publish_problem()) and kind != primary:
@@ -184,7 +203,7 @@ def train_validated(
             # Every published model costs the daemon its work and a message per grid step.
             withheld[kind] = f"a variant, run live only as the primary (validation chose {primary})"
             log.info("%s is not published live: %s", kind, withheld[kind])
-    if validate and len(days) >= MIN_DAYS:
+    if validated:
         for kind in fitted:
             if kind not in calibration and kind not in withheld:
                 log.warning("%s has no σ calibration (it failed validation); it publishes its "

@@ -7,9 +7,10 @@ honest errors on a day it has not seen:
 
 - the **primary** is the candidate with the lowest mean held-out daily NRMSE, except that the
   simplest candidate within ``TIE_RELATIVE`` of it wins (the registry's order, ref < triv <
-  triv-shrunk < triv-cov < corrgp-triv < corrgp-multi < corrgp-lcm): five days cannot tell
-  a 3 % difference from noise, and
-  the simpler model fails in simpler ways;
+  triv-shrunk < triv-cov < corrgp-triv < corrgp-multi < corrgp-lcm < blend): five days cannot
+  tell a 3 % difference from noise, and the simpler model fails in simpler ways. The blend
+  (models/blend.py) is not refit per fold: its held-out rows combine the members' with weights
+  chosen on the other held-out days;
 - every model's **σ** is calibrated on its held-out errors (:mod:`pseudotwin.live.calibration`).
 
 Days after the training period are never looked at. Every model is refit in each fold, so the
@@ -29,7 +30,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pseudotwin.analysis.replay import REF_PREFIX, replay_estimates
+from pseudotwin.analysis.replay import REF_PREFIX, UNLIKE_SEP, replay_estimates
 from pseudotwin.core.series import DayReadings
 from pseudotwin.core.spec import TwinSpec
 from pseudotwin.core.thinning import Thinning
@@ -39,6 +40,7 @@ from pseudotwin.live import metrics
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.calibration import SigmaCalibration
 from pseudotwin.live.envelope import Envelope
+from pseudotwin.models import blend
 from pseudotwin.models.base import TrainingSet, TwinModel
 from pseudotwin.models.registry import MODELS, build
 
@@ -90,6 +92,8 @@ class Validation:
     # The held-out rows (replay_estimates' columns and ``day``, the models' own std): what the
     # commissioning report plots, so it needs no refit. Not saved in the artifact.
     held_out: pd.DataFrame = field(default_factory=pd.DataFrame, repr=False)
+    # The blend's members and weights from all held-out days (models/blend.py; empty: none).
+    blend: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -101,6 +105,7 @@ class Validation:
             "seconds": round(self.seconds, 1),
             "scores": {k: s.to_dict() for k, s in self.scores.items()},
             "withheld": self.withheld,
+            **({"blend": self.blend} if self.blend else {}),
         }
 
 
@@ -188,40 +193,97 @@ def validate(
     opts = options or {}
     failures: dict[str, str] = {}
     frames = []
+    trained = [k for k in models if not MODELS[k].stacked]
     # Each fold refits every model: the same fit warning would otherwise appear per fold.
     with collapsed(_FOLD_LOGGERS, f"validation's {len(days)} folds"):
         for d in days:
             rest = [x for x in days if x.day != d.day]
-            frames.append(_fold(df, spec, rest, d.day, models, opts, failures, thinning))
+            frames.append(_fold(df, spec, rest, d.day, trained, opts, failures, thinning))
     held = pd.concat([f for f in frames if not f.empty], ignore_index=True)
     offset_var = offset_variance(spec, days)
     offset_var_without = {d.day: offset_variance(spec, [x for x in days if x.day != d.day])
                           for d in days}
     scores: dict[str, CandidateScore] = {}
     calibration: dict[str, SigmaCalibration] = {}
-    for kind in models:
-        is_candidate = MODELS[kind].candidate
+    blend_weights: dict[str, float] = {}
+    for kind in [*trained, *(k for k in models if MODELS[k].stacked)]:
+        if MODELS[kind].stacked:
+            members = [k for k in trained if MODELS[k].candidate and k in scores
+                       and not scores[k].error]
+            blend_weights = blend.weights({k: scores[k].nrmse_pct for k in members})
+            extra = _blend_rows(held, members)
+            if not blend_weights or extra.empty:
+                failures[kind] = "needs two or more validated candidates"
+            else:
+                held = pd.concat([held, extra.assign(model=kind)], ignore_index=True)
         rows = held[held["model"] == kind] if not held.empty else held
         if kind in failures or rows.empty:
             why = failures.get(kind, "no held-out estimate")
-            scores[kind] = CandidateScore(kind, is_candidate, error=why)
+            scores[kind] = CandidateScore(kind, MODELS[kind].candidate, error=why)
             continue
-        hours = np.array([spec.hours.hours_of(t) for t in rows["ts"]])
-        err = (rows["value"] - rows["truth"]).to_numpy()
-        calibration[kind] = SigmaCalibration.fit(rows["day"].to_numpy(), hours, err,
-                                                 rows["slope"].to_numpy(), offset_var)
-        sigma = _nested_sigma(offset_var_without, rows, hours, err)
-        daily = [metrics.nrmse_pct(g["truth"], g["value"]) for _, g in rows.groupby("day")]
-        scores[kind] = CandidateScore(
-            kind, is_candidate,
-            nrmse_pct=float(np.mean(daily)),
-            crps=float(np.mean(metrics.gaussian_crps(rows["truth"], rows["value"], sigma))),
-            cover2_pct=metrics.coverage_pct(rows["truth"], rows["value"], sigma, 2.0),
-            days=int(rows["day"].nunique()),
-        )
+        scores[kind], calibration[kind] = _score(kind, rows, spec, offset_var,
+                                                 offset_var_without)
     chosen, reason = _choose(scores, primary)
     return Validation(scores, chosen, reason, calibration, float(np.sqrt(offset_var)),
-                      time.perf_counter() - t0, _withheld(scores, chosen), held)
+                      time.perf_counter() - t0, _withheld(scores, chosen), held, blend_weights)
+
+
+def _score(kind: str, rows: pd.DataFrame, spec: TwinSpec, offset_var: float,
+           offset_var_without: Mapping[dt.date, float]
+           ) -> tuple[CandidateScore, SigmaCalibration]:
+    """``kind``'s held-out ``rows`` as its score and σ calibration."""
+    hours = np.array([spec.hours.hours_of(t) for t in rows["ts"]])
+    err = (rows["value"] - rows["truth"]).to_numpy()
+    calibration = SigmaCalibration.fit(rows["day"].to_numpy(), hours, err,
+                                       rows["slope"].to_numpy(), offset_var)
+    sigma = _nested_sigma(offset_var_without, rows, hours, err)
+    daily = [metrics.nrmse_pct(g["truth"], g["value"]) for _, g in rows.groupby("day")]
+    return CandidateScore(
+        kind, MODELS[kind].candidate,
+        nrmse_pct=float(np.mean(daily)),
+        crps=float(np.mean(metrics.gaussian_crps(rows["truth"], rows["value"], sigma))),
+        cover2_pct=metrics.coverage_pct(rows["truth"], rows["value"], sigma, 2.0),
+        days=int(rows["day"].nunique()),
+    ), calibration
+
+
+def _blend_rows(held: pd.DataFrame, members: Sequence[str]) -> pd.DataFrame:
+    """The blend's held-out rows (models/blend.py): on each held-out day, the members and
+    weights its rule picks from the *other* days' held-out daily NRMSE of ``members``, so the
+    day it is scored on chose nothing. At each instant every member answered: value and own
+    std combined with the weights; truth; the worst quality (the first not ``ok``); slope the
+    members' mean (exact when the members' references are one set, or split evenly); the
+    criteria any member's row fired on."""
+    rows = held[held["model"].isin(members)]
+    if rows.empty:
+        return rows.iloc[0:0]
+    daily = {(k, d): metrics.nrmse_pct(g["truth"], g["value"])
+             for (k, d), g in rows.groupby(["model", "day"])}
+    all_days = sorted(rows["day"].unique())
+    out = []
+    for d in all_days:
+        others = [x for x in all_days if x != d]
+        inner = {k: float(np.mean([daily[(k, x)] for x in others]))
+                 for k in members if others and all((k, x) in daily for x in others)}
+        w = blend.weights(inner)
+        if not w:
+            continue
+        day_rows = rows[(rows["day"] == d) & rows["model"].isin(w)]
+        for ts, g in day_rows.groupby("ts", sort=True):
+            if set(g["model"]) != set(w) or len(g) != len(w):
+                continue  # a member without an estimate here: the blend has none either
+            wv = g["model"].map(w).to_numpy(float)
+            bad = g.loc[g["quality"] != "ok", "quality"]
+            row = {"ts": ts, "value": float(wv @ g["value"].to_numpy(float)),
+                   "std": float(np.sqrt(np.sum((wv * g["std"].to_numpy(float)) ** 2))),
+                   "truth": float(g["truth"].iloc[0]),
+                   "quality": str(bad.iloc[0]) if len(bad) else "ok",
+                   "slope": float(g["slope"].mean()), "day": d}
+            if "unlike" in g:
+                fired = {u for x in g["unlike"] for u in str(x).split(UNLIKE_SEP) if u}
+                row["unlike"] = UNLIKE_SEP.join(sorted(fired))
+            out.append(row)
+    return pd.DataFrame(out)
 
 
 def _nested_sigma(offset_var_without: Mapping[dt.date, float], rows: pd.DataFrame,

@@ -90,6 +90,9 @@ class TwinModel(ABC):
     # Settings of the refits on held-out training days (validation): cheaper where a full
     # fit per fold would cost minutes.
     validation_options: ClassVar[dict[str, Any]] = {}
+    # Made from other fitted models and validation's held-out scores (models/blend.py) rather
+    # than fit on days: training builds it after validation, validation's folds skip it.
+    stacked: ClassVar[bool] = False
     references_: tuple[str, ...]
 
     @classmethod

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pseudotwin.errors import DataError
 from pseudotwin.models.base import TwinModel
+from pseudotwin.models.blend import BlendModel
 from pseudotwin.models.corrgp import CorrGpLcm, CorrGpMulti, CorrGpTriv
 from pseudotwin.models.covariate import TrivCovModel
 from pseudotwin.models.ref import RefModel
@@ -13,7 +14,7 @@ from pseudotwin.models.varma import VarmaModel
 # From the simplest: validation prefers the earlier of two models that score alike.
 MODELS: dict[str, type[TwinModel]] = {
     cls.kind: cls for cls in (RefModel, TrivModel, TrivShrunkModel, TrivCovModel, CorrGpTriv,
-                              CorrGpMulti, CorrGpLcm, VarmaModel)
+                              CorrGpMulti, CorrGpLcm, BlendModel, VarmaModel)
 }
 ALL_MODELS: tuple[str, ...] = tuple(MODELS)
 

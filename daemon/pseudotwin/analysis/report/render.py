@@ -127,6 +127,10 @@ HOW_TO_READ = f"""\
   kept only when it lowers TRIV's held-out error on the training days, on all held-out days
   but one and with a β of one sign, each deviation clipped to the training days' range (it
   is TRIV, and not published, when none is kept; the validation section says which helped);
+  `blend` = the weighted mean of the (up to) three candidates with the lowest held-out
+  NRMSE, weights ∝ 1/NRMSE² (Bates–Granger); its held-out score combines the members'
+  held-out estimates with members and weights chosen on the *other* held-out days, so it is
+  as honest as a single model's;
   `varma` = VARMAX(4, 4)
   with trend `n` (no constant, no drift) on the 15-min grid, every series re-levelled each
   day by the references' init-phase shift (its fallback: VAR(4) by least squares).
@@ -257,7 +261,8 @@ def _performance() -> list[str]:
 
 
 # TRIV and the models that try to beat it with information TRIV does not use.
-_TRIED = ("triv", "triv-shrunk", "triv-cov", "corrgp-triv", "corrgp-multi", "corrgp-lcm")
+_TRIED = ("triv", "triv-shrunk", "triv-cov", "corrgp-triv", "corrgp-multi", "corrgp-lcm",
+          "blend")
 
 
 def _helped(results: Sequence[RunResult]) -> str:
@@ -281,7 +286,8 @@ def _helped(results: Sequence[RunResult]) -> str:
         "\n\nMean daily NRMSE % on the test days (in brackets: held out on the training days, "
         "what validation chose from), and the ratio to TRIV's on the test days. `—`: the model "
         "cannot serve the run's twin (corrgp-multi needs two references; triv-cov is TRIV "
-        "where no covariate was kept, see each run's validation section). Only the primary is "
+        "where no covariate was kept, see each run's validation section; blend is the blend "
+        "of the members in its validation note). Only the primary is "
         "published as `estimate`; the others are scored here whether or not they run live.")
 
 

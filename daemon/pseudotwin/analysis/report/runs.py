@@ -39,7 +39,7 @@ PROFILE = "corrgp-triv (profile)"
 # Column order of every model table; ref:* pseudo-models follow. ``estimate`` is what the
 # daemon publishes (the primary chosen by validation, with its fallbacks).
 MODEL_ORDER = (ESTIMATE, "ref", "corrgp-triv", "corrgp-multi", PROFILE, "corrgp-lcm", "triv",
-               "triv-cov", "varma")
+               "triv-cov", "blend", "varma")
 # GP: the Corr-GP with the TRIV mean, compared with its prior mean TRIV (secondary evidence).
 GP, BASE, REF = "corrgp-triv", "triv", "ref"
 

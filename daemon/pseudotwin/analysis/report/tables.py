@@ -205,4 +205,7 @@ def validation_md(res: RunResult) -> str:
         parts.append(f"Covariates ({', '.join(f'`{c}`' for c in art.covariates)}), each "
                      f"added to TRIV alone and scored leave-one-day-out inside every fold's "
                      f"training days: {cov.fit_summary()}.")
+    if blend := v.get("blend"):
+        parts.append("Blend (members and weights from all held-out training days): "
+                     + ", ".join(f"`{k}` {w:.2f}" for k, w in blend.items()) + ".")
     return "\n\n".join(parts)

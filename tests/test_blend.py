@@ -1,0 +1,127 @@
+"""The blend candidate (models/blend.py): the weighted mean of the best validated candidates,
+scored on each held-out training day with weights chosen on the other days.
+
+Real parts: SML2010 (one reference), real fits, validation's real replays, the live Twin,
+the artifact saved and loaded.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as dt
+import math
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from daemon_support import HOURS, REF, TARGET, day_readings, sml
+from pseudotwin.analysis.training import train_twin
+from pseudotwin.analysis.validation import CandidateScore, _blend_rows, _choose
+from pseudotwin.core.spec import Quantity, TwinSpec
+from pseudotwin.errors import DataError
+from pseudotwin.live.artifact import Artifact
+from pseudotwin.live.twin import Twin
+from pseudotwin.models.blend import MAX_MEMBERS, BlendModel, weights
+
+FIRST = dt.date(2012, 3, 14)
+SPEC = TwinSpec((REF,), TARGET, Quantity.TEMPERATURE, HOURS)
+KINDS = ("ref", "triv", "triv-shrunk", "blend")
+
+
+@pytest.fixture(scope="module")
+def history() -> pd.DataFrame:
+    return sml()
+
+
+@pytest.fixture(scope="module")
+def art(history: pd.DataFrame) -> Artifact:
+    """Pinned: the blend must be the primary for the live checks, whatever validation says."""
+    return train_twin(history, SPEC, FIRST, 5, KINDS, primary="blend")
+
+
+def test_weights_take_the_best_candidates_by_inverse_squared_error() -> None:
+    w = weights({"a": 1.0, "b": 2.0, "c": 4.0, "d": 0.5, "e": math.nan})
+    assert list(w) == ["d", "a", "b"][:MAX_MEMBERS]  # the lowest three, best first
+    assert sum(w.values()) == pytest.approx(1.0)
+    assert w["d"] / w["a"] == pytest.approx(4.0) and w["a"] / w["b"] == pytest.approx(4.0)
+    assert weights({"a": 1.0, "b": math.inf}) == {}  # one usable candidate is no blend
+
+
+def test_held_out_weights_never_see_the_day_they_score() -> None:
+    """Model a is right on days 1–4 and wrong on day 5, model b the other way round: on day 5
+    the blend must lean on a, which the other days favour, however well b does there."""
+    days = [dt.date(2024, 1, d) for d in range(1, 6)]
+    rows = []
+    for d in days:
+        for k in range(10):
+            ts = pd.Timestamp(f"{d} 10:00", tz="UTC") + pd.Timedelta(minutes=15 * k)
+            truth = 20.0 + 0.1 * k
+            bad_a = d == days[-1]
+            for model, err in (("a", 1.0 if bad_a else 0.1), ("b", 0.1 if bad_a else 0.5)):
+                rows.append({"ts": ts, "model": model, "value": truth + err, "std": 0.2,
+                             "truth": truth, "quality": "ok", "slope": 0.1 * (model == "a"),
+                             "day": d})
+    held = pd.DataFrame(rows)
+    got = _blend_rows(held, ["a", "b"])
+    last = got[got["day"] == days[-1]]
+    w = weights({"a": 0.1 / 20.45 * 100, "b": 0.5 / 20.45 * 100})  # days 1–4: a's error 0.1
+    assert w["a"] > w["b"]
+    truth = last["truth"].to_numpy()
+    assert last["value"].to_numpy() == pytest.approx(truth + w["a"] * 1.0 + w["b"] * 0.1,
+                                                     rel=1e-3)
+    assert len(got) == len(days) * 10 and set(got["quality"]) == {"ok"}
+    assert got["slope"].to_numpy() == pytest.approx(0.05)  # the members' mean
+
+
+def test_training_builds_the_blend_from_validation(art: Artifact) -> None:
+    scores = art.validation["scores"]
+    singles = {k: scores[k]["nrmse_pct"] for k in ("ref", "triv", "triv-shrunk")}
+    assert art.validation["blend"] == pytest.approx(weights(singles))
+    blend = art.models["blend"]
+    assert isinstance(blend, BlendModel) and blend.weights_ == art.validation["blend"]
+    assert all(blend.members_[k] is art.models[k] for k in blend.weights_)
+    assert math.isfinite(scores["blend"]["nrmse_pct"]) and "blend" in art.calibration
+
+
+def test_the_live_blend_is_the_weighted_mean_of_its_members(
+        art: Artifact, history: pd.DataFrame, tmp_path: Path) -> None:
+    art.save(tmp_path / "blend.json")
+    loaded = Artifact.load(tmp_path / "blend.json")
+    # every model, the withheld variants too: each member is checked against its own run
+    live, again = Twin(art, models=list(art.models)), Twin(loaded)
+    w = art.models["blend"].weights_
+    checked = 0
+    for ts, s, v in zip(*(day_readings(history)[c] for c in ("ts", "sensor", "value")),
+                        strict=True):
+        if s != REF:
+            continue
+        t = ts.to_pydatetime()
+        live.observe(REF, t, float(v))
+        again.observe(REF, t, float(v))
+        e = live.estimate(t)
+        if "blend" not in e or not e["blend"].finite:
+            continue
+        assert e["blend"].value == pytest.approx(sum(x * e[k].value for k, x in w.items()),
+                                                 abs=1e-9)
+        assert again.estimate(t)["blend"] == e["blend"]
+        checked += 1
+    assert checked > 20
+
+
+def test_a_blend_needs_validation_and_two_candidates(history: pd.DataFrame) -> None:
+    with pytest.raises(DataError, match="validation"):
+        train_twin(history, SPEC, FIRST, 5, ("ref", "triv", "blend"), primary="blend",
+                   validate=False)
+    one = train_twin(history, SPEC, FIRST, 5, ("ref", "varma", "blend"))
+    assert "blend" not in one.models and one.primary == "ref"
+    assert "two or more" in one.validation["scores"]["blend"]["error"]
+
+
+def test_a_tie_goes_to_the_single_model() -> None:
+    scores = {k: CandidateScore(k, True, nrmse_pct=x)
+              for k, x in (("triv", 1.02), ("corrgp-triv", 1.5), ("blend", 1.0))}
+    assert _choose(scores, None)[0] == "triv"
+    better = dataclasses.replace(scores["blend"], nrmse_pct=0.9)
+    assert _choose({**scores, "blend": better}, None)[0] == "blend"
+
