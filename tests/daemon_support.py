@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import math
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import paho.mqtt.client as mqtt
 import pandas as pd
 from paho.mqtt.enums import CallbackAPIVersion
@@ -149,3 +151,23 @@ class Viewer:
     def close(self) -> None:
         self.c.disconnect()
         self.c.loop_stop()
+
+
+def two_reference_days(hours: OperatingHours, first: dt.date, sensors: tuple[str, str, str], *,
+                       offsets: tuple[float, float, float], noise: tuple[float, float, float],
+                       level_sd: float, n_days: int = 6, seed: int = 7) -> pd.DataFrame:
+    """Two references and the desk (``sensors``, in that order) every 5 min, 06:02:30–19:57:30
+    local (off the 15-min publish grid; the readings at an instant: references first): a
+    shared daily course and a day level ~ N(0, level_sd), each sensor with its own offset
+    and noise (std) [°C]."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for k in range(n_days):
+        day = first + dt.timedelta(days=k)
+        level = rng.normal(0.0, level_sd)
+        for h in np.arange(6.0 + 2.5 / 60, 20.0, 5 / 60):
+            common = 21.0 + level + 1.5 * math.sin(math.pi * (h - 6.0) / 14.0)
+            ts = hours.at(day, float(h))
+            for sensor, offset, sd in zip(sensors, offsets, noise, strict=True):
+                rows.append((sensor, ts, common + offset + rng.normal(0, sd)))
+    return pd.DataFrame(rows, columns=["sensor", "ts", "value"])

@@ -10,13 +10,13 @@ from __future__ import annotations
 import dataclasses
 import datetime as dt
 import json
-import math
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
+from daemon_support import two_reference_days
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
@@ -31,26 +31,11 @@ TEST_DAY = FIRST + dt.timedelta(days=5)
 PAIR = pair_criterion(R1, R2)
 
 
-def synthetic_days(n_days: int = 6, seed: int = 11) -> pd.DataFrame:
-    """Both references and the desk every 5 min, 06:02:30–19:57:30 local: a shared daily
-    course and day level, each reference with its own offset and noise."""
-    rng = np.random.default_rng(seed)
-    rows = []
-    for k in range(n_days):
-        day = FIRST + dt.timedelta(days=k)
-        level = rng.normal(0.0, 0.4)
-        for h in np.arange(6.0 + 2.5 / 60, 20.0, 5 / 60):
-            common = 21.0 + level + 1.5 * math.sin(math.pi * (h - 6.0) / 14.0)
-            ts = HOURS.at(day, float(h))
-            rows.append((R1, ts, common + 0.8 + rng.normal(0, 0.1)))
-            rows.append((R2, ts, common - 0.5 + rng.normal(0, 0.1)))
-            rows.append((TARGET, ts, common + 0.2 + rng.normal(0, 0.05)))
-    return pd.DataFrame(rows, columns=["sensor", "ts", "value"])
-
-
 @pytest.fixture(scope="module")
 def history() -> pd.DataFrame:
-    return synthetic_days()
+    """References sharing the day's course and level, each with its own offset and noise."""
+    return two_reference_days(HOURS, FIRST, (R1, R2, TARGET), offsets=(0.8, -0.5, 0.2),
+                              noise=(0.1, 0.1, 0.05), level_sd=0.4, seed=11)
 
 
 @pytest.fixture(scope="module")
@@ -104,6 +89,14 @@ def _fed_until_noon(art: Artifact, today: pd.DataFrame) -> tuple[Twin, dict[str,
     return twin, latest
 
 
+def _then(twin: Twin, values: dict[str, float]) -> dt.datetime:
+    """Both references read ``values`` a minute after noon; that instant."""
+    t = NOON + dt.timedelta(minutes=1)
+    for sensor, v in values.items():
+        twin.observe(sensor, t, v)
+    return t
+
+
 def _deviation(art: Artifact, sensor: str, value: float) -> float:
     """``sensor``'s deviation from its training profile at noon."""
     assert art.envelope is not None
@@ -123,13 +116,11 @@ def test_references_drifting_apart_make_the_estimate_uncertain(
     d1, d2 = _deviation(art, R1, v1 + step), _deviation(art, R2, v2 - step)
     assert d1 - d2 > hi
     assert art.envelope.refs[R1].deviation[1] > d1 and art.envelope.refs[R2].deviation[0] < d2
-    t = NOON + dt.timedelta(minutes=1)
-    twin.observe(R1, t, v1 + step)
-    twin.observe(R2, t, v2 - step)
+    moved = {R1: v1 + step, R2: v2 - step}
+    t = _then(twin, moved)
     blind = dataclasses.replace(art, envelope=art.envelope.keeping(frozenset(), 1.0))
     twin_blind, _ = _fed_until_noon(blind, today)
-    twin_blind.observe(R1, t, v1 + step)
-    twin_blind.observe(R2, t, v2 - step)
+    _then(twin_blind, moved)
     e, b = twin.estimate(t)["triv"], twin_blind.estimate(t)["triv"]
     assert e.unlike == (PAIR,)  # neither reference alone is out of its ranges
     assert e.quality is Quality.UNCERTAIN and b.quality is Quality.OK
@@ -147,9 +138,7 @@ def test_references_moving_together_stay_like_training(
     twin, latest = _fed_until_noon(art, today)
     lo, hi = art.envelope.pairs[0].gap
     step = 0.6 * (hi - lo)  # the same step as above, both the same way
-    t = NOON + dt.timedelta(minutes=1)
-    for s in (R1, R2):
-        twin.observe(s, t, latest[s] + step)
+    t = _then(twin, {s: latest[s] + step for s in (R1, R2)})
     e = twin.estimate(t)["triv"]
     assert PAIR not in e.unlike and e.quality is Quality.OK
 

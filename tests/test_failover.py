@@ -12,11 +12,10 @@ import json
 import math
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 import pytest
 
-from daemon_support import Viewer, wait_for
+from daemon_support import Viewer, two_reference_days, wait_for
 from pseudotwin.analysis.failover import FAILOVER_KINDS
 from pseudotwin.analysis.replay import ESTIMATE, replay_estimates
 from pseudotwin.analysis.training import train_twin
@@ -40,27 +39,12 @@ TEST_DAY = FIRST + dt.timedelta(days=5)
 STALE = dt.timedelta(minutes=30)
 
 
-def synthetic_days(n_days: int = 6, seed: int = 7) -> pd.DataFrame:
-    """Two references and the desk every 5 min (the readings at an instant: references
-    first), 06:02:30–19:57:30 local: a shared daily shape and day level, each reference with its own
-    offset and noise, so TRIV on both beats either alone and each alone still answers."""
-    rng = np.random.default_rng(seed)
-    rows = []
-    for k in range(n_days):
-        day = FIRST + dt.timedelta(days=k)
-        level = rng.normal(0.0, 0.3)
-        for h in np.arange(6.0 + 2.5 / 60, 20.0, 5 / 60):  # off the 15-min publish grid
-            common = 21.0 + level + 1.5 * math.sin(math.pi * (h - 6.0) / 14.0)
-            ts = HOURS.at(day, float(h))
-            rows.append((R1, ts, common + 0.6 + rng.normal(0, 0.2)))
-            rows.append((R2, ts, common - 0.9 + rng.normal(0, 0.2)))
-            rows.append((TARGET, ts, common + 0.2 + rng.normal(0, 0.03)))
-    return pd.DataFrame(rows, columns=["sensor", "ts", "value"])
-
-
 @pytest.fixture(scope="module")
 def history() -> pd.DataFrame:
-    return synthetic_days()
+    """Each reference with its own offset and noise, so TRIV on both beats either alone and
+    each alone still answers."""
+    return two_reference_days(HOURS, FIRST, (R1, R2, TARGET), offsets=(0.6, -0.9, 0.2),
+                              noise=(0.2, 0.2, 0.03), level_sd=0.3, seed=7)
 
 
 @pytest.fixture(scope="module")
