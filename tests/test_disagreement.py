@@ -89,6 +89,13 @@ def _fed_until_noon(art: Artifact, today: pd.DataFrame) -> tuple[Twin, dict[str,
     return twin, latest
 
 
+def _step(art: Artifact) -> float:
+    """How far each reference moves: 0.6 × the span of the pair's training range [°C]."""
+    assert art.envelope is not None
+    lo, hi = art.envelope.pairs[0].gap
+    return 0.6 * (hi - lo)
+
+
 def _then(twin: Twin, values: dict[str, float]) -> dt.datetime:
     """Both references read ``values`` a minute after noon; that instant."""
     t = NOON + dt.timedelta(minutes=1)
@@ -108,10 +115,9 @@ def test_references_drifting_apart_make_the_estimate_uncertain(
     assert art.envelope is not None
     today = history[history["ts"] >= HOURS.at(TEST_DAY, 0.0)]
     twin, latest = _fed_until_noon(art, today)
-    lo, hi = art.envelope.pairs[0].gap
+    hi, step = art.envelope.pairs[0].gap[1], _step(art)
     # Each reference moves by less than its own training deviation allows, in opposite
     # directions: only their gap is unlike training.
-    step = 0.6 * (hi - lo)
     v1, v2 = latest[R1], latest[R2]
     d1, d2 = _deviation(art, R1, v1 + step), _deviation(art, R2, v2 - step)
     assert d1 - d2 > hi
@@ -133,11 +139,8 @@ def test_references_drifting_apart_make_the_estimate_uncertain(
 
 def test_references_moving_together_stay_like_training(
         art: Artifact, history: pd.DataFrame) -> None:
-    assert art.envelope is not None
-    today = history[history["ts"] >= HOURS.at(TEST_DAY, 0.0)]
-    twin, latest = _fed_until_noon(art, today)
-    lo, hi = art.envelope.pairs[0].gap
-    step = 0.6 * (hi - lo)  # the same step as above, both the same way
+    twin, latest = _fed_until_noon(art, history[history["ts"] >= HOURS.at(TEST_DAY, 0.0)])
+    step = _step(art)  # as above, both the same way
     t = _then(twin, {s: latest[s] + step for s in (R1, R2)})
     e = twin.estimate(t)["triv"]
     assert PAIR not in e.unlike and e.quality is Quality.OK
