@@ -41,7 +41,7 @@ from pseudotwin.errors import DataError
 from pseudotwin.history.convert import load
 from tables import print_markdown, print_table
 
-QUICK = ("ref", "triv", "triv-shrunk", "triv-cov")
+QUICK = ("ref", "triv", "triv-shrunk", "triv-cov", "blend")
 TRIV_RATIO = 0.9  # Trust II: the estimate ≤ this × TRIV's mean daily NRMSE
 SLACK_DAYS = 16  # calendar days beyond the test days: training skips days a sensor missed
 

@@ -90,7 +90,7 @@ def _versions() -> str:
 
 
 # The candidates for primary, simplest first (the tie-break order of validation).
-_CANDIDATES = " < ".join(k for k, c in MODELS.items() if c.candidate)
+_CANDIDATES = " < ".join(k for k, c in MODELS.items() if c.candidate and not c.stacked)
 
 HOW_TO_READ = f"""\
 ## How to read these tables
@@ -106,7 +106,8 @@ HOW_TO_READ = f"""\
 * **Validation** (training days only): each training day in turn is held out, every model is
   trained on the other days and the held-out day replayed causally. The candidate with the
   lowest mean held-out daily NRMSE becomes the primary, except that the simplest candidate
-  within {VALIDATION_TIE:.0%} of it wins ({_CANDIDATES}). VARMA is a monitoring
+  within {VALIDATION_TIE:.0%} of it wins ({_CANDIDATES}; the blend by the rule
+  under *Models*). VARMA is a monitoring
   baseline, never primary, and is not published live when its held-out NRMSE exceeds
   {BASELINE_LIMIT:g}× TRIV's. The test days are never looked at for any of this.
 * **NRMSE %** (6.10) = the day's RMSE of the estimate against the target's true readings in
@@ -130,7 +131,9 @@ HOW_TO_READ = f"""\
   `blend` = the weighted mean of the (up to) three candidates with the lowest held-out
   NRMSE, weights ∝ 1/NRMSE² (Bates–Granger); its held-out score combines the members'
   held-out estimates with members and weights chosen on the *other* held-out days, so it is
-  as honest as a single model's;
+  as honest as a single model's; it is the primary when that score is more than 3 % below the
+  held-out error of choosing one candidate (measured the same way: each held-out day scored
+  by the candidate the other days choose);
   `varma` = VARMAX(4, 4)
   with trend `n` (no constant, no drift) on the 15-min grid, every series re-levelled each
   day by the references' init-phase shift (its fallback: VAR(4) by least squares).
