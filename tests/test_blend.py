@@ -86,6 +86,7 @@ def test_training_builds_the_blend_from_validation(art: Artifact) -> None:
     assert isinstance(blend, BlendModel) and blend.weights_ == art.validation["blend"]
     assert all(blend.members_[k] is art.models[k] for k in blend.weights_)
     assert math.isfinite(scores["blend"]["nrmse_pct"]) and "blend" in art.calibration
+    assert math.isfinite(art.validation["selection_nrmse_pct"])
 
 
 def test_the_live_blend_is_the_weighted_mean_of_its_members(

@@ -97,6 +97,8 @@ class Validation:
     held_out: pd.DataFrame = field(default_factory=pd.DataFrame, repr=False)
     # The blend's members and weights from all held-out days (models/blend.py; empty: none).
     blend: dict[str, float] = field(default_factory=dict)
+    # The nested held-out NRMSE [%] of choosing one candidate, what the blend is measured by.
+    selection_nrmse: float = float("nan")
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -108,7 +110,8 @@ class Validation:
             "seconds": round(self.seconds, 1),
             "scores": {k: s.to_dict() for k, s in self.scores.items()},
             "withheld": self.withheld,
-            **({"blend": self.blend} if self.blend else {}),
+            **({"blend": self.blend, "selection_nrmse_pct": self.selection_nrmse}
+               if self.blend else {}),
         }
 
 
@@ -226,9 +229,11 @@ def validate(
             continue
         scores[kind], calibration[kind] = _score(kind, rows, spec, offset_var,
                                                  offset_var_without)
-    chosen, reason = _choose(scores, primary, _selection_nrmse(held, scores))
+    selection = _selection_nrmse(held, scores)
+    chosen, reason = _choose(scores, primary, selection)
     return Validation(scores, chosen, reason, calibration, float(np.sqrt(offset_var)),
-                      time.perf_counter() - t0, _withheld(scores, chosen), held, blend_weights)
+                      time.perf_counter() - t0, _withheld(scores, chosen), held, blend_weights,
+                      selection)
 
 
 def _score(kind: str, rows: pd.DataFrame, spec: TwinSpec, offset_var: float,

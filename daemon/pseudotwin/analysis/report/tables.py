@@ -207,5 +207,8 @@ def validation_md(res: RunResult) -> str:
                      f"training days: {cov.fit_summary()}.")
     if blend := v.get("blend"):
         parts.append("Blend (members and weights from all held-out training days): "
-                     + ", ".join(f"`{k}` {w:.2f}" for k, w in blend.items()) + ".")
+                     + ", ".join(f"`{k}` {w:.2f}" for k, w in blend.items())
+                     + f"; measured against {fmt(v.get('selection_nrmse_pct'))} %, the held-out "
+                     "error of choosing one candidate (each held-out day scored by the "
+                     "candidate the other days choose).")
     return "\n\n".join(parts)
