@@ -16,7 +16,7 @@ take hours); ``--models`` adds others. Prints the origins' table, the summary ta
 one JSON line.
 
     .venv/bin/python scripts/origins.py [--runs NAME,...] [--step-days 4] [--test-days 14]
-                                        [--models ref,triv,triv-shrunk,triv-cov] [--jobs 2]
+                                        [--models ref,triv,triv-shrunk,triv-cov,blend] [--jobs 2]
 """
 
 from __future__ import annotations
