@@ -20,6 +20,7 @@ from pseudotwin.analysis.validation import (
     CandidateScore,
     _blend_rows,
     _choose,
+    _distinct,
     _selection_nrmse,
 )
 from pseudotwin.core.spec import Quantity, TwinSpec
@@ -121,6 +122,18 @@ def test_a_blend_needs_validation_and_two_candidates(history: pd.DataFrame) -> N
     one = train_twin(history, SPEC, FIRST, 5, ("ref", "varma", "blend"))
     assert "blend" not in one.models and one.primary == "ref"
     assert "two or more" in one.validation["scores"]["blend"]["error"]
+    assert "blend" not in one.validation  # no weights recorded for a blend that was not made
+    with pytest.raises(DataError, match="at least two candidates"):
+        train_twin(history, SPEC, FIRST, 5, ("blend",))
+
+
+def test_a_model_that_repeats_another_is_not_a_second_member() -> None:
+    """triv-cov that kept no covariate answers exactly as TRIV: one member, not two."""
+    rows = [{"ts": pd.Timestamp("2024-01-01 10:00", tz="UTC") + pd.Timedelta(minutes=k),
+             "model": m, "value": 20.0 + (0.1 * k if m == "ref" else 0.05), "day": 1}
+            for k in range(3) for m in ("ref", "triv", "triv-cov")]
+    held = pd.DataFrame(rows)
+    assert _distinct(held, ["ref", "triv", "triv-cov"]) == ["ref", "triv"]
 
 
 def test_the_blend_must_beat_the_nested_choice_of_one_candidate() -> None:

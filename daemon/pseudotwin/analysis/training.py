@@ -145,6 +145,9 @@ def train_validated(
     if not models:
         raise DataError("none of the models asked for can serve this twin: "
                         + "; ".join(f"{k}: {w}" for k, w in skipped.items()))
+    if all(model_class(k).stacked for k in models):
+        raise DataError(f"{', '.join(models)} is made from other models: ask for at least two "
+                        "candidates too (e.g. --models ref,triv,blend)")
     sensors = list(spec.sensors)
     require_sensors(df, [*sensors, *spec.covariates])
     policy = thinning or Thinning()

@@ -7,7 +7,7 @@ honest errors on a day it has not seen:
 
 - the **primary** is the candidate with the lowest mean held-out daily NRMSE, except that the
   simplest candidate within ``TIE_RELATIVE`` of it wins (the registry's order, ref < triv <
-  triv-shrunk < triv-cov < corrgp-triv < corrgp-multi < corrgp-lcm < blend): five days cannot
+  triv-shrunk < triv-cov < corrgp-triv < corrgp-multi < corrgp-lcm): five days cannot
   tell a 3 % difference from noise, and the simpler model fails in simpler ways. The blend
   (models/blend.py) is not refit per fold: its held-out rows combine the members' with weights
   chosen on the other held-out days. It is measured against the held-out error of that choice
@@ -153,8 +153,10 @@ def offset_variance(spec: TwinSpec, days: Sequence[DayReadings]) -> float:
 
 def _fold(df: pd.DataFrame, spec: TwinSpec, train: Sequence[DayReadings], held: dt.date,
           kinds: Sequence[str], options: Mapping[str, Mapping[str, Any]],
-          failures: dict[str, str], thinning: Thinning | None = None) -> pd.DataFrame:
-    """Train ``kinds`` on ``train``, replay the held-out day; rows as replay_estimates."""
+          failures: dict[str, str], thinning: Thinning | None = None,
+          refs: dict[str, tuple[str, ...]] | None = None) -> pd.DataFrame:
+    """Train ``kinds`` on ``train``, replay the held-out day; rows as replay_estimates.
+    refs, when given, gets each fitted kind's references."""
     ts = TrainingSet(spec, tuple(train))
     fitted: dict[str, TwinModel] = {}
     for kind in kinds:
@@ -168,6 +170,8 @@ def _fold(df: pd.DataFrame, spec: TwinSpec, train: Sequence[DayReadings], held: 
             log.warning("validation: %s cannot be trained without %s (%s)", kind, held, exc)
     if not fitted:
         return pd.DataFrame()
+    if refs is not None:
+        refs.update({k: m.references_ for k, m in fitted.items()})
     # The fold's own training ranges, none acting: the rows only record which criteria fired
     # (column ``unlike``), so analysis/criteria.py can judge them on a day they have not seen.
     envelope = Envelope.fit(ts).keeping(frozenset(), 1.0)
@@ -200,12 +204,19 @@ def validate(
     failures: dict[str, str] = {}
     frames = []
     trained = [k for k in models if not MODELS[k].stacked]
+    refs: dict[str, tuple[str, ...]] = {}  # kind → the references its fitted models read
     # Each fold refits every model: the same fit warning would otherwise appear per fold.
     with collapsed(_FOLD_LOGGERS, f"validation's {len(days)} folds"):
         for d in days:
             rest = [x for x in days if x.day != d.day]
-            frames.append(_fold(df, spec, rest, d.day, trained, opts, failures, thinning))
-    held = pd.concat([f for f in frames if not f.empty], ignore_index=True)
+            frames.append(_fold(df, spec, rest, d.day, trained, opts, failures, thinning,
+                                refs))
+    frames = [f for f in frames if not f.empty]
+    if not frames:
+        raise DataError("no model could be validated on the training days: "
+                        + ("; ".join(f"{k} {why}" for k, why in failures.items())
+                           or "nothing to validate"))
+    held = pd.concat(frames, ignore_index=True)
     offset_var = offset_variance(spec, days)
     offset_var_without = {d.day: offset_variance(spec, [x for x in days if x.day != d.day])
                           for d in days}
@@ -214,12 +225,13 @@ def validate(
     blend_weights: dict[str, float] = {}
     for kind in [*trained, *(k for k in models if MODELS[k].stacked)]:
         if MODELS[kind].stacked:
-            members = [k for k in trained if MODELS[k].candidate and k in scores
-                       and not scores[k].error]
+            members = _distinct(held, [k for k in trained if MODELS[k].candidate
+                                       and k in scores and not scores[k].error])
             blend_weights = blend.weights({k: scores[k].nrmse_pct for k in members})
-            extra = _blend_rows(held, members)
+            extra = _blend_rows(held, members, refs)
             if not blend_weights or extra.empty:
                 failures[kind] = "needs two or more validated candidates"
+                blend_weights = {}
             else:
                 held = pd.concat([held, extra.assign(model=kind)], ignore_index=True)
         rows = held[held["model"] == kind] if not held.empty else held
@@ -255,12 +267,27 @@ def _score(kind: str, rows: pd.DataFrame, spec: TwinSpec, offset_var: float,
     ), calibration
 
 
-def _blend_rows(held: pd.DataFrame, members: Sequence[str]) -> pd.DataFrame:
+def _distinct(held: pd.DataFrame, kinds: Sequence[str]) -> list[str]:
+    """``kinds`` without any whose held-out estimates equal an earlier one's at every instant
+    (triv-cov that kept no covariate is TRIV): a blend must not count one model twice."""
+    out: list[str] = []
+    values = {k: held.loc[held["model"] == k, ["day", "ts", "value"]].reset_index(drop=True)
+              for k in kinds}
+    for k in kinds:
+        if not any(values[k].equals(values[j]) for j in out):
+            out.append(k)
+    return out
+
+
+def _blend_rows(held: pd.DataFrame, members: Sequence[str],
+                refs: Mapping[str, tuple[str, ...]] | None = None) -> pd.DataFrame:
     """The blend's held-out rows (models/blend.py): on each held-out day, the members and
     weights its rule picks from the *other* days' held-out daily NRMSE of ``members``, so the
-    day it is scored on chose nothing. At each instant every member answered: value and own
-    std combined with the weights; truth; the worst quality (the first not ``ok``); slope the
-    members' mean (exact when the members' references are one set, or split evenly); the
+    day it is scored on chose nothing; only members held out on every day take part, so the
+    blend is scored on the days the single candidates are. At each instant every member
+    answered: value and own std combined with the weights; truth; the worst quality (the
+    first not ``ok``); slope that of a member reading every reference the blend reads
+    (``refs``: kind → its references), as the live σ takes it, else the members' mean; the
     criteria any member's row fired on."""
     rows = held[held["model"].isin(members)]
     if rows.empty:
@@ -268,15 +295,18 @@ def _blend_rows(held: pd.DataFrame, members: Sequence[str]) -> pd.DataFrame:
     daily = {(k, d): metrics.nrmse_pct(g["truth"], g["value"])
              for (k, d), g in rows.groupby(["model", "day"])}
     all_days = sorted(rows["day"].unique())
+    complete = [k for k in members if all((k, x) in daily for x in all_days)]
     out = []
     for d in all_days:
         others = [x for x in all_days if x != d]
-        inner = {k: float(np.mean([daily[(k, x)] for x in others]))
-                 for k in members if others and all((k, x) in daily for x in others)}
+        inner = {k: float(np.mean([daily[(k, x)] for x in others])) for k in complete
+                 if others}
         w = blend.weights(inner)
         if not w:
             continue
         day_rows = rows[(rows["day"] == d) & rows["model"].isin(w)]
+        union = {r for k in w for r in (refs or {}).get(k, ())}
+        full = next((k for k in w if refs and set(refs.get(k, ())) == union), None)
         for ts, g in day_rows.groupby("ts", sort=True):
             if set(g["model"]) != set(w) or len(g) != len(w):
                 continue  # a member without an estimate here: the blend has none either
@@ -286,7 +316,8 @@ def _blend_rows(held: pd.DataFrame, members: Sequence[str]) -> pd.DataFrame:
                    "std": float(np.sqrt(np.sum((wv * g["std"].to_numpy(float)) ** 2))),
                    "truth": float(g["truth"].iloc[0]),
                    "quality": str(bad.iloc[0]) if len(bad) else "ok",
-                   "slope": float(g["slope"].mean()), "day": d}
+                   "slope": float(g.loc[g["model"] == full, "slope"].iloc[0]
+                                  if full is not None else g["slope"].mean()), "day": d}
             if "unlike" in g:
                 fired = {u for x in g["unlike"] for u in str(x).split(UNLIKE_SEP) if u}
                 row["unlike"] = UNLIKE_SEP.join(sorted(fired))
@@ -367,7 +398,7 @@ def _choose(scores: Mapping[str, CandidateScore], pinned: str | None,
     ranked = [s for s in scores.values() if s.candidate and not s.error
               and np.isfinite(s.nrmse_pct) and not MODELS[s.kind].stacked]
     if not ranked:
-        candidates = ", ".join(k for k, m in MODELS.items() if m.candidate)
+        candidates = ", ".join(k for k, m in MODELS.items() if m.candidate and not m.stacked)
         raise DataError("no model that may be the primary could be validated on the training "
                         f"days (candidates: {candidates}; check --models)")
     order = list(MODELS)  # the registry lists models from the simplest
@@ -380,8 +411,10 @@ def _choose(scores: Mapping[str, CandidateScore], pinned: str | None,
     else:
         reason = (f"{chosen.kind}: within {TIE_RELATIVE:.0%} of the lowest held-out daily NRMSE "
                   f"({chosen.nrmse_pct:.2f} % vs {best.kind} {best.nrmse_pct:.2f} %) and simpler")
+    # Scored on fewer held-out days than the single candidates, it is not comparable.
     stacked = [s for s in scores.values() if s.candidate and not s.error
-               and np.isfinite(s.nrmse_pct) and MODELS[s.kind].stacked]
+               and np.isfinite(s.nrmse_pct) and MODELS[s.kind].stacked
+               and s.days >= max(r.days for r in ranked)]
     for s in stacked:
         if s.nrmse_pct < selection_nrmse * (1 - TIE_RELATIVE):
             return s.kind, (f"{s.kind}: held-out daily NRMSE {s.nrmse_pct:.2f} %, more than "

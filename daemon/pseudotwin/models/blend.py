@@ -10,10 +10,11 @@ test days:
   validation (at least two; the blend itself and monitoring baselines never);
 - weights w_m ∝ 1 / NRMSE_m², summing to 1 (inverse mean squared error, Bates–Granger).
 
-The blend is a candidate like any other: validation scores it on each held-out day with
-members and weights chosen from the *other* days' held-out errors (so its score is as honest
-as a single model's), and it wins only when it beats the best single candidate by more than the
-tie margin. Its σ is calibrated on those held-out errors like every model's.
+The blend is a candidate: validation scores it on each held-out day with members and
+weights chosen from the *other* days' held-out errors (so its score is as honest as a single
+model's), and it wins only when it beats, by more than the tie margin, the held-out error of
+choosing one candidate measured the same way (analysis/validation.py). Its σ is calibrated on
+those held-out errors like every model's.
 
 Its members are fitted models of the twin, so it is not fit on days itself: :func:`weights`
 turns validation's scores into members and weights, and ``fit`` only checks them.
@@ -129,4 +130,7 @@ class BlendDay(DayEstimator):
 
     def numerics(self) -> Numerics | None:
         found = [n for e in self.members.values() if (n := e.numerics()) is not None]
-        return max(found, key=lambda n: n.jitter) if found else None
+        if not found:
+            return None
+        return Numerics(max(n.jitter for n in found), sum(n.refactorizations for n in found),
+                        max(n.points for n in found))

@@ -289,8 +289,8 @@ def _helped(results: Sequence[RunResult]) -> str:
         "\n\nMean daily NRMSE % on the test days (in brackets: held out on the training days, "
         "what validation chose from), and the ratio to TRIV's on the test days. `—`: the model "
         "cannot serve the run's twin (corrgp-multi needs two references; triv-cov is TRIV "
-        "where no covariate was kept, see each run's validation section; blend is the blend "
-        "of the members in its validation note). Only the primary is "
+        "where no covariate was kept, see each run's validation section; blend needs two "
+        "validated candidates, its members are in the validation note). Only the primary is "
         "published as `estimate`; the others are scored here whether or not they run live.")
 
 
