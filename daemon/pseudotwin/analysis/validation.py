@@ -267,6 +267,12 @@ def _score(kind: str, rows: pd.DataFrame, spec: TwinSpec, offset_var: float,
     ), calibration
 
 
+def _daily_nrmse(rows: pd.DataFrame) -> dict[tuple[str, Any], float]:
+    """(model, held-out day) → that day's NRMSE [%] of the model's held-out ``rows``."""
+    return {(k, d): metrics.nrmse_pct(g["truth"], g["value"])
+            for (k, d), g in rows.groupby(["model", "day"])}
+
+
 def _distinct(held: pd.DataFrame, kinds: Sequence[str]) -> list[str]:
     """``kinds`` without any whose held-out estimates equal an earlier one's at every instant
     (triv-cov that kept no covariate is TRIV): a blend must not count one model twice."""
@@ -292,8 +298,7 @@ def _blend_rows(held: pd.DataFrame, members: Sequence[str],
     rows = held[held["model"].isin(members)]
     if rows.empty:
         return rows.iloc[0:0]
-    daily = {(k, d): metrics.nrmse_pct(g["truth"], g["value"])
-             for (k, d), g in rows.groupby(["model", "day"])}
+    daily = _daily_nrmse(rows)
     all_days = sorted(rows["day"].unique())
     complete = [k for k in members if all((k, x) in daily for x in all_days)]
     out = []
@@ -369,8 +374,7 @@ def _selection_nrmse(held: pd.DataFrame, scores: Mapping[str, CandidateScore]) -
     rows = held[held["model"].isin(singles)] if not held.empty else held
     if rows.empty:
         return float("nan")
-    daily = {(k, d): metrics.nrmse_pct(g["truth"], g["value"])
-             for (k, d), g in rows.groupby(["model", "day"])}
+    daily = _daily_nrmse(rows)
     days = sorted({d for _, d in daily})
     picked = []
     for d in days:
