@@ -24,7 +24,7 @@ from pseudotwin.analysis.validation import (
     _selection_nrmse,
 )
 from pseudotwin.core.spec import Quantity, TwinSpec
-from pseudotwin.errors import DataError
+from pseudotwin.errors import DataError, NumericalError
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.twin import Twin
 from pseudotwin.models.blend import MAX_MEMBERS, BlendModel, weights
@@ -96,6 +96,7 @@ def test_the_live_blend_is_the_weighted_mean_of_its_members(
     loaded = Artifact.load(tmp_path / "blend.json")
     # every model, the withheld variants too: each member is checked against its own run
     live, again = Twin(art, models=list(art.models)), Twin(loaded)
+    alone = Twin(loaded, models=["blend"])
     w = art.models["blend"].weights_
     checked = 0
     for ts, s, v in zip(*(day_readings(history)[c] for c in ("ts", "sensor", "value")),
@@ -103,16 +104,43 @@ def test_the_live_blend_is_the_weighted_mean_of_its_members(
         if s != REF:
             continue
         t = ts.to_pydatetime()
-        live.observe(REF, t, float(v))
-        again.observe(REF, t, float(v))
+        for twin in (live, again, alone):
+            twin.observe(REF, t, float(v))
         e = live.estimate(t)
         if "blend" not in e or not e["blend"].finite:
             continue
         assert e["blend"].value == pytest.approx(sum(x * e[k].value for k, x in w.items()),
                                                  abs=1e-9)
         assert again.estimate(t)["blend"] == e["blend"]
+        # one state per member kind, shared with the member's own estimate or not
+        assert alone.estimate(t)["blend"] == e["blend"]
         checked += 1
     assert checked > 20
+    blend = loaded.models["blend"]
+    assert all(m is loaded.models[k] for k, m in blend.parts().items())  # one copy loaded
+
+
+def test_a_member_failing_makes_the_blend_fall_back_until_it_recovers(
+        art: Artifact, monkeypatch: pytest.MonkeyPatch) -> None:
+    day = dt.date(2012, 3, 20)
+    twin = Twin(art, models=["blend"])
+    twin.observe(REF, HOURS.at(day, 8.0), 17.0)
+    twin.observe(REF, HOURS.at(day, 9.0), 17.6)
+    ok = twin.estimate(HOURS.at(day, 9.0))["blend"]
+    assert (ok.quality, ok.model) == ("ok", "blend")
+    ref_day = type(art.models["ref"].start_day(day))
+    assert ref_day is not type(art.models["triv"].start_day(day))  # TRIV stays a fallback
+
+    def failing(self: object, hours: float) -> object:  # fault injection
+        raise NumericalError("injected")
+
+    with monkeypatch.context() as m:
+        m.setattr(ref_day, "predict", failing)
+        e = twin.estimate(HOURS.at(day, 9.1))["blend"]
+        assert (e.quality, e.model) == ("fallback", "triv") and e.publishable
+    twin.observe(REF, HOURS.at(day, 9.2), 17.7)  # rebuilt from the window at the next reading
+    back = twin.estimate(HOURS.at(day, 9.2))["blend"]
+    assert (back.quality, back.model) == ("ok", "blend") and twin.fallbacks == 1
 
 
 def test_a_blend_needs_validation_and_two_candidates(history: pd.DataFrame) -> None:

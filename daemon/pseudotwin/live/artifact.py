@@ -64,6 +64,8 @@ class Artifact(OfTwin):
     def __post_init__(self) -> None:
         if self.primary not in self.models:
             raise ArtifactError(f"primary model {self.primary!r} is not in the artifact")
+        for m in self.models.values():
+            m.share(self.models)
 
     @property
     def withheld(self) -> dict[str, str]:

@@ -30,7 +30,7 @@ from pseudotwin.errors import NumericalError
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.calibration import SLOPE_WINDOW_H, SigmaCalibration
 from pseudotwin.live.failover import ranked
-from pseudotwin.models.base import DayEstimator, TwinModel
+from pseudotwin.models.base import DayEstimator, Estimate, TwinModel
 
 log = logging.getLogger(__name__)
 
@@ -134,6 +134,12 @@ class Twin:
         if missing:
             raise ValueError(f"artifact has no model(s) {', '.join(missing)}")
         self.kinds = kinds
+        # What runs on the window: every kind asked for, a stacked one (models/blend.py) as
+        # its members (one state per kind, shared with the member's own kind if asked).
+        self._models: dict[str, TwinModel] = {}
+        for k in kinds:
+            for kind, model in self._running(k, artifact.models[k]):
+                self._models.setdefault(kind, model)
         self.stale_after = stale_after
         self.max_carry = max_carry
         self.thinning = thinning or Thinning()
@@ -157,6 +163,14 @@ class Twin:
         self.failover_since: dt.datetime | None = None
         self.failover_lost: tuple[str, ...] = ()
 
+    def _running(self, kind: str, model: TwinModel) -> list[tuple[str, TwinModel]]:
+        """The (kind, model) pairs whose day states ``kind`` needs: itself, or a stacked
+        model's members (the artifact's models of those kinds where it has them)."""
+        if not model.stacked:
+            return [(kind, model)]
+        return [pair for k, m in model.parts().items()
+                for pair in self._running(k, self.artifact.models.get(k, m))]
+
     # -- the window -------------------------------------------------------------------
     def _needs(self, kind: str) -> tuple[str, ...]:
         return self.artifact.models[kind].references_
@@ -168,7 +182,7 @@ class Twin:
         self._thinner = WindowThinner(self.thinning)
         self._broken = set()
         self._series = {s: ([], []) for s in self.inputs}
-        self._est = {k: self.artifact.models[k].start_day(day) for k in self.kinds}
+        self._est = {k: m.start_day(day) for k, m in self._models.items()}
         self._failover = ({r: f.model.start_day(day) for r, f in self.artifact.failover.items()}
                           if self.artifact.primary in self.kinds else {})
         self.uncertain_since, self.uncertain_why = None, ()
@@ -216,7 +230,7 @@ class Twin:
         if self.day is None:
             return
         for kind in list(self._broken):
-            est = self.artifact.models[kind].start_day(self.day)
+            est = self._models[kind].start_day(self.day)
             try:
                 for r in self.window:
                     est.observe(r.sensor, r.hours, r.value)
@@ -361,6 +375,7 @@ class Twin:
         h = self.hours.hours_of(ts)
         out: dict[str, TwinEstimate] = {}
         triv = None
+        predicted: dict[str, Estimate] = {}  # kind → its prediction at h (members are shared)
         slopes: dict[tuple[str, ...], float] = {}
         unlike: dict[str, list[tuple[str, str]]] = {}  # reference → (criterion, why), at h
         for kind in self.kinds if kinds is None else kinds:
@@ -368,13 +383,9 @@ class Twin:
             name = self.artifact.models[kind].model_name
             quality = Quality.OK
             try:
-                if kind in self._broken:
-                    raise NumericalError("model state lost")
-                e = self._est[kind].predict(h)
+                e = self._predict(kind, h, predicted)
                 value, std = e.value, self._calibrated(kind, h, e.std, slopes)
-            except NumericalError as exc:
-                if kind not in self._broken:
-                    self._break(kind, exc)
+            except NumericalError:
                 triv = triv or self._triv_fallback(h)
                 value, name, quality = triv[0], "triv", Quality.FALLBACK
                 std = self._calibrated("triv", h, triv[1], slopes)
@@ -403,6 +414,25 @@ class Twin:
             out[kind] = TwinEstimate(ts, float(value), float(std), name, quality, refs, why,
                                      lost, fired)
         return out
+
+    def _predict(self, kind: str, h: float, predicted: dict[str, Estimate]) -> Estimate:
+        """``kind``'s raw estimate at ``h`` (a stacked model's from its members'); raises
+        NumericalError when it, or a member, failed (and marks that model broken)."""
+        if kind in predicted:
+            return predicted[kind]
+        model = self._models.get(kind) or self.artifact.models[kind]
+        if model.stacked:
+            e = model.combine({k: self._predict(k, h, predicted) for k in model.parts()})
+        elif kind in self._broken:
+            raise NumericalError("model state lost")
+        else:
+            try:
+                e = self._est[kind].predict(h)
+            except NumericalError as exc:
+                self._break(kind, exc)
+                raise
+        predicted[kind] = e
+        return e
 
     def _answer_without(self, ts: dt.datetime, h: float, slopes: dict[tuple[str, ...], float]
                         ) -> tuple[float, float, str, tuple[str, ...]] | None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import datetime as dt
 from abc import ABC, abstractmethod
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar, Self
 
@@ -136,3 +137,18 @@ class TwinModel(ABC):
     def fit_summary(self) -> str:
         """One line on how the fit went (printed by ``train``); empty when nothing to say."""
         return ""
+
+    def parts(self) -> Mapping[str, TwinModel]:
+        """A stacked model's fitted members (kind → model), whose estimates :meth:`combine`
+        turns into its own; empty for a model that runs on its own."""
+        return {}
+
+    def share(self, models: Mapping[str, TwinModel]) -> None:
+        """Let a stacked model use ``models``' fitted models of its members' kinds (an
+        artifact's), so that one copy is held and, live, one state runs; a no-op for others."""
+        return None
+
+    def combine(self, parts: Mapping[str, Estimate]) -> Estimate:
+        """A stacked model's estimate from its members' estimates at one instant (kind →
+        estimate, every kind of :meth:`parts`)."""
+        raise TypeError(f"{self.kind} is not a stacked model: it has no parts to combine")

@@ -79,7 +79,25 @@ class BlendModel(TwinModel):
         return self
 
     def start_day(self, day: dt.date) -> BlendDay:
-        return BlendDay({k: m.start_day(day) for k, m in self.members_.items()}, self.weights_)
+        """The blend on its own: its members' day states side by side. A twin running the
+        members anyway combines their estimates instead (live/twin.py), one state each."""
+        return BlendDay({k: m.start_day(day) for k, m in self.members_.items()}, self)
+
+    def parts(self) -> Mapping[str, TwinModel]:
+        return self.members_
+
+    def share(self, models: Mapping[str, TwinModel]) -> None:
+        # The artifact stores each member twice (its own entry and here) so that either
+        # loads alone; once loaded, one object serves both.
+        self.members_ = {k: models.get(k, m) for k, m in self.members_.items()}
+
+    def combine(self, parts: Mapping[str, Estimate]) -> Estimate:
+        value = var = 0.0
+        for k, w in self.weights_.items():
+            e = parts[k]
+            value += w * e.value
+            var += (w * e.std) ** 2  # the members' own spreads, as if independent
+        return Estimate(value, math.sqrt(var))
 
     def to_dict(self) -> dict[str, Any]:
         return {"weights": self.weights_,
@@ -108,9 +126,9 @@ class BlendDay(DayEstimator):
     """The members' day states side by side; a numerical failure of any member is the
     blend's (the twin then falls back as for any model)."""
 
-    def __init__(self, members: dict[str, DayEstimator], weights: Mapping[str, float]) -> None:
+    def __init__(self, members: dict[str, DayEstimator], model: BlendModel) -> None:
         self.members = members
-        self.weights = [(members[k], w) for k, w in weights.items()]
+        self.model = model
 
     def observe(self, sensor: str, hours: float, value: float) -> None:
         for est in self.members.values():
@@ -121,12 +139,7 @@ class BlendDay(DayEstimator):
             est.revise(sensor, hours, value)
 
     def predict(self, hours: float) -> Estimate:
-        value = var = 0.0
-        for est, w in self.weights:
-            e = est.predict(hours)
-            value += w * e.value
-            var += (w * e.std) ** 2  # the members' own spreads, as if independent
-        return Estimate(value, math.sqrt(var))
+        return self.model.combine({k: e.predict(hours) for k, e in self.members.items()})
 
     def numerics(self) -> Numerics | None:
         found = [n for e in self.members.values() if (n := e.numerics()) is not None]
