@@ -251,6 +251,26 @@ def test_predict_is_cached_between_slots(
     assert est.n_filtered == n
 
 
+def test_the_cache_is_bounded_and_earlier_slots_are_filtered_again_alike(
+    varma: VarmaModel, test_days: dict[dt.date, DayReadings]
+) -> None:
+    """Estimates of earlier times, asked after the day went on, equal those made live, while
+    the cache holds the newest slots and a checkpoint every EVERY slots only. (From day
+    start: the init phase's later readings still move today's level shift.)"""
+    day = test_days[TEST_DAYS[0]]
+    est = varma.start_day(day.day)
+    live = {}
+    for h, v in zip(*day.series[REF], strict=True):
+        est.observe(REF, h, v)
+        if h >= HOURS.day_start:
+            live[float(h)] = est.predict(float(h))
+    slots = est.n_filtered
+    assert slots > 4 * VarmaDay.EVERY
+    assert est.n_kept <= 2 * VarmaDay.KEEP + slots // VarmaDay.EVERY + 2
+    assert {h: est.predict(h) for h in live} == live
+    assert est.n_filtered == slots
+
+
 def test_target_and_unknown_sensors_are_ignored(
     varma: VarmaModel, test_days: dict[dt.date, DayReadings]
 ) -> None:

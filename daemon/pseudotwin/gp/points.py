@@ -29,7 +29,7 @@ __all__ = ["INTERVAL_H", "PointBuckets", "merging"]
 INTERVAL_H: float | None = 5 / 60
 
 
-@dataclass
+@dataclass(slots=True)  # one per GP point and twin: no per-instance dict
 class _Bucket:
     k: int  # bucket number: floor(hours / interval)
     index: int  # the posterior's observation index of the bucket's point
@@ -70,7 +70,7 @@ class PointBuckets:
             newest = self._newest.get(o)
             if newest is None or k > newest.k:
                 if newest is not None:
-                    newest.members = {}  # only the newest bucket is ever revised
+                    newest.members.clear()  # only the newest bucket is ever revised
                 b.members[hours] = value
                 self._newest[o] = b
             return None, hours, value

@@ -50,7 +50,10 @@ class IncrementalPosterior:
     only while ``_a_fresh``.
     """
 
-    # Buffers of ``capacity`` rows; the first n are in use.
+    # Buffers of ``capacity`` rows; the first n are in use. They start small and grow by a
+    # quarter when full: the packed factor grows with the square of its rows (doubling would
+    # hold up to 4× the rows' memory), and a buffer is resident in full once the allocator
+    # hands out reused memory, every day of every twin.
     _t: np.ndarray  # [cap] float: times [h]
     _o: np.ndarray  # [cap] int: output indices
     _r: np.ndarray  # [cap] float: residuals
@@ -58,7 +61,7 @@ class IncrementalPosterior:
     _a: np.ndarray  # [cap] float: L⁻¹ D⁻¹ r
     _P: np.ndarray  # [cap (cap + 1) / 2] rows of L, the factor of the scaled kernel matrix
 
-    def __init__(self, params: LcmParams, capacity: int = 256) -> None:
+    def __init__(self, params: LcmParams, capacity: int = 32) -> None:
         self.params = params
         # Per output, fixed by the artifact: asked for at every update and prediction.
         self._prior_var = [params.prior_var(o) for o in range(params.n_outputs)]
@@ -70,7 +73,7 @@ class IncrementalPosterior:
         self.refactorizations = 0
         cap = max(8, capacity)
         self._t, self._o, self._r, self._d, self._a = self._vectors(cap)
-        self._P = np.zeros(_packed(cap))
+        self._P = np.empty(_packed(cap))  # rows are written before they are read
 
     def _vectors(self, cap: int) -> tuple[np.ndarray, ...]:
         """Fresh (t, o, r, d, a) buffers of ``cap`` rows."""
@@ -83,7 +86,7 @@ class IncrementalPosterior:
         t, o, r, d, a = self._vectors(cap)
         for new, old in ((t, self._t), (o, self._o), (r, self._r), (d, self._d), (a, self._a)):
             new[:n] = old[:n]
-        P = np.zeros(_packed(cap))
+        P = np.empty(_packed(cap))
         P[: _packed(self._m)] = self._P[: _packed(self._m)]
         self._t, self._o, self._r, self._d, self._a, self._P = t, o, r, d, a, P
 
@@ -111,7 +114,7 @@ class IncrementalPosterior:
             raise NumericalError(f"non-finite observation t={t} r={r}")
         n = self.n
         if n == len(self._t):
-            self._alloc(2 * n)
+            self._alloc(n + max(32, n // 4))
         self._t[n], self._o[n], self._r[n] = t, o, r
         self._d[n] = math.sqrt(self._obs_var(o))
         self.n = n + 1

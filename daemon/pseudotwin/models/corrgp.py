@@ -185,7 +185,7 @@ class LcmDay(DayEstimator):
     def __init__(self, model: CorrGpLcm) -> None:
         self.model = model
         self.index = {r: i for i, r in enumerate(model.references_)}
-        self.post = IncrementalPosterior(model.params_, capacity=512)
+        self.post = IncrementalPosterior(model.params_)
         self.points = gp_points.merging()  # None: one GP point per window point
 
     def _res(self, value: float) -> float:
@@ -453,7 +453,7 @@ class TrivGpDay(DayEstimator):
     def __init__(self, model: CorrGpTriv) -> None:
         self.model = model
         self.index = {r: i for i, r in enumerate(model.references_)}
-        self.post = IncrementalPosterior(model.params_, capacity=512)
+        self.post = IncrementalPosterior(model.params_)
         self.held = HeldValues()
         self.shifts = [_LevelShift(model) for _ in model.references_]
         self.values: list[float] = []  # raw reference values, in the posterior's order

@@ -55,7 +55,7 @@ import time
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -101,6 +101,8 @@ def day_shift(raw_refs: np.ndarray, ref_profile: np.ndarray, init: np.ndarray) -
     if not len(rows):
         return 0.0
     return float(np.mean(dev[rows[0]][ok[rows[0]]]))
+#: A Kalman filter state: mean a [m], covariance P [m, m].
+_State = tuple[np.ndarray, np.ndarray]
 _SLOT_EPS = 1e-9  # [h] a reading exactly at a slot start belongs to that slot (as history.py)
 
 
@@ -689,7 +691,16 @@ class VarmaDay(DayEstimator):
     (NaN if none yet) minus its profile. Filtered states are cached per slot; a reading that
     changes an already filtered slot (only an out-of-order one can) invalidates the cache
     from that slot on.
+
+    The cache keeps the newest ``KEEP`` slots' states, and of older slots only the predicted
+    state of every ``EVERY``-th (a checkpoint): the others are filtered again from the
+    checkpoint before them when asked for, which only an estimate of an earlier time or an
+    out-of-order reading does. A day of 5-minute slots then holds ~20 covariance matrices
+    instead of ~280, per twin (the same numbers, computed the same way).
     """
+
+    KEEP: ClassVar[int] = 4
+    EVERY: ClassVar[int] = 8
 
     def __init__(self, model: VarmaModel, day: dt.date) -> None:
         self.model = model
@@ -706,8 +717,9 @@ class VarmaDay(DayEstimator):
         S, k = int(model.profile_.shape[0]), int(model.profile_.shape[1])
         self._obs = np.full((S, k), np.nan)  # [S, k] deseasonalized; target column stays NaN
         a0, p0 = self._ss.initial_state(self._tau0)
-        self._pred: list[tuple[np.ndarray, np.ndarray]] = [(a0, p0)]  # state for slot i
-        self._filt: list[tuple[np.ndarray, np.ndarray]] = []  # filtered state of slot i
+        # Predicted state for slot i, filtered state of slot i (None: thinned, see KEEP).
+        self._pred: list[_State | None] = [(a0, p0)]
+        self._filt: list[_State | None] = []
         self._rqr = self._ss.selection @ self._ss.state_cov @ self._ss.selection.T
         # The estimate is w · (series at the slot): the target itself, or in "offset" mode
         # the modelled offset plus the mean of the (filtered = observed, when seen) references.
@@ -811,8 +823,15 @@ class VarmaDay(DayEstimator):
 
     def _invalidate(self, slot: int) -> None:
         if slot < len(self._filt):
+            slot = self._checkpoint(slot)
             del self._filt[slot:]
             del self._pred[slot + 1:]
+
+    def _checkpoint(self, slot: int) -> int:
+        """The latest slot at or before ``slot`` whose predicted state is kept."""
+        while self._pred[slot] is None:
+            slot -= 1
+        return slot
 
     # -- estimates --------------------------------------------------------------------
     def predict(self, hours: float) -> Estimate:
@@ -825,12 +844,13 @@ class VarmaDay(DayEstimator):
             self._flush()
         slot = self.model.hours_.slot_index_of(hours) - self._first
         if slot < 0:
-            a, p = self._pred[0]
-            return self._estimate(0, a, p)
+            first = self._pred[0]
+            assert first is not None  # slot 0 is a checkpoint
+            return self._estimate(0, *first)
         slot = min(slot, len(self._starts) - 1)
         while len(self._filt) <= slot:
             self._step()
-        a, p = self._filt[slot]
+        a, p = self._filtered(slot)
         e = self._estimate(slot, a, p)
         if self.model.live_refs:
             e = Estimate(e.value + self._within_slot(slot, hours), e.std)
@@ -855,11 +875,40 @@ class VarmaDay(DayEstimator):
         var = float(z @ p @ z + self._whw)
         return Estimate(mean, math.sqrt(max(var, 0.0)))
 
+    def _filtered(self, slot: int) -> _State:
+        """Slot ``slot``'s filtered state (filtered already), from the cache or filtered
+        again from the checkpoint before it."""
+        kept = self._filt[slot]
+        if kept is not None:
+            return kept
+        i = self._checkpoint(slot)
+        state = self._pred[i]
+        assert state is not None  # a checkpoint
+        while True:
+            filt, pred = self._filter(i, state)
+            if i == slot:
+                return filt
+            i, state = i + 1, pred
+
     def _step(self) -> None:
-        """Filter the next slot, then predict the one after (statsmodels' conventions)."""
+        """Filter the next slot and predict the one after; thin the cache (KEEP, EVERY)."""
         i = len(self._filt)
+        state = self._pred[i]
+        assert state is not None  # the newest slots are kept
+        filt, pred = self._filter(i, state)
+        self._filt.append(filt)
+        self._pred.append(pred)
+        old = i + 1 - self.KEEP
+        if old >= 0:
+            self._filt[old] = None
+            if old % self.EVERY:
+                self._pred[old] = None
+
+    def _filter(self, i: int, state: _State) -> tuple[_State, _State]:
+        """Slot i's filtered state from its predicted ``state``, and the predicted state of
+        slot i + 1 (statsmodels' conventions)."""
         ss = self._ss
-        a, p = self._pred[i]
+        a, p = state
         y = self._obs[i]
         seen = np.isfinite(y)
         if seen.any():
@@ -884,17 +933,21 @@ class VarmaDay(DayEstimator):
             p = 0.5 * (p + p.T)
         if not (np.isfinite(a).all() and np.isfinite(p).all()):
             raise NumericalError(f"VARMA filter: non-finite state at slot {i}")
-        self._filt.append((a, p))
         a_next = ss.transition @ a + ss.state_intercept(self._tau0 + i + 1)
         p_next = ss.transition @ p @ ss.transition.T + self._rqr
-        self._pred.append((a_next, p_next))
+        return (a, p), (a_next, p_next)
 
     # -- introspection (tests, monitoring) ----------------------------------------------
     @property
     def n_filtered(self) -> int:
-        """How many window slots (from the first) hold a cached filtered state."""
+        """How many window slots (from the first) have been filtered."""
         self._flush()
         return len(self._filt)
+
+    @property
+    def n_kept(self) -> int:
+        """How many filter states (filtered or predicted) the cache holds."""
+        return sum(x is not None for x in self._filt) + sum(x is not None for x in self._pred)
 
     def observations(self) -> np.ndarray:
         """The deseasonalized observation vectors of the window slots: [S, k] (copy)."""
