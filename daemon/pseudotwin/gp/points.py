@@ -29,18 +29,26 @@ __all__ = ["INTERVAL_H", "PointBuckets", "merging"]
 INTERVAL_H: float | None = 5 / 60
 
 
-@dataclass(slots=True)  # one per GP point and twin: no per-instance dict
+@dataclass(slots=True)
 class _Bucket:
+    """The newest bucket of an output: the only one a window revision can reach."""
+
     k: int  # bucket number: floor(hours / interval)
     index: int  # the posterior's observation index of the bucket's point
     hours_sum: float
     value_sum: float
     count: int
-    members: dict[float, float] = field(default_factory=dict)  # hours → value (newest only)
+    members: dict[float, float] = field(default_factory=dict)  # hours → value
 
     @property
     def point(self) -> tuple[float, float]:
         return self.hours_sum / self.count, self.value_sum / self.count
+
+
+#: An older bucket: (index, hours_sum, value_sum, count). A plain tuple of numbers, which the
+#: cyclic garbage collector stops tracking: a thousand twins hold ~300 buckets each by the
+#: evening, and every full collection would traverse them all (hundreds of ms).
+_Sums = tuple[int, float, float, int]
 
 
 class PointBuckets:
@@ -50,7 +58,7 @@ class PointBuckets:
         if not interval_h > 0:
             raise ValueError(f"GP point interval must be positive, got {interval_h} h")
         self.interval_h = interval_h
-        self._buckets: dict[tuple[int, int], _Bucket] = {}  # (output, k) → bucket
+        self._older: dict[tuple[int, int], _Sums] = {}  # (output, k) → an older bucket
         self._newest: dict[int, _Bucket] = {}  # output → its newest bucket
 
     def _k(self, hours: float) -> int:
@@ -63,23 +71,27 @@ class PointBuckets:
         point (which the caller adds as observation ``next_index``), else (index of the GP
         point it joins, that point's new time, its new value)."""
         k = self._k(hours)
-        b = self._buckets.get((o, k))
-        if b is None:
-            b = _Bucket(k, next_index, hours, value, 1)
-            self._buckets[(o, k)] = b
-            newest = self._newest.get(o)
-            if newest is None or k > newest.k:
-                if newest is not None:
-                    newest.members.clear()  # only the newest bucket is ever revised
-                b.members[hours] = value
-                self._newest[o] = b
-            return None, hours, value
-        b.hours_sum += hours
-        b.value_sum += value
-        b.count += 1
-        if b is self._newest.get(o):
-            b.members[hours] = value
-        return (b.index, *b.point)
+        newest = self._newest.get(o)
+        if newest is not None and newest.k == k:
+            newest.hours_sum += hours
+            newest.value_sum += value
+            newest.count += 1
+            newest.members[hours] = value
+            return (newest.index, *newest.point)
+        sums = self._older.get((o, k))
+        if sums is not None:  # out of order: joins an older bucket
+            index, h_sum, v_sum, count = sums
+            h_sum, v_sum, count = h_sum + hours, v_sum + value, count + 1
+            self._older[(o, k)] = (index, h_sum, v_sum, count)
+            return index, h_sum / count, v_sum / count
+        if newest is None or k > newest.k:
+            if newest is not None:
+                self._older[(o, newest.k)] = (newest.index, newest.hours_sum,
+                                              newest.value_sum, newest.count)
+            self._newest[o] = _Bucket(k, next_index, hours, value, 1, {hours: value})
+        else:  # a new bucket before the newest (out of order): never revised
+            self._older[(o, k)] = (next_index, hours, value, 1)
+        return None, hours, value
 
     def revise(self, o: int, hours: float, value: float) -> tuple[int, float, float]:
         """Window point (``o``, ``hours``) has a new value: (index, time, value) of its GP

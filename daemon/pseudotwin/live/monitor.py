@@ -55,7 +55,7 @@ class TwinMonitor:
         out: dict[str, Any] = {
             "ts": now, "day": str(self.hours.day_of(now)), "twin": self.twin_id,
             "artifact": self.artifact_hash[:16],
-            "window_readings": len(tw.window),
+            "window_readings": tw.window_size,
             "mean_std": float(np.mean(self.stds)) if self.stds else None,
             "fallbacks": tw.fallbacks,
             "rejected": {f"{s}:{why}": n for (s, why), n in (rejected or {}).items()
@@ -88,7 +88,7 @@ def _or_none(x: float) -> float | None:
 def ref_correlations(tw: Twin) -> dict[str, float | None]:
     """Daily Pearson r between the references on today's slot grid (sample-and-hold)."""
     refs = tw.references
-    if len(refs) < 2 or not tw.window:
+    if len(refs) < 2 or not tw.window_size:
         return {}
     grid = tw.slot_values()
     out = {}

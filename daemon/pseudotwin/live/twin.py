@@ -18,6 +18,7 @@ import bisect
 import datetime as dt
 import logging
 import math
+from array import array
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -146,15 +147,19 @@ class Twin:
         self.references = artifact.references
         self.inputs = artifact.inputs  # references, then covariates
         self.day: dt.date | None = None
-        self.window: list[WindowReading] = []
+        # Today's window points as plain tuples (sensor, ts, hours [h], value): the cyclic
+        # garbage collector stops tracking them, where a thousand twins' objects made every
+        # full collection of an evening take hundreds of ms. ``window`` shows them.
+        self._points: list[tuple[str, dt.datetime, float, float]] = []
         self.last: dict[str, tuple[dt.datetime, float]] = {}
         self._thinner = WindowThinner(self.thinning)
         self._est: dict[str, DayEstimator] = {}
         # The primary's failovers' live state: lost reference → estimator (live/failover.py).
         self._failover: dict[str, DayEstimator] = {}
         self._broken: set[str] = set()
-        # Today's window per reference in time order: sensor → ([hours], [values]).
-        self._series: dict[str, tuple[list[float], list[float]]] = {}
+        # Today's window per input in time order: sensor → (hours, values), arrays of doubles
+        # (not lists: the garbage collector never traverses them).
+        self._series: dict[str, tuple[array[float], array[float]]] = {}
         self.fallbacks = 0
         # The primary's current uncertain spell: since when, and why (for <twin>/monitor).
         self.uncertain_since: dt.datetime | None = None
@@ -178,10 +183,10 @@ class Twin:
     def _open(self, day: dt.date) -> None:
         """Start ``day``'s window: fresh model state, carried-over reference values."""
         self.day = day
-        self.window = []
+        self._points = []
         self._thinner = WindowThinner(self.thinning)
         self._broken = set()
-        self._series = {s: ([], []) for s in self.inputs}
+        self._series = {s: (array("d"), array("d")) for s in self.inputs}
         self._est = {k: m.start_day(day) for k, m in self._models.items()}
         self._failover = ({r: f.model.start_day(day) for r, f in self.artifact.failover.items()}
                           if self.artifact.primary in self.kinds else {})
@@ -193,8 +198,17 @@ class Twin:
             if last and last[0] < init_ts and init_ts - last[0] <= self.max_carry:
                 self._feed(WindowReading(s, last[0], self.hours.init_start, last[1]))
 
+    @property
+    def window(self) -> list[WindowReading]:
+        """Today's window points in arrival order (built on each call)."""
+        return [WindowReading(*p) for p in self._points]
+
+    @property
+    def window_size(self) -> int:
+        return len(self._points)
+
     def _feed(self, r: WindowReading) -> None:
-        self.window.append(r)
+        self._points.append((r.sensor, r.ts, r.hours, r.value))
         hs, vs = self._series[r.sensor]
         i = bisect.bisect_right(hs, r.hours)
         hs.insert(i, r.hours)
@@ -232,10 +246,10 @@ class Twin:
         for kind in list(self._broken):
             est = self._models[kind].start_day(self.day)
             try:
-                for r in self.window:
-                    est.observe(r.sensor, r.hours, r.value)
-                if self.window:  # GP posteriors condition when asked: ask, or fail here
-                    est.predict(self.window[-1].hours)
+                for sensor, _, hours, value in self._points:
+                    est.observe(sensor, hours, value)
+                if self._points:  # GP posteriors condition when asked: ask, or fail here
+                    est.predict(self._points[-1][2])
             except NumericalError:
                 continue
             self._est[kind] = est
@@ -279,25 +293,25 @@ class Twin:
 
     def _revise(self, sensor: str, ts: dt.datetime, value: float) -> None:
         """Give ``sensor``'s newest point (at ``ts``) the value ``value``."""
-        i = len(self.window) - 1
-        while self.window[i].sensor != sensor or self.window[i].ts != ts:
+        i = len(self._points) - 1
+        while self._points[i][0] != sensor or self._points[i][1] != ts:
             i -= 1  # the newest point is among the last few: one per reference and interval
-        old = self.window[i]
-        self.window[i] = WindowReading(sensor, ts, old.hours, value)
+        hours = self._points[i][2]
+        self._points[i] = (sensor, ts, hours, value)
         hs, vs = self._series[sensor]
-        j = bisect.bisect_right(hs, old.hours) - 1
+        j = bisect.bisect_right(hs, hours) - 1
         vs[j] = value  # the newest point is the last at its time
         for kind, est in self._est.items():
             if kind in self._broken:
                 continue
             try:
-                est.revise(sensor, old.hours, value)
+                est.revise(sensor, hours, value)
             except (NumericalError, KeyError) as exc:
                 # KeyError: the estimator lost the point (never expected); rebuilt from the
                 # window at the next reading like a numerical failure.
                 self._break(kind, exc)
         if self._failover:
-            self._each_failover(lambda est: est.revise(sensor, old.hours, value))
+            self._each_failover(lambda est: est.revise(sensor, hours, value))
 
     # -- monitoring -------------------------------------------------------------------
     def slot_values(self) -> dict[str, np.ndarray]:
@@ -503,7 +517,7 @@ class Twin:
             if model is None or self.day is None:
                 return float("nan"), float("nan")
             est = model.start_day(self.day)
-            for r in self.window:
-                est.observe(r.sensor, r.hours, r.value)
+            for sensor, _, hours, value in self._points:
+                est.observe(sensor, hours, value)
         e = est.predict(h)
         return e.value, e.std

@@ -20,6 +20,7 @@ from __future__ import annotations
 import datetime as dt
 import math
 import warnings
+from array import array
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -456,8 +457,10 @@ class TrivGpDay(DayEstimator):
         self.post = IncrementalPosterior(model.params_)
         self.held = HeldValues()
         self.shifts = [_LevelShift(model) for _ in model.references_]
-        self.values: list[float] = []  # raw reference values, in the posterior's order
-        self.profile: list[float] = []  # each value's reference profile at its time
+        # Raw reference values in the posterior's order, and each one's reference profile at
+        # its time. Arrays of doubles, not lists: the garbage collector never traverses them.
+        self.values = array("d")
+        self.profile = array("d")
         self.points = gp_points.merging()  # None: one GP point per window point
 
     def _residual(self, o: int, profile: float, value: float) -> float:

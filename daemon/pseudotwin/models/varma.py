@@ -53,6 +53,7 @@ import logging
 import math
 import time
 import warnings
+from array import array
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
@@ -712,14 +713,19 @@ class VarmaDay(DayEstimator):
         self._start_list = self._starts.tolist()  # bisect on a list: no numpy call per reading
         self._tau0 = model.trend_offset(day)
         self._col = {s: j for j, s in enumerate(model.references_)}
-        self._times: dict[str, list[float]] = {s: [] for s in model.references_}
-        self._values: dict[str, list[float]] = {s: [] for s in model.references_}
+        # Each reference's readings (time-sorted): arrays of doubles, which the garbage
+        # collector never traverses (a thousand twins' lists made full collections slow).
+        self._times = {s: array("d") for s in model.references_}
+        self._values = {s: array("d") for s in model.references_}
         S, k = int(model.profile_.shape[0]), int(model.profile_.shape[1])
         self._obs = np.full((S, k), np.nan)  # [S, k] deseasonalized; target column stays NaN
         a0, p0 = self._ss.initial_state(self._tau0)
-        # Predicted state for slot i, filtered state of slot i (None: thinned, see KEEP).
-        self._pred: list[_State | None] = [(a0, p0)]
-        self._filt: list[_State | None] = []
+        # Slot → predicted state for it, slot → its filtered state: the kept ones (KEEP,
+        # EVERY) of the first _n slots, which are filtered (a dict holds no entry per slot,
+        # which the garbage collector would traverse).
+        self._pred: dict[int, _State] = {0: (a0, p0)}
+        self._filt: dict[int, _State] = {}
+        self._n = 0
         self._rqr = self._ss.selection @ self._ss.state_cov @ self._ss.selection.T
         # The estimate is w · (series at the slot): the target itself, or in "offset" mode
         # the modelled offset plus the mean of the (filtered = observed, when seen) references.
@@ -812,7 +818,7 @@ class VarmaDay(DayEstimator):
                 first = 0  # a new δ moves every slot
         m = self._raw.shape[1]
         new = self._raw[first:] - self.model.profile_[first:, :m] - self.shift  # [S', M]
-        if first >= len(self._filt):  # slots not filtered yet: nothing to invalidate
+        if first >= self._n:  # slots not filtered yet: nothing to invalidate
             self._obs[first:, :m] = new
             return
         old = self._obs[first:, :m]
@@ -822,14 +828,15 @@ class VarmaDay(DayEstimator):
             self._invalidate(first + int(np.argmax(changed)))
 
     def _invalidate(self, slot: int) -> None:
-        if slot < len(self._filt):
+        if slot < self._n:
             slot = self._checkpoint(slot)
-            del self._filt[slot:]
-            del self._pred[slot + 1:]
+            self._filt = {i: x for i, x in self._filt.items() if i < slot}
+            self._pred = {i: x for i, x in self._pred.items() if i <= slot}
+            self._n = slot
 
     def _checkpoint(self, slot: int) -> int:
         """The latest slot at or before ``slot`` whose predicted state is kept."""
-        while self._pred[slot] is None:
+        while slot not in self._pred:
             slot -= 1
         return slot
 
@@ -844,11 +851,9 @@ class VarmaDay(DayEstimator):
             self._flush()
         slot = self.model.hours_.slot_index_of(hours) - self._first
         if slot < 0:
-            first = self._pred[0]
-            assert first is not None  # slot 0 is a checkpoint
-            return self._estimate(0, *first)
+            return self._estimate(0, *self._pred[0])  # slot 0 is a checkpoint
         slot = min(slot, len(self._starts) - 1)
-        while len(self._filt) <= slot:
+        while self._n <= slot:
             self._step()
         a, p = self._filtered(slot)
         e = self._estimate(slot, a, p)
@@ -878,12 +883,11 @@ class VarmaDay(DayEstimator):
     def _filtered(self, slot: int) -> _State:
         """Slot ``slot``'s filtered state (filtered already), from the cache or filtered
         again from the checkpoint before it."""
-        kept = self._filt[slot]
+        kept = self._filt.get(slot)
         if kept is not None:
             return kept
         i = self._checkpoint(slot)
         state = self._pred[i]
-        assert state is not None  # a checkpoint
         while True:
             filt, pred = self._filter(i, state)
             if i == slot:
@@ -892,17 +896,14 @@ class VarmaDay(DayEstimator):
 
     def _step(self) -> None:
         """Filter the next slot and predict the one after; thin the cache (KEEP, EVERY)."""
-        i = len(self._filt)
-        state = self._pred[i]
-        assert state is not None  # the newest slots are kept
-        filt, pred = self._filter(i, state)
-        self._filt.append(filt)
-        self._pred.append(pred)
+        i = self._n
+        self._filt[i], self._pred[i + 1] = self._filter(i, self._pred[i])
+        self._n = i + 1
         old = i + 1 - self.KEEP
-        if old >= 0:
-            self._filt[old] = None
+        if old >= 0:  # (a slot filtered again after an invalidation may be gone already)
+            self._filt.pop(old, None)
             if old % self.EVERY:
-                self._pred[old] = None
+                self._pred.pop(old, None)
 
     def _filter(self, i: int, state: _State) -> tuple[_State, _State]:
         """Slot i's filtered state from its predicted ``state``, and the predicted state of
@@ -942,12 +943,12 @@ class VarmaDay(DayEstimator):
     def n_filtered(self) -> int:
         """How many window slots (from the first) have been filtered."""
         self._flush()
-        return len(self._filt)
+        return self._n
 
     @property
     def n_kept(self) -> int:
         """How many filter states (filtered or predicted) the cache holds."""
-        return sum(x is not None for x in self._filt) + sum(x is not None for x in self._pred)
+        return len(self._filt) + len(self._pred)
 
     def observations(self) -> np.ndarray:
         """The deseasonalized observation vectors of the window slots: [S, k] (copy)."""
