@@ -207,8 +207,9 @@ def main() -> int:
             stdout=open(tmp / "daemon.log", "w"), stderr=subprocess.STDOUT,  # noqa: SIM115
             preexec_fn=die_with_parent)
         cleanup.callback(stop_process, daemon, signal.SIGTERM, 60)
-        sent: dict[tuple[int, str], float] = {}
+        sent: dict[tuple[int, str], tuple[float, float]] = {}  # → (monotonic, day hour)
         lat: list[float] = []
+        lat_hour: list[float] = []  # the day hour [h] of each latency's reading
         lock = threading.Lock()
         online = threading.Event()
 
@@ -229,7 +230,8 @@ def main() -> int:
             with lock:
                 t = sent.pop((i, body["ts"]), None)
                 if t is not None:
-                    lat.append(now - t)
+                    lat.append(now - t[0])
+                    lat_hour.append(t[1])
 
         sub = mqtt.Client(CallbackAPIVersion.VERSION2, client_id="bench-sub")
         sub.on_connect = lambda c, *_: c.subscribe([("pt/+/estimate", 1), ("pt/status", 1),
@@ -260,9 +262,9 @@ def main() -> int:
         for ts, i, v in events:
             clock.wait_until(ts, stop)
             key = (i, ts.astimezone(dt.UTC).isoformat().replace("+00:00", "Z"))
-            if hours.hours_of(ts) >= hours.day_start:
+            if (day_hour := hours.hours_of(ts)) >= hours.day_start:
                 with lock:
-                    sent[key] = time.monotonic()
+                    sent[key] = (time.monotonic(), day_hour)
                 in_hours += 1
             pub.publish(f"b/room{i:03d}/wall/temp",
                         json.dumps({"ts": ts.isoformat(), "value": round(v, 3)}), qos=1)
@@ -305,6 +307,14 @@ def main() -> int:
         print(f"  reading → estimate latency: median {fig['latency_median_ms']} ms, "
               f"p99 {fig['latency_p99_ms']} ms, max {fig['latency_max_ms']} ms "
               f"({len(lat)} of {in_hours} estimates matched)")
+        if a.hours >= 2:  # where in the day the slow estimates were
+            by_hour = np.floor(np.array(lat_hour))
+            fig["latency_by_hour_ms"] = {
+                f"{h:02.0f}": [round(float(np.percentile(ms[by_hour == h], q)), 1)
+                               for q in (50, 99, 100)]
+                for h in np.unique(by_hour)}
+            print("  latency by hour of the day [ms] (median, p99, max): " + ", ".join(
+                f"{h}h {v[0]:g}/{v[1]:g}/{v[2]:g}" for h, v in fig["latency_by_hour_ms"].items()))
         print(f"  daemon CPU: {fig['daemon_cpu_s']} s = {fig['daemon_cpu_share_of_core']:.1%} "
               f"of one core, {fig['daemon_cpu_ms_per_reading']} ms per reading; "
               f"peak RSS {fig['daemon_peak_rss_mb']} MB")

@@ -36,6 +36,12 @@ def test_one_minute_points_merge_into_five_minute_means() -> None:
     # out of order into an older bucket: its sums move
     index, hours, value = b.offer(0, 8 + 4.5 / 60, 100.0, next_index=13)
     assert index == 0 and value == pytest.approx((0 + 1 + 2 + 3 + 4 + 100) / 6)
+    # out of order before every bucket: a new point, which a later one may join
+    assert b.offer(0, 7.9, 50.0, next_index=14) == (None, 7.9, 50.0)
+    assert b.offer(0, 7.91, 52.0, next_index=15) == (14, pytest.approx(7.905), 51.0)
+    with pytest.raises(KeyError):
+        b.revise(0, 7.9, 0.0)  # never the newest bucket
+    assert b.revise(0, 8 + 11 / 60, 23.0)[0] == 10  # the newest is still the newest
     with pytest.raises(ValueError, match="positive"):
         PointBuckets(0.0)
 

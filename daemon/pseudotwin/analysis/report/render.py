@@ -224,6 +224,12 @@ PERFORMANCE = (
     ("bench_daemon_1000.txt", ".venv/bin/python scripts/bench_daemon.py --twins 1000 --hours 1",
      "The daemon with 1,000 twins",
      "The same at 1,000 twins: the grid work of a thousand twins paced between readings."),
+    ("bench_daemon_1000_day.txt",
+     ".venv/bin/python scripts/bench_daemon.py --twins 1000 --hours 11",
+     "The daemon with 1,000 twins through a whole operating day",
+     "The same from 07:30 to 18:30 of day time: the evening's larger windows (~140 GP points "
+     "per twin and model), the day state a thousand twins hold by then (peak RSS), and the "
+     "latency by hour of the day."),
     ("bench_daemon_10000.txt",
      ".venv/bin/python scripts/bench_daemon.py --twins 10000 --hours 0.25 --speed 10",
      "The daemon with 10,000 twins",
