@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import datetime as dt
+import gc
 import json
 import os
 import shutil
@@ -199,6 +200,10 @@ def main() -> int:
             for k, (g, v) in enumerate(zip(grid, vals, strict=True)) for i in range(a.twins)
         )
 
+        # The measuring process's own full collections (training's GPy and pandas objects,
+        # 100,000s of events) would delay the arrival times it records: out of their way.
+        gc.collect()
+        gc.freeze()
         start = t0 - dt.timedelta(minutes=1)
         daemon = subprocess.Popen(
             [str(ROOT / ".venv" / "bin" / "pseudotwin"), "run", "--config",

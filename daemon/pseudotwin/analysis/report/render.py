@@ -235,6 +235,11 @@ PERFORMANCE = (
      "The daemon with 10,000 twins",
      "10,000 twins at 10× replay: what one process still carries (every estimate arrives) "
      "and what it does not (latency behind a 10,000-twin tick)."),
+    ("bench_day_state.txt", ".venv/bin/python scripts/bench_day_state.py",
+     "1,000 twins' day state",
+     "The same twin loaded 1,000 times in one process (no MQTT), a reading every 5 minutes "
+     "through two operating days: memory of the day state per twin, objects the garbage "
+     "collector tracks, and its full collections, which pause every thread of a daemon."),
     ("bench_chatty.txt", ".venv/bin/python scripts/bench_chatty.py",
      "A chatty sensor",
      "Two references reporting every 2 s for a whole operating day through the live twin: "
