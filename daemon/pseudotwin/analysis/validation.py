@@ -44,7 +44,7 @@ from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.calibration import SigmaCalibration
 from pseudotwin.live.envelope import Envelope
 from pseudotwin.models import blend
-from pseudotwin.models.base import TrainingSet, TwinModel
+from pseudotwin.models.base import Estimate, TrainingSet, TwinModel
 from pseudotwin.models.registry import MODELS, build
 
 log = logging.getLogger(__name__)
@@ -315,10 +315,10 @@ def _blend_rows(held: pd.DataFrame, members: Sequence[str],
         for ts, g in day_rows.groupby("ts", sort=True):
             if set(g["model"]) != set(w) or len(g) != len(w):
                 continue  # a member without an estimate here: the blend has none either
-            wv = g["model"].map(w).to_numpy(float)
+            e = blend.combine(w, {k: Estimate(v, s) for k, v, s in
+                                  zip(g["model"], g["value"], g["std"], strict=True)})
             bad = g.loc[g["quality"] != "ok", "quality"]
-            row = {"ts": ts, "value": float(wv @ g["value"].to_numpy(float)),
-                   "std": float(np.sqrt(np.sum((wv * g["std"].to_numpy(float)) ** 2))),
+            row = {"ts": ts, "value": e.value, "std": e.std,
                    "truth": float(g["truth"].iloc[0]),
                    "quality": str(bad.iloc[0]) if len(bad) else "ok",
                    "slope": float(g.loc[g["model"] == full, "slope"].iloc[0]

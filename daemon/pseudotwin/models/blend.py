@@ -46,6 +46,17 @@ def weights(scores: Mapping[str, float]) -> dict[str, float]:
     return {k: v / total for k, v in inv.items()}
 
 
+def combine(weights: Mapping[str, float], parts: Mapping[str, Estimate]) -> Estimate:
+    """Σ_k w_k · estimate_k, σ² = Σ_k (w_k σ_k)² (the members' own spreads, as if
+    independent): live (BlendModel.combine) and on validation's held-out rows alike."""
+    value = var = 0.0
+    for k, w in weights.items():
+        e = parts[k]
+        value += w * e.value
+        var += (w * e.std) ** 2
+    return Estimate(value, math.sqrt(var))
+
+
 class BlendModel(TwinModel):
     """Σ_m w_m · estimate_m over fitted member models.
 
@@ -92,12 +103,7 @@ class BlendModel(TwinModel):
         self.members_ = {k: models.get(k, m) for k, m in self.members_.items()}
 
     def combine(self, parts: Mapping[str, Estimate]) -> Estimate:
-        value = var = 0.0
-        for k, w in self.weights_.items():
-            e = parts[k]
-            value += w * e.value
-            var += (w * e.std) ** 2  # the members' own spreads, as if independent
-        return Estimate(value, math.sqrt(var))
+        return combine(self.weights_, parts)
 
     def to_dict(self) -> dict[str, Any]:
         return {"weights": self.weights_,
