@@ -284,3 +284,37 @@ def test_an_instance_owning_no_twin_warns_and_stays_online(
         assert f"fleet: shard {empty}/8 owns no twin" in caplog.text
     finally:
         svc.stop()
+
+
+def test_grid_work_goes_first_to_the_twins_that_heard_from_their_sensors_longest_ago(
+    tmp_path: Path, mosquitto, desk_artifact: Path
+) -> None:
+    """A reading of a twin whose grid estimate is still queued waits for that twin's grid
+    work; cyclic sensors report next where they reported longest ago, so those twins' grid
+    work goes first, whatever their order in the config."""
+    cfg = load_config(site_config(tmp_path, mosquitto.port, desk_artifact))
+    heard = ["office-3", "office-1", "office-4", "office-2"]  # oldest reading first
+    assert heard != TWINS
+    viewer = Viewer(mosquitto.port, "pt/+/estimate")
+    pub = publisher(mosquitto.port, "order-bridge")
+    svc = Service(cfg, clock=ReplayClock(NOON, 1.0))
+    svc.start(wait_connected=15)
+    try:
+        for k, t in enumerate(heard):
+            ts = NOON - dt.timedelta(minutes=10 - 2 * k)
+            pub.publish(topic_of(t), reading(ts, 20.0 + k), qos=1).wait_for_publish(10)
+            wait_for(lambda k=k: svc.accepted == k + 1, what="the reading applied")
+        svc.queue.put(("tick", NOON))
+        noon = NOON.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")
+
+        def at_noon() -> list[str]:
+            with viewer.lock:
+                return [t.split("/")[1] for t, b in viewer.msgs
+                        if isinstance(b, dict) and b["ts"] == noon]
+
+        wait_for(lambda: len(at_noon()) == len(TWINS), what="every twin's grid estimate")
+        assert at_noon() == heard
+    finally:
+        svc.stop()
+        pub.loop_stop()
+        viewer.close()
