@@ -205,6 +205,7 @@ def main() -> int:
         gc.collect()
         gc.freeze()
         start = t0 - dt.timedelta(minutes=1)
+        launched = time.monotonic()
         daemon = subprocess.Popen(
             [str(ROOT / ".venv" / "bin" / "pseudotwin"), "run", "--config",
              str(tmp / "config.toml"), "--replay-from", start.isoformat(),
@@ -245,9 +246,14 @@ def main() -> int:
         sub.connect("127.0.0.1", port)
         sub.loop_start()
         cleanup.callback(sub.loop_stop)
-        if not online.wait(120):
-            print((tmp / "daemon.log").read_text())
+        # Loading a twin's artifact takes a few ms: 10,000 of them, more than two minutes.
+        patience = 120 + 0.05 * a.twins
+        if not online.wait(patience):
+            print(f"the daemon did not come online within {patience:.0f} s (still loading its "
+                  f"{a.twins} twins?); its log:\n{(tmp / 'daemon.log').read_text()}",
+                  file=sys.stderr)
             return 1
+        startup = time.monotonic() - launched
         cpu0, _ = proc_stats(daemon.pid)
         counted0 = dict(counts)
         threads0 = thread_cpu(daemon.pid)
@@ -303,6 +309,7 @@ def main() -> int:
             "daemon_peak_rss_mb": round(hwm / 1024, 1),
             "daemon_cpu_threads_s": [c for c in by_thread if c > 0],
             "daemon_exit": daemon.returncode,
+            "daemon_startup_s": round(startup, 1),
             "messages_out_per_reading": out,
             "packets_per_reading": {"in": round(1 + out["estimate"], 3),
                                     "out": round(1 + sum(out.values()), 3)},
@@ -322,7 +329,8 @@ def main() -> int:
                 f"{h}h {v[0]:g}/{v[1]:g}/{v[2]:g}" for h, v in fig["latency_by_hour_ms"].items()))
         print(f"  daemon CPU: {fig['daemon_cpu_s']} s = {fig['daemon_cpu_share_of_core']:.1%} "
               f"of one core, {fig['daemon_cpu_ms_per_reading']} ms per reading; "
-              f"peak RSS {fig['daemon_peak_rss_mb']} MB")
+              f"peak RSS {fig['daemon_peak_rss_mb']} MB; online {fig['daemon_startup_s']} s "
+              "after its start")
         print(f"  MQTT packets per reading: in {fig['packets_per_reading']['in']} (the reading, "
               f"PUBACKs of estimates), out {fig['packets_per_reading']['out']} (its PUBACK, "
               + ", ".join(f"{k} {v}" for k, v in out.items()) + ")")

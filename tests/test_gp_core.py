@@ -131,6 +131,24 @@ def test_incremental_posterior_equals_gpy_prediction(kernel: str, Q: int, P: int
     assert np.allclose(mu, mu_f)
 
 
+def test_the_packed_factor_keeps_at_most_a_quarter_of_spare_room() -> None:
+    """Grown with the rows, the factor's quadratic size held up to 56 % of spare room by the
+    evening: it grows by a quarter of its size, and the estimates stay those of one block."""
+    rng = np.random.default_rng(5)
+    params = random_params(rng, "rq", 2, 1)
+    t = np.linspace(7.5, 19.0, 300)
+    y = np.sin(t) + 0.1 * rng.normal(size=len(t))
+    grown, block = IncrementalPosterior(params), IncrementalPosterior(params, capacity=400)
+    for i, (ti, yi) in enumerate(zip(t, y, strict=True)):
+        grown.add(ti, 0, yi)
+        grown.predict(ti, 1)  # its row now, as the live twin does at every reading
+        block.add(ti, 0, yi)
+        needed = (i + 1) * (i + 2) // 2
+        assert needed <= len(grown._P) <= max(1.25 * needed, 32 * 33 // 2)  # noqa: SLF001
+    for x in (8.0, 12.5, 18.9):
+        np.testing.assert_allclose(grown.predict(x, 1), block.predict(x, 1), rtol=1e-12)
+
+
 @pytest.mark.parametrize("one_by_one", [True, False], ids=["row", "block"])
 def test_failed_extension_falls_back_to_regularized_refactorization(one_by_one: bool) -> None:
     rng = np.random.default_rng(0)

@@ -51,15 +51,16 @@ class IncrementalPosterior:
     """
 
     # Buffers of ``capacity`` rows; the first n are in use. They start small and grow by a
-    # quarter when full: the packed factor grows with the square of its rows (doubling would
-    # hold up to 4× the rows' memory), and a buffer is resident in full once the allocator
-    # hands out reused memory, every day of every twin.
+    # quarter when full, the packed factor by a quarter of its size when a row does not fit
+    # (_reserve_rows): it grows with the square of its rows (doubling would hold up to 4×
+    # the rows' memory), and a buffer is resident in full once the allocator hands out
+    # reused memory, every day of every twin.
     _t: np.ndarray  # [cap] float: times [h]
     _o: np.ndarray  # [cap] int: output indices
     _r: np.ndarray  # [cap] float: residuals
     _d: np.ndarray  # [cap] float: two-sided scaling
     _a: np.ndarray  # [cap] float: L⁻¹ D⁻¹ r
-    _P: np.ndarray  # [cap (cap + 1) / 2] rows of L, the factor of the scaled kernel matrix
+    _P: np.ndarray  # [≥ m (m + 1) / 2] rows of L, the factor of the scaled kernel matrix
 
     def __init__(self, params: LcmParams, capacity: int = 32) -> None:
         self.params = params
@@ -86,9 +87,19 @@ class IncrementalPosterior:
         t, o, r, d, a = self._vectors(cap)
         for new, old in ((t, self._t), (o, self._o), (r, self._r), (d, self._d), (a, self._a)):
             new[:n] = old[:n]
-        P = np.empty(_packed(cap))
+        self._t, self._o, self._r, self._d, self._a = t, o, r, d, a
+
+    def _reserve_rows(self, rows: int) -> None:
+        """Room in the packed factor for ``rows`` rows, keeping the m rows it has. It grows by
+        a quarter of its *size*, not with the vectors' rows: grown by rows, its
+        quadratic size carried up to 56 % of spare room by the evening (two
+        posteriors per twin)."""
+        need = _packed(rows)
+        if need <= len(self._P):
+            return
+        P = np.empty(max(need, len(self._P) + len(self._P) // 4))
         P[: _packed(self._m)] = self._P[: _packed(self._m)]
-        self._t, self._o, self._r, self._d, self._a, self._P = t, o, r, d, a, P
+        self._P = P
 
     # -- views ------------------------------------------------------------------------
     @property
@@ -144,6 +155,7 @@ class IncrementalPosterior:
     def _append_row(self, i: int) -> bool:
         """Row i of L for observation i (rows 0 … i−1 in place); False: the matrix is not
         positive definite any more."""
+        self._reserve_rows(i + 1)
         if i == 0:
             pivot2 = 1.0 + self.jitter
             row = np.zeros(0)
@@ -208,6 +220,8 @@ class IncrementalPosterior:
         f: ScaledCholesky = scaled_cholesky(K, min_jitter=max(self.jitter, JITTER_START))
         self.refactorizations += 1
         self.jitter = f.jitter
+        self._m = 0  # every row is rewritten: none to keep
+        self._reserve_rows(n)
         self._P[: _packed(n)] = f.L[np.tril_indices(n)]  # row-major: packed rows
         self._d[:n] = f.d
         self._a[:n] = solve_triangular(f.L, self.r / f.d, lower=True, check_finite=False)
