@@ -220,8 +220,7 @@ class IncrementalPosterior:
         f: ScaledCholesky = scaled_cholesky(K, min_jitter=max(self.jitter, JITTER_START))
         self.refactorizations += 1
         self.jitter = f.jitter
-        self._m = 0  # every row is rewritten: none to keep
-        self._reserve_rows(n)
+        self._reserve_rows(n)  # keeps the m old rows: flush restores them should this fail
         self._P[: _packed(n)] = f.L[np.tril_indices(n)]  # row-major: packed rows
         self._d[:n] = f.d
         self._a[:n] = solve_triangular(f.L, self.r / f.d, lower=True, check_finite=False)
