@@ -214,7 +214,8 @@ def test_ctrl_c_stops_the_workers_and_keeps_finished_days(site: Path, tmp_path: 
         [EXE, "--log-level", "DEBUG", "backfill", "--config",
          str(site / "config-interrupted.toml"), "--twin", "desk,air", "--from", "2012-03-19",
          "--to", "2012-04-29", "--jobs", "2"],
-        stdout=subprocess.PIPE, stderr=write_end, text=True, start_new_session=True)
+        stdout=subprocess.PIPE, stderr=write_end, text=True, start_new_session=True,
+        preexec_fn=_ctrl_c_as_in_a_terminal)
     os.close(write_end)
     chunks: list[bytes] = []
     reader = threading.Thread(target=_drain, args=(read_end, chunks), daemon=True)
@@ -247,6 +248,13 @@ def test_ctrl_c_stops_the_workers_and_keeps_finished_days(site: Path, tmp_path: 
         assert set(per_day.index) <= set(twin_done)  # and no half-written day
 
 
+def _ctrl_c_as_in_a_terminal() -> None:
+    """A shell starts background jobs (``cmd &``) with SIGINT ignored, and the test suite's
+    children inherit that: the backfill would then rightly ignore Ctrl-C. A terminal's
+    foreground job, what these tests stand for, has the default."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _drain(fd: int, into: list[bytes]) -> None:
     with os.fdopen(fd, "rb") as f:
         into.append(f.read())
@@ -260,7 +268,8 @@ def test_ctrl_c_while_the_workers_start(site: Path) -> None:
     proc = subprocess.Popen(
         [EXE, "--log-level", "WARNING", "backfill", "--config", str(site / "config-early.toml"),
          "--twin", "desk,air", "--from", str(FIRST), "--to", str(LAST), "--jobs", "2"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        preexec_fn=_ctrl_c_as_in_a_terminal)
     try:
         # the parent, its resource tracker and a first worker: workers are starting
         wait_for(lambda: len(_group(proc.pid)) >= 3, timeout=60, what="a worker process")
