@@ -24,6 +24,7 @@ import threading
 import time
 from collections import defaultdict, deque
 from dataclasses import dataclass
+from operator import attrgetter
 from pathlib import Path
 from typing import Any
 
@@ -116,10 +117,6 @@ class TwinRuntime:
     # Time [unix s] of the last reading that moved the twin: the grid work goes to the
     # twins that heard from their sensors longest ago first (see Service._start_tick).
     last_input: float = 0.0
-
-
-def _last_input(rt: TwinRuntime) -> float:
-    return rt.last_input
 
 
 class Service:
@@ -617,7 +614,7 @@ class Service:
         # estimates and messages, ~1 ms): in config order, most of the readings arriving
         # during a thousand twins' grid work did. The twins that heard from their sensors
         # longest ago are the next to hear again (cyclic or heartbeat sensors): theirs first.
-        for rt in sorted(self.twins.values(), key=_last_input):
+        for rt in sorted(self.twins.values(), key=attrgetter("last_input")):
             self._tick_due.setdefault(rt.cfg.id, []).append((instant, health))
             self._tick_work.append(rt)
 
