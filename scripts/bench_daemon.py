@@ -8,11 +8,14 @@ as independent sensors report), published through a real Mosquitto broker while 
 runs as its own process in replay mode at the same speed.
 
 Measured: end-to-end latency from a reading's publish to the arrival of the estimate it
-caused (median, p99), the daemon's CPU time (per reading and as a share of one core; per
-reading = the daemon's CPU from "online" to the last estimate / the readings published) and
-its peak RSS (VmHWM). The CPU is also split by thread, largest first: the worker (models,
-payloads, publish calls), then paho's network thread (reading the broker's messages and
-PUBACKs, writing ours). Prints a table and, last, one JSON line.
+caused (median, p99); the part of it spent in the daemon, from its metrics endpoint (the
+``pseudotwin_reading_to_estimate_seconds`` histogram: mean, share within 100 ms, the
+bucket bounding the p99), which tells the daemon's delays from those of the broker and of
+this measuring process on the same two cores; the daemon's CPU time (per reading and as a
+share of one core; per reading = the daemon's CPU from "online" to the last estimate / the
+readings published) and its peak RSS (VmHWM). The CPU is also split by thread, largest
+first: the worker (models, payloads, publish calls), then paho's network thread (reading the
+broker's messages and PUBACKs, writing ours). Prints a table and, last, one JSON line.
 
 ``--profile FILE`` also samples the running daemon with py-spy (``pip install -e
 '.[profile]'``; non-blocking, 100 Hz, idle samples left out) while the readings go in, keeps
@@ -38,11 +41,13 @@ import sys
 import tempfile
 import threading
 import time
+import urllib.request
 from pathlib import Path
 
 import numpy as np
 import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
+from prometheus_client.parser import text_string_to_metric_families
 
 import pseudotwin  # noqa: F401
 from brokerutil import die_with_parent, exit_on_signals, free_port, start_broker, stop_process
@@ -92,6 +97,33 @@ def thread_cpu(pid: int) -> dict[int, float]:
             continue
         out[int(task.name)] = (int(fields[11]) + int(fields[12])) / ticks
     return out
+
+
+def daemon_latency(port: int) -> dict[str, float]:
+    """The daemon's own view of its latency, scraped from its metrics endpoint: the
+    ``pseudotwin_reading_to_estimate_seconds`` histogram (arrival on its network thread →
+    estimates handed to paho). Its buckets bound the p99 from above; the share within
+    100 ms is exact. Set against the end-to-end figures it tells the daemon's delays from
+    those of the broker and of this measuring process, which share the two cores."""
+    text = urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10).read()
+    buckets: dict[float, float] = {}
+    total = count = 0.0
+    for family in text_string_to_metric_families(text.decode()):
+        if family.name != "pseudotwin_reading_to_estimate_seconds":
+            continue
+        for s in family.samples:
+            if s.name.endswith("_bucket"):
+                buckets[float(s.labels["le"])] = s.value
+            elif s.name.endswith("_sum"):
+                total = s.value
+            elif s.name.endswith("_count"):
+                count = s.value
+    if not count:
+        return {"count": 0}
+    p99 = min(le for le, c in buckets.items() if c >= 0.99 * count)
+    return {"count": int(count), "mean_ms": round(1e3 * total / count, 2),
+            "within_100ms_pct": round(100 * buckets[0.1] / count, 2),
+            "p99_at_most_ms": round(1e3 * p99, 1) if p99 != float("inf") else float("inf")}
 
 
 def start_profiler(pid: int, out: Path) -> subprocess.Popen[bytes]:
@@ -178,11 +210,12 @@ def main() -> int:
                            f"min = -10\nmax = 50\n")
             twins.append(f'[[twins]]\nid = "t{i:03d}"\nreferences = ["{ref}"]\n'
                          f'quantity = "temperature"\nartifact = "artifacts/t{i:03d}.json"\n')
-        port = free_port()
+        port, metrics_port = free_port(), free_port()
         (tmp / "config.toml").write_text(
             f'[broker]\nhost = "127.0.0.1"\nport = {port}\nclient_id = "bench"\n\n'
             f'[service]\nbase_topic = "pt"\ntimezone = "{TZ}"\nstate_dir = "state"\n'
             f"stale_after_minutes = 30\nlog_level = \"WARNING\"\n\n"
+            f"[metrics]\nport = {metrics_port}\n\n"
             + "\n".join(sensors) + "\n" + "\n".join(twins))
         broker = start_broker(tmp, port, "max_queued_messages 100000\n")
         cleanup.callback(stop_process, broker)
@@ -289,6 +322,7 @@ def main() -> int:
         # QoS 1 message it sent (estimates); out, the reading's PUBACK and its messages.
         out = {k: round((counts[k] - counted0[k]) / published, 3) for k in counts}
         threads1 = thread_cpu(daemon.pid)
+        in_daemon = daemon_latency(metrics_port)
         cpu_by_tid = {t: c - threads0.get(t, 0.0) for t, c in threads1.items()}
         by_thread = sorted((round(c, 2) for c in cpu_by_tid.values()), reverse=True)
         # SIGINT: py-spy writes its file and exits (before the daemon goes: its pid)
@@ -310,6 +344,7 @@ def main() -> int:
             "daemon_cpu_threads_s": [c for c in by_thread if c > 0],
             "daemon_exit": daemon.returncode,
             "daemon_startup_s": round(startup, 1),
+            "daemon_reading_to_estimate": in_daemon,
             "messages_out_per_reading": out,
             "packets_per_reading": {"in": round(1 + out["estimate"], 3),
                                     "out": round(1 + sum(out.values()), 3)},
@@ -319,6 +354,11 @@ def main() -> int:
         print(f"  reading → estimate latency: median {fig['latency_median_ms']} ms, "
               f"p99 {fig['latency_p99_ms']} ms, max {fig['latency_max_ms']} ms "
               f"({len(lat)} of {in_hours} estimates matched)")
+        if in_daemon.get("count"):
+            print(f"  in the daemon (arrival → handed to paho; its histogram, "
+                  f"{in_daemon['count']} readings): mean {in_daemon['mean_ms']} ms, "
+                  f"{in_daemon['within_100ms_pct']} % within 100 ms, "
+                  f"p99 ≤ {in_daemon['p99_at_most_ms']:g} ms")
         if a.hours >= 2:  # where in the day the slow estimates were
             by_hour = np.floor(np.array(lat_hour))
             fig["latency_by_hour_ms"] = {

@@ -7,6 +7,7 @@ reading, estimate the primary at it, every published model at each grid instant.
 left of bench_daemon.py's CPU per reading beyond this is the daemon's own cost (MQTT,
 payloads, journal). Prints a table and, last, one JSON line.
 Usage: .venv/bin/python scripts/bench_daemon_models.py [--twins 1000] [--hours 1]
+       [--artifact FILE]
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import datetime as dt
 import json
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -25,6 +27,7 @@ from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.edge.outputs import estimate_payload
 from pseudotwin.history.convert import load
+from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.twin import Twin
 
 TZ = "Europe/Madrid"
@@ -36,11 +39,19 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--twins", type=int, default=1000)
     ap.add_argument("--hours", type=float, default=1.0, help="day time to replay from 08:00")
+    ap.add_argument("--artifact", type=Path, default=None,
+                    help="the trained twin (as bench_daemon.py's --artifact): read from this "
+                         "file if it exists, else trained (≈ 1 min) and written there")
     a = ap.parse_args()
     hours = OperatingHours(timezone=TZ)
     df = load("sml2010")
-    art = train_twin(df, TwinSpec((REF,), TARGET, Quantity.TEMPERATURE, hours),
-                     dt.date(2012, 3, 14), 5)
+    if a.artifact is not None and a.artifact.exists():
+        art = Artifact.load(a.artifact)
+    else:
+        art = train_twin(df, TwinSpec((REF,), TARGET, Quantity.TEMPERATURE, hours),
+                         dt.date(2012, 3, 14), 5)
+        if a.artifact is not None:
+            a.artifact.write_text(json.dumps(art.to_dict(), allow_nan=True))
     # the readings of bench_daemon.py: 5-minute, interpolated, a few seconds apart per room
     day = df[(df["sensor"] == REF) & (df["ts"] >= hours.at(DAY, 0.0))
              & (df["ts"] < hours.at(DAY, 23.9))]

@@ -143,6 +143,10 @@ def test_daemon_endpoint_counts_what_went_through_the_broker(metered, mosquitto)
     # every accepted reading moved the twin: one latency observation each
     assert sample(m, "pseudotwin_update_latency_seconds_count") == len(good)
     assert 0 < sample(m, "pseudotwin_update_latency_seconds_sum") < len(good) * 5.0
+    # from arrival on the network thread: the same readings, each waited at least its update
+    assert sample(m, "pseudotwin_reading_to_estimate_seconds_count") == len(good)
+    assert sample(m, "pseudotwin_reading_to_estimate_seconds_sum") \
+        >= sample(m, "pseudotwin_update_latency_seconds_sum")
     assert sample(m, "pseudotwin_queue_depth") == 0
     assert sample(m, "pseudotwin_queue_capacity") == svc.cfg.queue_size
     assert sample(m, "pseudotwin_mqtt_connected") == 1

@@ -136,6 +136,11 @@ class DaemonMetrics(_Metrics):
             "pseudotwin_update_latency_seconds",
             "From a reading taken off the worker queue to its estimates handed to the MQTT "
             "client", buckets=LATENCY_BUCKETS, registry=r)
+        self.reading_latency = Histogram(
+            "pseudotwin_reading_to_estimate_seconds",
+            "From a reading's arrival on the MQTT network thread to its estimates handed to "
+            "the MQTT client: the update plus the wait in the worker queue behind other "
+            "readings and grid work", buckets=LATENCY_BUCKETS, registry=r)
         self.last_estimate = Gauge(
             "pseudotwin_last_estimate_timestamp_seconds",
             "Time (unix seconds) of the last primary estimate published, by twin",

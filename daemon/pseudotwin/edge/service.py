@@ -274,7 +274,9 @@ class Service:
             return  # stopping: not queued, not acknowledged, redelivered on the next start
         self.health.received += 1
         sensor = self.cfg.sensor_for_topic(msg.topic)
-        item = ("msg", sensor, msg.topic, msg.payload, self.clock.now(),
+        # The token last: the worker acks by item[-1]; perf_counter: the arrival the
+        # reading-to-estimate latency counts from.
+        item = ("msg", sensor, msg.topic, msg.payload, self.clock.now(), time.perf_counter(),
                 (self._gen, msg.mid, msg.qos))
         while True:
             try:
@@ -487,31 +489,33 @@ class Service:
     def _handle_messages(self, items: list[tuple[Any, ...]]) -> None:
         """Parse a batch of messages, journal the valid readings with one write, then apply
         and acknowledge them one by one (each ack after its line is in the kernel)."""
-        good: list[tuple[Reading, tuple[int, int, int], float]] = []
+        good: list[tuple[Reading, tuple[int, int, int], float, float]] = []
         for i, item in enumerate(items):
             t0 = time.perf_counter()
+            _, sensor, topic, payload, arrival, arrived, token = item
             try:
                 # the rest of the batch is still waiting, as if in the queue
-                r = self._parse(*item[1:], backlog=self.queue.qsize() + len(items) - i - 1)
+                r = self._parse(sensor, topic, payload, arrival, token,
+                                backlog=self.queue.qsize() + len(items) - i - 1)
             except Exception:  # noqa: BLE001 — counted, acknowledged: it must not come back
                 log.exception("unexpected error while handling a msg event")
                 r = None
             if r is None:
-                self._ack(item[-1])
+                self._ack(token)
             else:
-                good.append((r, item[-1], t0))
+                good.append((r, token, t0, arrived))
         if not good:
             return
         if self._held:  # degraded: keep the order, retry on the worker's schedule
-            for r, token, _ in good:
+            for r, token, *_ in good:
                 self._hold(r, token)
             return
         try:
-            self.journal.append_many([r for r, _, _ in good])
+            self.journal.append_many([r for r, *_ in good])
         except (OSError, ValueError) as exc:  # ValueError: a file closed under the worker
             # Not acknowledged: held and retried; the broker keeps them meanwhile and
             # redelivers them should the daemon stop first.
-            for r, token, _ in good:
+            for r, token, *_ in good:
                 self._hold(r, token)
             self.health.journal_failed(exc, len(self._held))
             self._journal_retry_at = time.monotonic() + JOURNAL_RETRY_SECONDS
@@ -519,14 +523,16 @@ class Service:
         if self.journal.recreated > self._journal_recreated:
             self._journal_recreated = self.journal.recreated
             self.health.journal_rebuilt(self.journal.recreated)
-        for r, token, t0 in good:
+        for r, token, t0, arrived in good:
             published = self.published
             try:
                 self._accept(r, token)
             except Exception:  # noqa: BLE001 — acked by _accept; the batch goes on
                 log.exception("unexpected error while applying a reading of %s", r.sensor)
             if self.published > published:  # the reading moved a twin: its estimates are out
-                self.metrics.latency.observe(time.perf_counter() - t0)
+                t1 = time.perf_counter()
+                self.metrics.latency.observe(t1 - t0)
+                self.metrics.reading_latency.observe(t1 - arrived)
 
     def _parse(self, sensor: SensorConfig | None, topic: str, payload: bytes,
                arrival: dt.datetime, token: tuple[int, int, int], *, backlog: int
