@@ -23,7 +23,7 @@ py-spy's raw stacks in FILE and prints, for each busy thread, the functions its 
 (inclusive, in ms per reading: the thread's share of samples in the function × the thread's
 measured CPU). Sampling costs the daemon a little CPU: compare figures of runs without it.
 Usage: .venv/bin/python scripts/bench_daemon.py [--twins 100] [--hours 2] [--speed 60]
-       [--artifact FILE] [--profile FILE]
+       [--baselines grid|reading|none] [--artifact FILE] [--profile FILE]
 """
 
 from __future__ import annotations
@@ -52,6 +52,7 @@ from prometheus_client.parser import text_string_to_metric_families
 import pseudotwin  # noqa: F401
 from brokerutil import die_with_parent, exit_on_signals, free_port, start_broker, stop_process
 from pseudotwin.analysis.training import train_twin
+from pseudotwin.config.model import BASELINE_CADENCES
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.edge.clock import ReplayClock
@@ -176,6 +177,9 @@ def main() -> int:
     ap.add_argument("--twins", type=int, default=100)
     ap.add_argument("--hours", type=float, default=2.0, help="day time to replay from 08:00")
     ap.add_argument("--speed", type=float, default=60.0)
+    ap.add_argument("--baselines", choices=BASELINE_CADENCES, default="grid",
+                    help="the daemon's [service] baselines (none: the twins run their primary "
+                         "model only)")
     ap.add_argument("--artifact", type=Path, default=None,
                     help="the trained twin to copy: read from this file if it exists, else "
                          "trained (≈ 1 min) and written there, so that reruns skip training")
@@ -214,7 +218,8 @@ def main() -> int:
         (tmp / "config.toml").write_text(
             f'[broker]\nhost = "127.0.0.1"\nport = {port}\nclient_id = "bench"\n\n'
             f'[service]\nbase_topic = "pt"\ntimezone = "{TZ}"\nstate_dir = "state"\n'
-            f"stale_after_minutes = 30\nlog_level = \"WARNING\"\n\n"
+            f"stale_after_minutes = 30\nlog_level = \"WARNING\"\n"
+            f"baselines = \"{a.baselines}\"\n\n"
             f"[metrics]\nport = {metrics_port}\n\n"
             + "\n".join(sensors) + "\n" + "\n".join(twins))
         broker = start_broker(tmp, port, "max_queued_messages 100000\n")
@@ -331,6 +336,7 @@ def main() -> int:
         ms = np.array(lat) * 1e3
         fig = {
             "twins": a.twins, "speed": a.speed, "day_hours": a.hours,
+            "baselines": a.baselines,
             "readings_published": published, "estimates_matched": len(lat),
             "estimates_expected": in_hours,
             "latency_median_ms": round(float(np.median(ms)), 2),
@@ -350,7 +356,8 @@ def main() -> int:
                                     "out": round(1 + sum(out.values()), 3)},
         }
         print(f"{a.twins} twins, 5-min COV readings at {a.speed:g}×, {a.hours:g} h of day time "
-              f"({published} readings in {wall:.0f} s, {fig['readings_per_s']}/s)")
+              f"({published} readings in {wall:.0f} s, {fig['readings_per_s']}/s), "
+              f"baselines {a.baselines!r}")
         print(f"  reading → estimate latency: median {fig['latency_median_ms']} ms, "
               f"p99 {fig['latency_p99_ms']} ms, max {fig['latency_max_ms']} ms "
               f"({len(lat)} of {in_hours} estimates matched)")

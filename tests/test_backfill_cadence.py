@@ -74,3 +74,17 @@ def test_baselines_on_the_grid_by_default_with_the_numbers_of_every_reading(
     assert len(both) == len(on_grid)
     for col in ("value", "std", "quality", "artifact_hash"):
         assert (both[col] == both[f"{col}_every"]).all(), col
+
+
+def test_without_baselines_backfill_stores_the_primary_alone_with_the_same_numbers(
+    desk_artifact: Path, base_db: Path, tmp_path: Path
+) -> None:
+    """``baselines = "none"``: the twin runs its primary only (and what it needs); the rows
+    it stores are exactly the primary's rows of a twin that runs every published model."""
+    on_grid = backfilled(tmp_path, desk_artifact, base_db, "grid")
+    alone = backfilled(tmp_path, desk_artifact, base_db, "none")
+    art = Artifact.load(desk_artifact)
+    assert len(art.published) > 1  # there were baselines to leave out
+    assert set(alone["model"]) == {art.primary}
+    primary = on_grid[on_grid["model"] == art.primary].reset_index(drop=True)
+    pd.testing.assert_frame_equal(alone.reset_index(drop=True), primary)

@@ -441,6 +441,38 @@ def test_a_grid_estimate_sees_only_readings_that_arrived_before_its_tick(
     viewer.close()
 
 
+def test_without_baselines_a_grid_instant_publishes_the_estimate_alone(
+    service_factory, mosquitto, desk_artifact
+) -> None:
+    """``baselines = "none"``: the twins run the primary only; no baseline topic ever gets a
+    message, the estimate still comes at readings and grid instants."""
+    svc = service_factory(HOURS.at(DAY, 10.0), 1.0, baselines="none")
+    art = Artifact.load(desk_artifact)
+    assert all(rt.twin.kinds == [art.primary] and not rt.baseline_topics
+               for rt in svc.twins.values())
+    viewer = Viewer(mosquitto.port, "pt/desk/#")
+    pub = publisher(mosquitto.port, "none-bridge")
+    first = HOURS.at(DAY, 9.9)
+    pub.publish("house/dining/temp", reading(first, 17.0), qos=1).wait_for_publish(10)
+    wait_for(lambda: any(e["ts"] == stamp(first) for e in viewer.on("/estimate")),
+             what="the reading's estimate")
+    tick = HOURS.at(DAY, 10.0)
+    svc.queue.put(("tick", tick))
+    wait_for(lambda: any(e["ts"] == stamp(tick) for e in viewer.on("/estimate")),
+             what="the estimate at the tick")
+    # a later reading's estimate comes after everything the tick sent (one connection)
+    later = HOURS.at(DAY, 10.05)
+    pub.publish("house/dining/temp", reading(later, 17.1), qos=1).wait_for_publish(10)
+    wait_for(lambda: any(e["ts"] == stamp(later) for e in viewer.on("/estimate")),
+             what="the later reading's estimate")
+    with viewer.lock:
+        topics = {t for t, _ in viewer.msgs}
+    assert "pt/desk/monitor" in topics  # the tick's QoS 0 messages did go out
+    assert not [t for t in topics if "/baseline/" in t]
+    pub.loop_stop()
+    viewer.close()
+
+
 def test_baselines_are_published_on_the_grid_only_by_default(
     service_factory, mosquitto, desk_artifact
 ) -> None:

@@ -148,6 +148,17 @@ def test_section_problems_are_config_errors(tmp_path, desk_artifact, table, prob
     assert any(p.startswith(problem) for p in err.value.problems), err.value.problems
 
 
+def test_baseline_entities_without_baselines_are_a_config_error(tmp_path, desk_artifact
+                                                                ) -> None:
+    table = "[homeassistant]\nenabled = true\nbaselines = true"
+    with pytest.raises(ConfigProblems, match='service.baselines = "none" runs no baselines'):
+        load_config(ha_config(tmp_path, 1883, desk_artifact, table, baselines="none"))
+    # the estimate's entity alone is fine, and so are baseline entities of run baselines
+    load_config(ha_config(tmp_path, 1883, desk_artifact, "[homeassistant]\nenabled = true",
+                          baselines="none"))
+    load_config(ha_config(tmp_path, 1883, desk_artifact, table, baselines="grid"))
+
+
 def test_twins_sharing_a_discovery_topic_are_a_config_error(tmp_path, desk_artifact) -> None:
     other = tmp_path / "two.json"
     shutil.copy(desk_artifact, other)

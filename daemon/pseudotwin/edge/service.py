@@ -139,7 +139,8 @@ class Service:
             art = Artifact.load(tc.artifact)
             for p in check_artifact(tc, art, cfg.hours):
                 problems.append(f"twins.{tid}: {p}")
-            twin = Twin(art, stale_after=cfg.stale_after, thinning=cfg.thinning)
+            twin = Twin(art, models=cfg.running_kinds(art.primary),
+                        stale_after=cfg.stale_after, thinning=cfg.thinning)
             for kind, why in art.withheld.items():
                 log.info("twin %s: %s is not published (%s)", tid, kind, why)
             monitor = TwinMonitor(tid, twin, artifact_hash(tc.artifact), cfg.hours, tc.sensors)
@@ -243,7 +244,7 @@ class Service:
         hc = self.cfg.homeassistant
         twins = [ha.TwinEntities(tid, rt.cfg.quantity, rt.twin.artifact.unit,
                                  rt.twin.artifact.primary,
-                                 tuple(k for k in rt.twin.artifact.published
+                                 tuple(k for k in rt.twin.kinds
                                        if k != rt.twin.artifact.primary))
                  for tid, rt in self.twins.items()]
         # Baselines come only on the grid: one late tick must not blank their entities.

@@ -297,7 +297,8 @@ def run_chunk(cfg: ServiceConfig, chunk: Chunk, store: Store, artifact: Artifact
                     # A fresh twin (first day, or after a gap of finished days): seed the
                     # carry-over with the last stored readings before the day, as the
                     # daemon (and a serial backfill's twin) would hold them.
-                    twin = Twin(artifact, stale_after=cfg.stale_after, thinning=cfg.thinning)
+                    twin = Twin(artifact, models=cfg.running_kinds(artifact.primary),
+                                stale_after=cfg.stale_after, thinning=cfg.thinning)
                     init = hours.at(day, hours.init_start)
                     for s, (ts, v) in store.last_readings_before(refs, init).items():
                         twin.observe(s, ts, v)

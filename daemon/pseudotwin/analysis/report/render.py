@@ -221,9 +221,14 @@ PERFORMANCE = (
      "The daemon with 100 twins",
      "100 twins fed 5-minute COV readings at 60× replay speed through a real Mosquitto: "
      "latency from a reading's publish to its estimate's arrival, CPU and peak RSS."),
-    ("bench_daemon_1000.txt", ".venv/bin/python scripts/bench_daemon.py --twins 1000 --hours 1",
+    ("bench_daemon_1000.txt", ".venv/bin/python scripts/bench_daemon.py --twins 1000",
      "The daemon with 1,000 twins",
      "The same at 1,000 twins: the grid work of a thousand twins paced between readings."),
+    ("bench_daemon_1000_none.txt",
+     ".venv/bin/python scripts/bench_daemon.py --twins 1000 --baselines none",
+     "The daemon with 1,000 twins, without baselines",
+     "The same with `[service] baselines = \"none\"`: the twins run their primary model "
+     "only (here the blend of triv-shrunk, ref and corrgp-lcm), no baseline messages."),
     ("bench_daemon_1000_day.txt",
      ".venv/bin/python scripts/bench_daemon.py --twins 1000 --hours 11",
      "The daemon with 1,000 twins through a whole operating day",
