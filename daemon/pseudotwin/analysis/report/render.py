@@ -240,6 +240,12 @@ PERFORMANCE = (
      "The daemon with 10,000 twins",
      "10,000 twins at 10× replay: what one process still carries (every estimate arrives) "
      "and what it does not (latency behind a 10,000-twin tick)."),
+    ("bench_daemon_10000_none.txt",
+     ".venv/bin/python scripts/bench_daemon.py --twins 10000 --hours 0.25 --speed 10 "
+     "--baselines none",
+     "The daemon with 10,000 twins, without baselines",
+     "The same with `[service] baselines = \"none\"`: each twin's grid step is its primary "
+     "estimate (and the hourly monitor), not every published model."),
     ("bench_day_state.txt", ".venv/bin/python scripts/bench_day_state.py",
      "1,000 twins' day state",
      "The same twin loaded 1,000 times in one process (no MQTT), a reading every 5 minutes "
