@@ -275,8 +275,7 @@ class Service:
             return  # stopping: not queued, not acknowledged, redelivered on the next start
         self.health.received += 1
         sensor = self.cfg.sensor_for_topic(msg.topic)
-        # The token last: the worker acks by item[-1]; perf_counter: the arrival the
-        # reading-to-estimate latency counts from.
+        # perf_counter: the arrival the reading-to-estimate latency counts from.
         item = ("msg", sensor, msg.topic, msg.payload, self.clock.now(), time.perf_counter(),
                 (self._gen, msg.mid, msg.qos))
         while True:
