@@ -441,6 +441,21 @@ def test_a_grid_estimate_sees_only_readings_that_arrived_before_its_tick(
     viewer.close()
 
 
+def reading_then_tick(svc: Service, port: int, client_id: str
+                      ) -> tuple[Viewer, mqtt.Client, dt.datetime]:
+    """A reading at 09:54 and, once its estimate is out, the 10:00 grid instant (returned,
+    with the viewer of pt/desk/# and the publisher, both to be closed by the caller)."""
+    viewer = Viewer(port, "pt/desk/#")
+    pub = publisher(port, client_id)
+    first = HOURS.at(DAY, 9.9)
+    pub.publish("house/dining/temp", reading(first, 17.0), qos=1).wait_for_publish(10)
+    wait_for(lambda: any(e["ts"] == stamp(first) for e in viewer.on("/estimate")),
+             what="the reading's estimate")
+    tick = HOURS.at(DAY, 10.0)
+    svc.queue.put(("tick", tick))
+    return viewer, pub, tick
+
+
 def test_without_baselines_a_grid_instant_publishes_the_estimate_alone(
     service_factory, mosquitto, desk_artifact
 ) -> None:
@@ -450,14 +465,7 @@ def test_without_baselines_a_grid_instant_publishes_the_estimate_alone(
     art = Artifact.load(desk_artifact)
     assert all(rt.twin.kinds == [art.primary] and not rt.baseline_topics
                for rt in svc.twins.values())
-    viewer = Viewer(mosquitto.port, "pt/desk/#")
-    pub = publisher(mosquitto.port, "none-bridge")
-    first = HOURS.at(DAY, 9.9)
-    pub.publish("house/dining/temp", reading(first, 17.0), qos=1).wait_for_publish(10)
-    wait_for(lambda: any(e["ts"] == stamp(first) for e in viewer.on("/estimate")),
-             what="the reading's estimate")
-    tick = HOURS.at(DAY, 10.0)
-    svc.queue.put(("tick", tick))
+    viewer, pub, tick = reading_then_tick(svc, mosquitto.port, "none-bridge")
     wait_for(lambda: any(e["ts"] == stamp(tick) for e in viewer.on("/estimate")),
              what="the estimate at the tick")
     # a later reading's estimate comes after everything the tick sent (one connection)
@@ -482,14 +490,7 @@ def test_baselines_are_published_on_the_grid_only_by_default(
     art = Artifact.load(desk_artifact)
     baselines = [k for k in art.published if k != art.primary]
     assert baselines
-    viewer = Viewer(mosquitto.port, "pt/desk/#")
-    pub = publisher(mosquitto.port, "grid-bridge")
-    first = HOURS.at(DAY, 9.9)
-    pub.publish("house/dining/temp", reading(first, 17.0), qos=1).wait_for_publish(10)
-    wait_for(lambda: any(e["ts"] == stamp(first) for e in viewer.on("/estimate")),
-             what="the reading's estimate")
-    tick = HOURS.at(DAY, 10.0)
-    svc.queue.put(("tick", tick))
+    viewer, pub, tick = reading_then_tick(svc, mosquitto.port, "grid-bridge")
     wait_for(lambda: all(any(e["ts"] == stamp(tick) for e in viewer.on(f"/baseline/{k}"))
                          for k in baselines), what="every baseline at the tick")
     assert any(e["ts"] == stamp(tick) for e in viewer.on("/estimate"))
