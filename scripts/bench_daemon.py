@@ -214,7 +214,9 @@ def main() -> int:
                            f"min = -10\nmax = 50\n")
             twins.append(f'[[twins]]\nid = "t{i:03d}"\nreferences = ["{ref}"]\n'
                          f'quantity = "temperature"\nartifact = "artifacts/t{i:03d}.json"\n')
-        port, metrics_port = free_port(), free_port()
+        port = metrics_port = free_port()
+        while metrics_port == port:  # the OS may hand out the port it just gave back
+            metrics_port = free_port()
         (tmp / "config.toml").write_text(
             f'[broker]\nhost = "127.0.0.1"\nport = {port}\nclient_id = "bench"\n\n'
             f'[service]\nbase_topic = "pt"\ntimezone = "{TZ}"\nstate_dir = "state"\n'
