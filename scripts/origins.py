@@ -16,7 +16,8 @@ take hours); ``--models`` adds others. Prints the origins' table, the summary ta
 one JSON line.
 
     .venv/bin/python scripts/origins.py [--runs NAME,...] [--step-days 4] [--test-days 14]
-                                        [--models ref,triv,triv-shrunk,triv-cov,blend] [--jobs 2]
+                                        [--models ref,triv,triv-shrunk,triv-week,triv-cov,blend]
+                                        [--jobs 2]
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ from pseudotwin.errors import DataError
 from pseudotwin.history.convert import load
 from tables import print_markdown, print_table
 
-QUICK = ("ref", "triv", "triv-shrunk", "triv-cov", "blend")
+QUICK = ("ref", "triv", "triv-shrunk", "triv-week", "triv-cov", "blend")
 TRIV_RATIO = 0.9  # Trust II: the estimate ≤ this × TRIV's mean daily NRMSE
 SLACK_DAYS = 16  # calendar days beyond the test days: training skips days a sensor missed
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
+import json
 
 import numpy as np
 import pandas as pd
@@ -12,22 +13,25 @@ from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.series import DayReadings, normalize, split_days
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.models.base import TrainingSet
-from pseudotwin.models.triv import TrivModel, TrivShrunkModel
+from pseudotwin.models.triv import TrivModel, TrivShrunkModel, TrivWeekModel
 
 
-def training_set(offset_fn, days=3, refs=("r1", "r2")) -> TrainingSet:
+def training_set(offset_fn, days=3, refs=("r1", "r2"), weekend_extra=0.0) -> TrainingSet:
+    """``days`` days from Monday 2020-01-06; the target is the first reference plus
+    offset_fn(hours), plus ``weekend_extra`` on Saturdays and Sundays."""
     h = OperatingHours()
     rows = []
     rng = np.random.default_rng(0)
     for d in range(days):
         day = dt.date(2020, 1, 6) + dt.timedelta(days=d)
+        extra = weekend_extra if day.weekday() >= 5 else 0.0
         for k in range(46):
             hours = 7.5 + 0.25 * k
             ts = h.at(day, hours).isoformat()
             base = 20 + rng.normal()
             for i, r in enumerate(refs):
                 rows.append((r, ts, base + i))
-            rows.append(("tgt", ts, base + offset_fn(hours)))
+            rows.append(("tgt", ts, base + offset_fn(hours) + extra))
     df = normalize(pd.DataFrame(rows, columns=["sensor", "ts", "value"]))
     ds = split_days(df, [*refs, "tgt"], h)
     return TrainingSet(TwinSpec(tuple(refs), "tgt", Quantity.TEMPERATURE, h), tuple(ds))
@@ -128,3 +132,59 @@ def test_triv_learns_the_offset_of_the_whole_slot_from_dense_readings() -> None:
                      tuple(split_days(df, ["r", "tgt"], h)))
     m = TrivModel().fit(ts)
     np.testing.assert_allclose(m.offsets_[0], 1.0, atol=0.02)
+
+
+SATURDAY, MONDAY = dt.date(2020, 2, 1), dt.date(2020, 2, 3)
+
+
+def test_weekend_days_get_the_weekend_profile_and_weekdays_trivs() -> None:
+    # Monday to Sunday: the target stands 1 K higher on Saturday and Sunday
+    ts = training_set(lambda h: 0.1 * (h - 8), days=7, weekend_extra=1.0)
+    m = TrivWeekModel().fit(ts)
+    triv = TrivModel().fit(ts)
+    assert m.type_days_ == {"weekday": 5, "weekend": 2}
+    assert m.weekend_ is not None
+    slot_h = ts.hours.window_slots() * ts.hours.slot_hours
+    np.testing.assert_allclose(m.weekend_[0], 0.1 * (slot_h - 8) + 1.0, atol=1e-9)
+    np.testing.assert_array_equal(m.offsets_, triv.offsets_)  # weekdays: all days' profile
+    # the spread of its own training errors: none at weekends, 2/7 K on the five weekdays
+    np.testing.assert_allclose(m.std_, np.sqrt(5 / 7) * 2 / 7, rtol=1e-9)
+    assert np.all(m.std_ < triv.std_)
+    for day, extra in ((SATURDAY, 1.0), (MONDAY, 2 / 7)):
+        live, simple = m.start_day(day), triv.start_day(day)
+        for x in (live, simple):
+            x.observe("r1", 8.0, 21.0)
+        assert live.predict(10.0).value == pytest.approx(21.0 + 0.2 + extra)
+        if day == MONDAY:
+            assert live.predict(10.0).value == simple.predict(10.0).value
+    assert "weekend offset profile from 2 weekend days" in m.fit_summary()
+
+
+def test_without_a_weekend_day_among_the_training_days_it_is_triv() -> None:
+    ts = training_set(lambda h: 0.1 * (h - 8), days=5)  # Monday to Friday
+    m = TrivWeekModel().fit(ts)
+    assert m.weekend_ is None and m.type_days_ == {"weekday": 5, "weekend": 0}
+    live, simple = m.start_day(SATURDAY), TrivModel().fit(ts).start_day(SATURDAY)
+    for x in (live, simple):
+        x.observe("r2", 8.0, 23.0)
+    assert live.predict(11.0) == simple.predict(11.0)
+    assert "it is TRIV" in m.fit_summary()
+
+
+def test_week_round_trip_and_a_mismatched_weekend_profile_is_refused() -> None:
+    ts = training_set(lambda h: np.sin(h), days=7, weekend_extra=-0.5)
+    m = TrivWeekModel().fit(ts)
+    again = TrivWeekModel.from_dict(json.loads(json.dumps(m.to_dict())), ts.spec)
+    assert again.type_days_ == m.type_days_
+    for day in (SATURDAY, MONDAY):
+        a, b = m.start_day(day), again.start_day(day)
+        for x in (a, b):
+            x.observe("r1", 8.0, 20.0)
+        assert a.predict(12.3) == b.predict(12.3)
+    none = TrivWeekModel.from_dict(TrivWeekModel().fit(training_set(np.cos, days=2)).to_dict(),
+                                   ts.spec)
+    assert none.weekend_ is None
+    bad = m.to_dict()
+    bad["weekend"] = bad["weekend"][:1]  # one reference's profile for a twin of two
+    with pytest.raises(ValueError, match="weekend offsets"):
+        TrivWeekModel.from_dict(bad, ts.spec)

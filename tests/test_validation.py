@@ -79,6 +79,28 @@ def test_the_gp_wins_when_the_references_carry_the_targets_deviations() -> None:
     assert scores["corrgp-triv"]["nrmse_pct"] < 0.9 * scores["triv"]["nrmse_pct"]
 
 
+@pytest.mark.parametrize("weekend_differs", [True, False])
+def test_the_weekend_profile_is_chosen_only_where_weekends_differ(weekend_differs: bool
+                                                                  ) -> None:
+    """Trained Wednesday to Sunday: where the target's offset runs its own course on
+    Saturday and Sunday (a house lived in differently at weekends), validation picks the
+    TRIV with a weekend profile; where weekends are like weekdays, the simpler TRIV."""
+    rng = np.random.default_rng(3)
+    days, h = 7, _grid()  # Monday 2024-03-04 … Sunday; trained from Wednesday
+    ref = 21.0 + 1.5 * np.sin((h - 7) / 12 * np.pi)[None, :] + _smooth(rng, days, len(h), 0.3, 8)
+    offset = np.tile(0.8 * np.sin((h - 7) / 12 * np.pi), (days, 1))
+    if weekend_differs:
+        offset[5:] = -0.6 + 0.1 * (h - 7)[None, :]
+    offset += rng.normal(0.0, 0.03, size=(days, len(h)))
+    art = train_twin(_frame(ref, ref + offset, days), SPEC, DAY0 + dt.timedelta(days=2), 5,
+                     models=["ref", "triv", "triv-week"])
+    want = "triv-week" if weekend_differs else "triv"
+    assert art.primary == want, art.validation["reason"]
+    scores = art.validation["scores"]
+    if weekend_differs:
+        assert scores["triv-week"]["nrmse_pct"] < 0.9 * scores["triv"]["nrmse_pct"]
+
+
 def test_sigma_covers_95_percent_of_days_drawn_from_the_model_itself() -> None:
     """TRIV's own model: desk = ref + typical offset course + a day-level offset + noise.
     A hundred independent twins, each trained on five days and scored on eight new ones: a

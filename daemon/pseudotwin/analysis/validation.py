@@ -7,7 +7,7 @@ honest errors on a day it has not seen:
 
 - the **primary** is the candidate with the lowest mean held-out daily NRMSE, except that the
   simplest candidate within ``TIE_RELATIVE`` of it wins (the registry's order, ref < triv <
-  triv-shrunk < triv-cov < corrgp-triv < corrgp-multi < corrgp-lcm): five days cannot
+  triv-shrunk < triv-week < triv-cov < corrgp-triv < corrgp-multi < corrgp-lcm): five days cannot
   tell a 3 % difference from noise, and the simpler model fails in simpler ways. The blend
   (models/blend.py) is not refit per fold: its held-out rows combine the members' with weights
   chosen on the other held-out days. It is measured against the held-out error of that choice

@@ -62,8 +62,9 @@ class TrivModel(TwinModel):
                 self.profiles_[r] = fill_slots(np.nanmean(ref, axis=0))
             self.profiles_[training.target] = fill_slots(np.nanmean(tgt, axis=0))
             self.offsets_ = np.array(offsets)
+            day_offsets = self._day_offsets(training, tgt)  # [D, M, S]
             for m, r in enumerate(refs):
-                estimates.append(self.offsets_[m][None, :] + slot_matrix(training, r))
+                estimates.append(day_offsets[:, m, :] + slot_matrix(training, r))
             err = tgt - np.nanmean(np.array(estimates), axis=0)
             spread = np.sqrt(np.nanmean(err**2, axis=0))
             overall = float(np.sqrt(np.nanmean(err**2))) if np.isfinite(err).any() else 0.0
@@ -74,6 +75,15 @@ class TrivModel(TwinModel):
     def _offset_profile(self, diffs: np.ndarray) -> np.ndarray:
         """Target − reference per day and slot [D, S] → the offset profile [S]."""
         return fill_slots(np.nanmean(diffs, axis=0))
+
+    def _day_offsets(self, training: TrainingSet, target: np.ndarray) -> np.ndarray:
+        """The offsets each training day is estimated with: [D, M, S] (TRIV: every day the
+        same ``offsets_``). target: the target's slot levels [D, S]."""
+        return np.broadcast_to(self.offsets_, (len(training.days), *self.offsets_.shape))
+
+    def day_offsets(self, day: dt.date) -> np.ndarray:
+        """The offsets [M, S] of local ``day`` (TRIV: the same every day)."""
+        return self.offsets_
 
     def slot_index(self, hours: float) -> int:
         """Index into the window slots [S] of wall-clock hours (clamped to the window)."""
@@ -86,7 +96,7 @@ class TrivModel(TwinModel):
         return float(self.profiles_[sensor][self.slot_index(hours)])
 
     def start_day(self, day: dt.date) -> TrivDay:
-        return TrivDay(self)
+        return TrivDay(self, self.day_offsets(day))
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -161,6 +171,74 @@ class TrivShrunkModel(TrivModel):
         return m
 
 
+WEEKEND_TYPE, WEEKDAY_TYPE = "weekend", "weekday"
+
+
+def day_type(day: dt.date) -> str:
+    """Saturday and Sunday are ``weekend``, Monday to Friday ``weekday``."""
+    return WEEKEND_TYPE if day.weekday() >= 5 else WEEKDAY_TYPE
+
+
+class TrivWeekModel(TrivModel):
+    """TRIV with an offset profile of its own for weekends (Saturday, Sunday).
+
+    Occupancy, ventilation and heating schedules differ on weekends, and with them the
+    course of the target's offset to the references (a house's CO2 above all). Weekend days
+    are estimated with the profile of the training's weekend days; weekdays, the majority of
+    any few consecutive training days, keep the profile of all training days (TRIV's), the
+    best-estimated one: a profile of the three weekdays alone is noisier than what the two
+    weekend days would bias it by (SML2010, rolling origins). Without a weekend day among
+    the training days the model is TRIV. Validation decides whether it pays: holding out one
+    of two weekend days leaves one to learn the weekend from. Fitted: weekend_ [M, S] the
+    weekend profiles, or None; type_days_ day type → training days of that type.
+    """
+
+    kind = "triv-week"
+    live_baseline = False
+
+    def fit(self, training: TrainingSet) -> Self:
+        weekend = np.array([day_type(d.day) == WEEKEND_TYPE for d in training.days])
+        self.type_days_ = {WEEKDAY_TYPE: int((~weekend).sum()), WEEKEND_TYPE: int(weekend.sum())}
+        self.weekend_: np.ndarray | None = None
+        if weekend.any():
+            tgt = slot_matrix(training, training.target)[weekend]
+            refs = tuple(self.references or training.references)
+            with np.errstate(invalid="ignore"), _quiet():
+                self.weekend_ = np.array([
+                    self._offset_profile(tgt - slot_matrix(training, r)[weekend])
+                    for r in refs])
+        return super().fit(training)
+
+    def _day_offsets(self, training: TrainingSet, target: np.ndarray) -> np.ndarray:
+        return np.array([self.day_offsets(d.day) for d in training.days])
+
+    def day_offsets(self, day: dt.date) -> np.ndarray:
+        if self.weekend_ is not None and day_type(day) == WEEKEND_TYPE:
+            return self.weekend_
+        return self.offsets_
+
+    def fit_summary(self) -> str:
+        n = self.type_days_[WEEKEND_TYPE]
+        if self.weekend_ is None:
+            return "no weekend day among the training days: it is TRIV"
+        return (f"weekend offset profile from {n} weekend day{'s' if n > 1 else ''}; "
+                f"weekdays: all {n + self.type_days_[WEEKDAY_TYPE]} training days' (TRIV's)")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**super().to_dict(), "type_days": dict(self.type_days_),
+                "weekend": None if self.weekend_ is None else self.weekend_.tolist()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], spec: TwinSpec) -> Self:
+        m = super().from_dict(d, spec)
+        m.type_days_ = {str(t): int(n) for t, n in d["type_days"].items()}
+        m.weekend_ = None if d["weekend"] is None else np.asarray(d["weekend"], float)
+        if m.weekend_ is not None and m.weekend_.shape != m.offsets_.shape:
+            raise ValueError("triv-week's weekend offsets do not match its references and "
+                             "the slot grid")
+        return m
+
+
 class HeldValues:
     """Latest value of each sensor by reading time (sample-and-hold; late readings of an
     earlier time never overwrite a newer value)."""
@@ -179,8 +257,11 @@ class HeldValues:
 
 
 class TrivDay(DayEstimator):
-    def __init__(self, model: TrivModel) -> None:
+    """offsets: today's offset profiles [M, S] (``model.offsets_`` unless given)."""
+
+    def __init__(self, model: TrivModel, offsets: np.ndarray | None = None) -> None:
         self.model = model
+        self.offsets = model.offsets_ if offsets is None else offsets
         self.held = HeldValues()
 
     def observe(self, sensor: str, hours: float, value: float) -> None:
@@ -188,8 +269,9 @@ class TrivDay(DayEstimator):
 
     def predict(self, hours: float) -> Estimate:
         m = self.model
+        slot = m.slot_index(hours)
         vals = [
-            m.offset(i, hours) + v
+            float(self.offsets[i, slot]) + v
             for i, r in enumerate(m.references_)
             if (v := self.held.get(r)) is not None
         ]

@@ -12,6 +12,7 @@ from importlib import metadata
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
 from pseudotwin.analysis.report.evidence import seasonal_md
 from pseudotwin.analysis.report.runs import COMMAND, DOCS, PACKAGE, REPO, RunResult
@@ -37,6 +38,7 @@ from pseudotwin.analysis.report.verdicts import (
 from pseudotwin.analysis.validation import BASELINE_LIMIT
 from pseudotwin.analysis.validation import TIE_RELATIVE as VALIDATION_TIE
 from pseudotwin.models.registry import MODELS
+from pseudotwin.models.triv import TrivWeekModel
 
 
 def _commit() -> str:
@@ -123,7 +125,10 @@ HOW_TO_READ = f"""\
   training offset profile (per 15-min slot, from each slot's time-weighted level on the
   training days) + live reference, averaged over references; `triv-shrunk` = TRIV
   with its offset profile shrunk towards the mean offset as far as the training days
-  disagree on its shape (James–Stein; the factor is in the artifact); `triv-cov` = TRIV plus
+  disagree on its shape (James–Stein; the factor is in the artifact); `triv-week` = TRIV
+  with an offset profile of its own for Saturdays and Sundays, learnt from the training's
+  weekend days (weekdays keep all days' profile; it is TRIV when no training day is a
+  weekend day); `triv-cov` = TRIV plus
   a linear term in the run's covariates' deviations from their typical day, each covariate
   kept only when it lowers TRIV's held-out error on the training days, on all held-out days
   but one and with a β of one sign, each deviation clipped to the training days' range (it
@@ -286,8 +291,8 @@ def _performance() -> list[str]:
 
 
 # TRIV and the models that try to beat it with information TRIV does not use.
-_TRIED = ("triv", "triv-shrunk", "triv-cov", "corrgp-triv", "corrgp-multi", "corrgp-lcm",
-          "blend")
+_TRIED = ("triv", "triv-shrunk", "triv-week", "triv-cov", "corrgp-triv", "corrgp-multi",
+          "corrgp-lcm", "blend")
 
 
 def _helped(results: Sequence[RunResult]) -> str:
@@ -311,9 +316,36 @@ def _helped(results: Sequence[RunResult]) -> str:
         "\n\nMean daily NRMSE % on the test days (in brackets: held out on the training days, "
         "what validation chose from), and the ratio to TRIV's on the test days. `—`: the model "
         "cannot serve the run's twin (corrgp-multi needs two references; triv-cov is TRIV "
-        "where no covariate was kept, see each run's validation section; blend needs two "
+        "where no covariate was kept, see each run's validation section; triv-week is TRIV "
+        "where no training day falls on a weekend; blend needs two "
         "validated candidates, its members are in the validation note). Only the primary is "
-        "published as `estimate`; the others are scored here whether or not they run live.")
+        "published as `estimate`; the others are scored here whether or not they run live."
+    ) + _by_day_type(results)
+
+
+def _by_day_type(results: Sequence[RunResult]) -> str:
+    """triv-week against TRIV on the test days by day type, for the runs whose training
+    days include a weekend day (elsewhere triv-week is TRIV)."""
+    rows = []
+    for res in results:
+        week = res.ev.artifact.models.get("triv-week")
+        if not isinstance(week, TrivWeekModel) or week.weekend_ is None:
+            continue
+        d = res.daily[res.daily["model"].isin(["triv", "triv-week"])]
+        weekend = pd.to_datetime(d["day"]).dt.dayofweek >= 5
+        cells = [res.spec.name, str(week.type_days_["weekend"])]
+        for sel in (weekend, ~weekend):
+            mean = d[sel].groupby("model")["nrmse_pct"].mean()
+            n = d.loc[sel, "day"].nunique()
+            cells += [str(n), fmt(mean.get("triv", np.nan)), fmt(mean.get("triv-week", np.nan))]
+        rows.append(cells)
+    if not rows:
+        return ""
+    table = md_table(["run", "weekend training days", "weekend test days", "triv",
+                      "triv-week", "weekday test days", "triv", "triv-week"], rows, left=1)
+    return ("\n\n" + table + "\n\nThe weekend profile by day type: mean daily NRMSE % on "
+            "the weekend and the weekday test days. triv-week estimates weekdays as TRIV does "
+            "(up to the weekend days' share in its σ); what it changes is the weekend.")
 
 
 def _overview(results: Sequence[RunResult]) -> str:
