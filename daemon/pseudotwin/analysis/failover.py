@@ -31,7 +31,7 @@ from pseudotwin.models.registry import build, model_class
 log = logging.getLogger(__name__)
 
 # Cheap candidates (no GP fit): a failover answers for hours at most, until the sensor is back.
-FAILOVER_KINDS: tuple[str, ...] = ("ref", "triv", "triv-shrunk", "triv-cov")
+FAILOVER_KINDS: tuple[str, ...] = ("ref", "triv", "triv-shrunk", "triv-week", "triv-cov")
 
 
 def train_failover(
