@@ -168,7 +168,19 @@ def test_without_a_weekend_day_among_the_training_days_it_is_triv() -> None:
     for x in (live, simple):
         x.observe("r2", 8.0, 23.0)
     assert live.predict(11.0) == simple.predict(11.0)
-    assert "it is TRIV" in m.fit_summary()
+    assert "0 weekend days among the training days" in m.fit_summary()
+
+
+def test_one_weekend_day_is_not_enough_but_validations_refits_learn_from_it() -> None:
+    """Live, a weekend profile needs two weekend days (validation could not test one learnt
+    from a single day); validation's refits, holding one of two out, learn it from one."""
+    ts = training_set(lambda h: 0.0, days=6, weekend_extra=1.0)  # Monday to Saturday
+    live = TrivWeekModel().fit(ts)
+    assert live.weekend_ is None and live.type_days_["weekend"] == 1
+    assert "1 weekend day among the training days, 2 needed" in live.fit_summary()
+    refit = TrivWeekModel(**TrivWeekModel.validation_options).fit(ts)
+    assert refit.weekend_ is not None
+    np.testing.assert_allclose(refit.weekend_[0], 1.0, atol=1e-9)
 
 
 def test_week_round_trip_and_a_mismatched_weekend_profile_is_refused() -> None:

@@ -7,7 +7,7 @@ On the slot grid (COV values sample-and-hold), O_m(τ) = mean over training days
 from __future__ import annotations
 
 import datetime as dt
-from typing import Any, Self
+from typing import Any, ClassVar, Self
 
 import numpy as np
 
@@ -42,7 +42,7 @@ class TrivModel(TwinModel):
     """
 
     kind = "triv"
-    options = ("references",)
+    options: ClassVar[tuple[str, ...]] = ("references",)
 
     def __init__(self, references: tuple[str, ...] | None = None) -> None:
         self.references = references
@@ -172,6 +172,7 @@ class TrivShrunkModel(TrivModel):
 
 
 WEEKEND_TYPE, WEEKDAY_TYPE = "weekend", "weekday"
+MIN_WEEKEND_DAYS = 2  # weekend training days a live weekend profile is learnt from
 
 
 def day_type(day: dt.date) -> str:
@@ -187,20 +188,32 @@ class TrivWeekModel(TrivModel):
     are estimated with the profile of the training's weekend days; weekdays, the majority of
     any few consecutive training days, keep the profile of all training days (TRIV's), the
     best-estimated one: a profile of the three weekdays alone is noisier than what the two
-    weekend days would bias it by (SML2010, rolling origins). Without a weekend day among
-    the training days the model is TRIV. Validation decides whether it pays: holding out one
-    of two weekend days leaves one to learn the weekend from. Fitted: weekend_ [M, S] the
-    weekend profiles, or None; type_days_ day type → training days of that type.
+    weekend days would bias it by (SML2010, rolling origins).
+
+    The weekend profile needs ``min_weekend_days`` (2) weekend training days, else the model
+    is TRIV: validation must be able to test it. Its refits on held-out days learn the
+    weekend from one day (``validation_options``), so with two weekend days each is held out
+    against a profile of the other, a pessimistic test of the two-day profile; with one, a
+    held-out weekend day has none and the model scores as TRIV, whose simpler form wins.
+    Fitted: weekend_ [M, S] the weekend profiles, or None; type_days_ day type → training
+    days of that type.
     """
 
     kind = "triv-week"
+    options: ClassVar[tuple[str, ...]] = ("references", "min_weekend_days")
+    validation_options: ClassVar[dict[str, Any]] = {"min_weekend_days": 1}
     live_baseline = False
+
+    def __init__(self, references: tuple[str, ...] | None = None,
+                 min_weekend_days: int = MIN_WEEKEND_DAYS) -> None:
+        super().__init__(references)
+        self.min_weekend_days = min_weekend_days
 
     def fit(self, training: TrainingSet) -> Self:
         weekend = np.array([day_type(d.day) == WEEKEND_TYPE for d in training.days])
         self.type_days_ = {WEEKDAY_TYPE: int((~weekend).sum()), WEEKEND_TYPE: int(weekend.sum())}
         self.weekend_: np.ndarray | None = None
-        if weekend.any():
+        if weekend.sum() >= max(1, self.min_weekend_days):
             tgt = slot_matrix(training, training.target)[weekend]
             refs = tuple(self.references or training.references)
             with np.errstate(invalid="ignore"), _quiet():
@@ -220,7 +233,8 @@ class TrivWeekModel(TrivModel):
     def fit_summary(self) -> str:
         n = self.type_days_[WEEKEND_TYPE]
         if self.weekend_ is None:
-            return "no weekend day among the training days: it is TRIV"
+            return (f"{n} weekend day{'' if n == 1 else 's'} among the training days, "
+                    f"{max(1, self.min_weekend_days)} needed for a weekend profile: it is TRIV")
         return (f"weekend offset profile from {n} weekend day{'s' if n > 1 else ''}; "
                 f"weekdays: all {n + self.type_days_[WEEKDAY_TYPE]} training days' (TRIV's)")
 

@@ -127,8 +127,8 @@ HOW_TO_READ = f"""\
   with its offset profile shrunk towards the mean offset as far as the training days
   disagree on its shape (James–Stein; the factor is in the artifact); `triv-week` = TRIV
   with an offset profile of its own for Saturdays and Sundays, learnt from the training's
-  weekend days (weekdays keep all days' profile; it is TRIV when no training day is a
-  weekend day); `triv-cov` = TRIV plus
+  weekend days (weekdays keep all days' profile; it is TRIV with fewer than two weekend
+  days among the training days, which validation could not test); `triv-cov` = TRIV plus
   a linear term in the run's covariates' deviations from their typical day, each covariate
   kept only when it lowers TRIV's held-out error on the training days, on all held-out days
   but one and with a β of one sign, each deviation clipped to the training days' range (it
@@ -317,7 +317,7 @@ def _helped(results: Sequence[RunResult]) -> str:
         "what validation chose from), and the ratio to TRIV's on the test days. `—`: the model "
         "cannot serve the run's twin (corrgp-multi needs two references; triv-cov is TRIV "
         "where no covariate was kept, see each run's validation section; triv-week is TRIV "
-        "where no training day falls on a weekend; blend needs two "
+        "with fewer than two weekend days among the training days; blend needs two "
         "validated candidates, its members are in the validation note). Only the primary is "
         "published as `estimate`; the others are scored here whether or not they run live."
     ) + _by_day_type(results)
