@@ -233,7 +233,8 @@ PERFORMANCE = (
      ".venv/bin/python scripts/bench_daemon.py --twins 1000 --baselines none",
      "The daemon with 1,000 twins, without baselines",
      "The same with `[service] baselines = \"none\"`: the twins run their primary model "
-     "only (here the blend of triv-shrunk, ref and corrgp-lcm), no baseline messages."),
+     "only (here triv-week, validation's choice for this twin: no GP work, so what is left "
+     "is the daemon's own cost), no baseline messages."),
     ("bench_daemon_1000_day.txt",
      ".venv/bin/python scripts/bench_daemon.py --twins 1000 --hours 11",
      "The daemon with 1,000 twins through a whole operating day",
