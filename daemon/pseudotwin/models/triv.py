@@ -62,7 +62,7 @@ class TrivModel(TwinModel):
                 self.profiles_[r] = fill_slots(np.nanmean(ref, axis=0))
             self.profiles_[training.target] = fill_slots(np.nanmean(tgt, axis=0))
             self.offsets_ = np.array(offsets)
-            day_offsets = self._day_offsets(training, tgt)  # [D, M, S]
+            day_offsets = self._day_offsets(training)  # [D, M, S]
             for m, r in enumerate(refs):
                 estimates.append(day_offsets[:, m, :] + slot_matrix(training, r))
             err = tgt - np.nanmean(np.array(estimates), axis=0)
@@ -76,9 +76,9 @@ class TrivModel(TwinModel):
         """Target − reference per day and slot [D, S] → the offset profile [S]."""
         return fill_slots(np.nanmean(diffs, axis=0))
 
-    def _day_offsets(self, training: TrainingSet, target: np.ndarray) -> np.ndarray:
+    def _day_offsets(self, training: TrainingSet) -> np.ndarray:
         """The offsets each training day is estimated with: [D, M, S] (TRIV: every day the
-        same ``offsets_``). target: the target's slot levels [D, S]."""
+        same ``offsets_``)."""
         return np.broadcast_to(self.offsets_, (len(training.days), *self.offsets_.shape))
 
     def day_offsets(self, day: dt.date) -> np.ndarray:
@@ -222,7 +222,7 @@ class TrivWeekModel(TrivModel):
                     for r in refs])
         return super().fit(training)
 
-    def _day_offsets(self, training: TrainingSet, target: np.ndarray) -> np.ndarray:
+    def _day_offsets(self, training: TrainingSet) -> np.ndarray:
         return np.array([self.day_offsets(d.day) for d in training.days])
 
     def day_offsets(self, day: dt.date) -> np.ndarray:
