@@ -325,8 +325,8 @@ def _helped(results: Sequence[RunResult]) -> str:
 
 
 def _by_day_type(results: Sequence[RunResult]) -> str:
-    """triv-week against TRIV on the test days by day type, for the runs whose training
-    days include a weekend day (elsewhere triv-week is TRIV)."""
+    """triv-week against TRIV on the test days by day type, for the runs whose triv-week
+    learnt a weekend profile (two or more weekend training days; elsewhere it is TRIV)."""
     rows = []
     for res in results:
         week = res.ev.artifact.models.get("triv-week")
