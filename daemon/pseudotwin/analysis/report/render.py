@@ -12,7 +12,6 @@ from importlib import metadata
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 from pseudotwin.analysis.report.evidence import seasonal_md
 from pseudotwin.analysis.report.runs import COMMAND, DOCS, PACKAGE, REPO, RunResult
@@ -38,7 +37,7 @@ from pseudotwin.analysis.report.verdicts import (
 from pseudotwin.analysis.validation import BASELINE_LIMIT
 from pseudotwin.analysis.validation import TIE_RELATIVE as VALIDATION_TIE
 from pseudotwin.models.registry import MODELS
-from pseudotwin.models.triv import TrivWeekModel
+from pseudotwin.models.triv import WEEKEND_TYPE, TrivWeekModel, day_type
 
 
 def _commit() -> str:
@@ -333,7 +332,8 @@ def _by_day_type(results: Sequence[RunResult]) -> str:
         if not isinstance(week, TrivWeekModel) or week.weekend_ is None:
             continue
         d = res.daily[res.daily["model"].isin(["triv", "triv-week"])]
-        weekend = pd.to_datetime(d["day"]).dt.dayofweek >= 5
+        weekend = d["day"].map(lambda day: day_type(dt.date.fromisoformat(day))
+                               == WEEKEND_TYPE)
         cells = [res.spec.name, str(week.type_days_["weekend"])]
         for sel in (weekend, ~weekend):
             mean = d[sel].groupby("model")["nrmse_pct"].mean()
