@@ -234,6 +234,12 @@ PERFORMANCE = (
      "The same with `[service] baselines = \"none\"`: the twins run their primary model "
      "only (here triv-week, validation's choice for this twin: no GP work, so what is left "
      "is the daemon's own cost), no baseline messages."),
+    ("bench_mqtt_floor.txt", ".venv/bin/python scripts/bench_mqtt_floor.py",
+     "What paho-mqtt alone costs per reading",
+     "No twin at all: a QoS 1 reading in, its ack and one QoS 1 estimate out, at the rate of "
+     "the 1,000-twin runs (200 readings/s), once with a worker thread as the daemon does it "
+     "and once inside `on_message`. The CPU a paho client spends per reading before any "
+     "pseudotwin code runs: compare with the daemon's figure just above."),
     ("bench_daemon_1000_day.txt",
      ".venv/bin/python scripts/bench_daemon.py --twins 1000 --hours 11",
      "The daemon with 1,000 twins through a whole operating day",
