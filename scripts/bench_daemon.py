@@ -34,6 +34,7 @@ import datetime as dt
 import gc
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -339,6 +340,10 @@ def main() -> int:
         stop_process(profiler, signal.SIGINT, 60)
         stop_process(daemon, signal.SIGTERM, 60)  # before the figures: its exit status
         ms = np.array(lat) * 1e3
+        # The daemon logs each full garbage collection that paused it > 100 ms (core/heap.py).
+        gc_pauses = [float(m.group(1)) for m in re.finditer(
+            r"full garbage collection paused every thread for (\d+) ms",
+            (tmp / "daemon.log").read_text())]
         fig = {
             "twins": a.twins, "speed": a.speed, "day_hours": a.hours,
             "baselines": a.baselines,
@@ -356,6 +361,8 @@ def main() -> int:
             "daemon_exit": daemon.returncode,
             "daemon_startup_s": round(startup, 1),
             "daemon_reading_to_estimate": in_daemon,
+            "daemon_gc_pauses_over_100ms": len(gc_pauses),
+            "daemon_gc_longest_pause_ms": max(gc_pauses, default=None),
             "messages_out_per_reading": out,
             "packets_per_reading": {"in": round(1 + out["estimate"], 3),
                                     "out": round(1 + sum(out.values()), 3)},
@@ -388,6 +395,8 @@ def main() -> int:
         print(f"  MQTT packets per reading: in {fig['packets_per_reading']['in']} (the reading, "
               f"PUBACKs of estimates), out {fig['packets_per_reading']['out']} (its PUBACK, "
               + ", ".join(f"{k} {v}" for k, v in out.items()) + ")")
+        print(f"  full garbage collections pausing the daemon > 100 ms: {len(gc_pauses)}"
+              + (f", the longest {max(gc_pauses):g} ms" if gc_pauses else ""))
         print(f"  daemon CPU by thread [s], largest first (worker, network): "
               f"{', '.join(map(str, fig['daemon_cpu_threads_s']))}")
         if a.profile is not None:

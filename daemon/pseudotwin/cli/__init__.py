@@ -283,7 +283,7 @@ def _serve(process: Service | Recorder) -> int:
     import signal
     import threading
 
-    from pseudotwin.core.heap import freeze_long_lived
+    from pseudotwin.core.heap import freeze_long_lived, watch_full_collections
 
     done = threading.Event()
 
@@ -294,6 +294,7 @@ def _serve(process: Service | Recorder) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
     freeze_long_lived()  # the loaded twins live as long as the process
+    watch_full_collections()
     try:
         process.start(wait_connected=None)  # never blocks: a signal is honoured at once
     except ConfigError as exc:  # found only on start, e.g. a metrics port already taken
