@@ -341,9 +341,10 @@ def main() -> int:
         stop_process(daemon, signal.SIGTERM, 60)  # before the figures: its exit status
         ms = np.array(lat) * 1e3
         # The daemon logs each full garbage collection that paused it > 100 ms (core/heap.py).
-        gc_pauses = [float(m.group(1)) for m in re.finditer(
-            r"full garbage collection paused every thread for (\d+) ms",
-            (tmp / "daemon.log").read_text())]
+        gc_logged = re.findall(
+            r"full garbage collection paused every thread for (\d+) ms .*?(\d+) tracked",
+            (tmp / "daemon.log").read_text())
+        gc_pauses = [float(ms) for ms, _ in gc_logged]
         fig = {
             "twins": a.twins, "speed": a.speed, "day_hours": a.hours,
             "baselines": a.baselines,
@@ -363,6 +364,7 @@ def main() -> int:
             "daemon_reading_to_estimate": in_daemon,
             "daemon_gc_pauses_over_100ms": len(gc_pauses),
             "daemon_gc_longest_pause_ms": max(gc_pauses, default=None),
+            "daemon_gc_most_tracked_objects": max((int(n) for _, n in gc_logged), default=None),
             "messages_out_per_reading": out,
             "packets_per_reading": {"in": round(1 + out["estimate"], 3),
                                     "out": round(1 + sum(out.values()), 3)},
@@ -396,7 +398,9 @@ def main() -> int:
               f"PUBACKs of estimates), out {fig['packets_per_reading']['out']} (its PUBACK, "
               + ", ".join(f"{k} {v}" for k, v in out.items()) + ")")
         print(f"  full garbage collections pausing the daemon > 100 ms: {len(gc_pauses)}"
-              + (f", the longest {max(gc_pauses):g} ms" if gc_pauses else ""))
+              + (f", the longest {max(gc_pauses):g} ms, up to "
+                 f"{fig['daemon_gc_most_tracked_objects']} tracked objects left"
+                 if gc_pauses else ""))
         print(f"  daemon CPU by thread [s], largest first (worker, network): "
               f"{', '.join(map(str, fig['daemon_cpu_threads_s']))}")
         if a.profile is not None:

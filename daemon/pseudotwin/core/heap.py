@@ -50,8 +50,10 @@ class _FullCollectionWatch:
             pause = time.perf_counter() - self._started
             self._started = None
             if pause > self.threshold_s:
+                # What it had to traverse: what survived it, counted only for a long pause.
                 log.warning("a full garbage collection paused every thread for %.0f ms "
-                            "(%d objects freed)", pause * 1e3, info.get("collected", 0))
+                            "(%d objects freed, %d tracked objects left)", pause * 1e3,
+                            info.get("collected", 0), len(gc.get_objects(generation=2)))
 
 
 def watch_full_collections(threshold_s: float = LONG_PAUSE_S) -> None:
