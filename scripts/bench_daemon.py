@@ -299,6 +299,8 @@ def main() -> int:
             return 1
         startup = time.monotonic() - launched
         cpu0, _ = proc_stats(daemon.pid)
+        # The other processes on the same cores: are the daemon's delays its own?
+        broker_cpu0, own_cpu0 = proc_stats(broker.pid)[0], time.process_time()
         counted0 = dict(counts)
         threads0 = thread_cpu(daemon.pid)
         profiler = None
@@ -329,6 +331,8 @@ def main() -> int:
             time.sleep(0.1)
         wall = time.monotonic() - wall0
         cpu1, hwm = proc_stats(daemon.pid)
+        broker_cpu, own_cpu = proc_stats(broker.pid)[0] - broker_cpu0, \
+            time.process_time() - own_cpu0
         # The daemon's MQTT packets per reading: in, each reading and the PUBACK of each
         # QoS 1 message it sent (estimates); out, the reading's PUBACK and its messages.
         out = {k: round((counts[k] - counted0[k]) / published, 3) for k in counts}
@@ -359,6 +363,8 @@ def main() -> int:
             "daemon_cpu_ms_per_reading": round(1e3 * (cpu1 - cpu0) / published, 3),
             "daemon_peak_rss_mb": round(hwm / 1024, 1),
             "daemon_cpu_threads_s": [c for c in by_thread if c > 0],
+            "broker_cpu_share_of_core": round(broker_cpu / wall, 3),
+            "bench_cpu_share_of_core": round(own_cpu / wall, 3),
             "daemon_exit": daemon.returncode,
             "daemon_startup_s": round(startup, 1),
             "daemon_reading_to_estimate": in_daemon,
@@ -394,6 +400,9 @@ def main() -> int:
               f"of one core, {fig['daemon_cpu_ms_per_reading']} ms per reading; "
               f"peak RSS {fig['daemon_peak_rss_mb']} MB; online {fig['daemon_startup_s']} s "
               "after its start")
+        print(f"  the other processes on the {os.cpu_count()} cores: Mosquitto "
+              f"{fig['broker_cpu_share_of_core']:.1%} of one core, this measuring process "
+              f"{fig['bench_cpu_share_of_core']:.1%}")
         print(f"  MQTT packets per reading: in {fig['packets_per_reading']['in']} (the reading, "
               f"PUBACKs of estimates), out {fig['packets_per_reading']['out']} (its PUBACK, "
               + ", ".join(f"{k} {v}" for k, v in out.items()) + ")")
