@@ -345,9 +345,17 @@ def main() -> int:
         stop_process(daemon, signal.SIGTERM, 60)  # before the figures: its exit status
         ms = np.array(lat) * 1e3
         # The daemon logs each full garbage collection that paused it > 100 ms (core/heap.py).
+        log_text = (tmp / "daemon.log").read_text()
         gc_logged = re.findall(
             r"full garbage collection paused every thread for (\d+) ms .*?(\d+) tracked",
-            (tmp / "daemon.log").read_text())
+            log_text)
+        # Everything else the daemon warned about while the readings went in (reconnects,
+        # a full queue, ...): the message of each kind, digits blanked, with its count.
+        warned: dict[str, int] = {}
+        for m in re.finditer(r" (WARNING|ERROR) (.*)", log_text):
+            if "full garbage collection" not in m.group(2):
+                kind = re.sub(r"\d+(\.\d+)?", "#", m.group(2).strip())[:120]
+                warned[kind] = warned.get(kind, 0) + 1
         gc_pauses = [float(ms) for ms, _ in gc_logged]
         fig = {
             "twins": a.twins, "speed": a.speed, "day_hours": a.hours,
@@ -370,6 +378,7 @@ def main() -> int:
             "daemon_reading_to_estimate": in_daemon,
             "daemon_gc_pauses_over_100ms": len(gc_pauses),
             "daemon_gc_longest_pause_ms": max(gc_pauses, default=None),
+            "daemon_warnings": warned,
             "daemon_gc_most_tracked_objects": max((int(n) for _, n in gc_logged), default=None),
             "messages_out_per_reading": out,
             "packets_per_reading": {"in": round(1 + out["estimate"], 3),
@@ -410,6 +419,8 @@ def main() -> int:
               + (f", the longest {max(gc_pauses):g} ms, up to "
                  f"{fig['daemon_gc_most_tracked_objects']} tracked objects left"
                  if gc_pauses else ""))
+        for kind, n in sorted(warned.items(), key=lambda kv: -kv[1])[:5]:
+            print(f"  the daemon warned {n}×: {kind}")
         print(f"  daemon CPU by thread [s], largest first (worker, network): "
               f"{', '.join(map(str, fig['daemon_cpu_threads_s']))}")
         if a.profile is not None:
