@@ -15,7 +15,10 @@ this measuring process on the same two cores; the daemon's CPU time (per reading
 share of one core; per reading = the daemon's CPU from "online" to the last estimate / the
 readings published) and its peak RSS (VmHWM). The CPU is also split by thread, largest
 first: the worker (models, payloads, publish calls), then paho's network thread (reading the
-broker's messages and PUBACKs, writing ours). Prints a table and, last, one JSON line.
+broker's messages and PUBACKs, writing ours). Next to it, the CPU of Mosquitto and of this
+measuring process over the same time (the cores they share). From the daemon's log while the
+readings went in: its full garbage collections longer than 100 ms (pseudotwin/core/heap.py)
+and its other warnings, counted by kind. Prints a table and, last, one JSON line.
 
 ``--profile FILE`` also samples the running daemon with py-spy (``pip install -e
 '.[profile]'``; non-blocking, 100 Hz, idle samples left out) while the readings go in, keeps
@@ -51,9 +54,18 @@ from paho.mqtt.enums import CallbackAPIVersion
 from prometheus_client.parser import text_string_to_metric_families
 
 import pseudotwin  # noqa: F401
-from brokerutil import die_with_parent, exit_on_signals, free_port, start_broker, stop_process
+from brokerutil import (
+    die_with_parent,
+    exit_on_signals,
+    free_port,
+    proc_stats,
+    start_broker,
+    stop_process,
+    thread_cpu,
+)
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.config.model import BASELINE_CADENCES
+from pseudotwin.core.heap import LONG_PAUSE_PATTERN, LONG_PAUSE_S
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.edge.clock import ReplayClock
@@ -73,33 +85,6 @@ def relabel(obj, mapping: dict[str, str]):
     if isinstance(obj, list):
         return [relabel(v, mapping) for v in obj]
     return mapping.get(obj, obj) if isinstance(obj, str) else obj
-
-
-def proc_stats(pid: int) -> tuple[float, int]:
-    """CPU seconds (user + system) and peak RSS [kB] of a process."""
-    with open(f"/proc/{pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    ticks = os.sysconf("SC_CLK_TCK")
-    cpu = (int(fields[11]) + int(fields[12])) / ticks
-    hwm = 0
-    with open(f"/proc/{pid}/status") as f:
-        for line in f:
-            if line.startswith("VmHWM:"):
-                hwm = int(line.split()[1])
-    return cpu, hwm
-
-
-def thread_cpu(pid: int) -> dict[int, float]:
-    """CPU seconds (user + system) of each thread of a process."""
-    ticks = os.sysconf("SC_CLK_TCK")
-    out = {}
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        try:
-            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
-        except OSError:  # the thread ended meanwhile
-            continue
-        out[int(task.name)] = (int(fields[11]) + int(fields[12])) / ticks
-    return out
 
 
 def daemon_latency(port: int) -> dict[str, float | None]:
@@ -298,11 +283,6 @@ def main() -> int:
                   file=sys.stderr)
             return 1
         startup = time.monotonic() - launched
-        cpu0, _ = proc_stats(daemon.pid)
-        # The other processes on the same cores: are the daemon's delays its own?
-        broker_cpu0, own_cpu0 = proc_stats(broker.pid)[0], time.process_time()
-        counted0 = dict(counts)
-        threads0 = thread_cpu(daemon.pid)
         profiler = None
         if a.profile is not None:
             profiler = start_profiler(daemon.pid, a.profile)
@@ -314,6 +294,12 @@ def main() -> int:
         cleanup.callback(pub.loop_stop)
         clock = ReplayClock(start, a.speed)
         stop = threading.Event()
+        cpu0, _ = proc_stats(daemon.pid)
+        # The other processes on the same cores: are the daemon's delays its own?
+        broker_cpu0, own_cpu0 = proc_stats(broker.pid)[0], time.process_time()
+        counted0 = dict(counts)
+        threads0 = thread_cpu(daemon.pid)
+        log_from = (tmp / "daemon.log").stat().st_size  # what it logs from now on
         wall0 = time.monotonic()
         published = in_hours = 0
         for ts, i, v in events:
@@ -337,6 +323,10 @@ def main() -> int:
         # QoS 1 message it sent (estimates); out, the reading's PUBACK and its messages.
         out = {k: round((counts[k] - counted0[k]) / published, 3) for k in counts}
         threads1 = thread_cpu(daemon.pid)
+        with open(tmp / "daemon.log", "rb") as f:  # its log while the readings went in
+            f.seek(log_from)
+            log_text = f.read(max((tmp / "daemon.log").stat().st_size - log_from, 0)).decode(
+                errors="replace")
         in_daemon = daemon_latency(metrics_port)
         cpu_by_tid = {t: c - threads0.get(t, 0.0) for t, c in threads1.items()}
         by_thread = sorted((round(c, 2) for c in cpu_by_tid.values()), reverse=True)
@@ -344,19 +334,16 @@ def main() -> int:
         stop_process(profiler, signal.SIGINT, 60)
         stop_process(daemon, signal.SIGTERM, 60)  # before the figures: its exit status
         ms = np.array(lat) * 1e3
-        # The daemon logs each full garbage collection that paused it > 100 ms (core/heap.py).
-        log_text = (tmp / "daemon.log").read_text()
-        gc_logged = re.findall(
-            r"full garbage collection paused every thread for (\d+) ms .*?(\d+) tracked",
-            log_text)
+        # The daemon logs each full garbage collection that held it > LONG_PAUSE_S (heap.py).
+        gc_logged = re.findall(LONG_PAUSE_PATTERN, log_text)
         # Everything else the daemon warned about while the readings went in (reconnects,
         # a full queue, ...): the message of each kind, digits blanked, with its count.
         warned: dict[str, int] = {}
         for m in re.finditer(r" (WARNING|ERROR) (.*)", log_text):
-            if "full garbage collection" not in m.group(2):
+            if not re.search(LONG_PAUSE_PATTERN, m.group(2)):
                 kind = re.sub(r"\d+(\.\d+)?", "#", m.group(2).strip())[:120]
                 warned[kind] = warned.get(kind, 0) + 1
-        gc_pauses = [float(ms) for ms, _ in gc_logged]
+        gc_pauses = [float(pause) for pause, _ in gc_logged]
         fig = {
             "twins": a.twins, "speed": a.speed, "day_hours": a.hours,
             "baselines": a.baselines,
@@ -376,7 +363,7 @@ def main() -> int:
             "daemon_exit": daemon.returncode,
             "daemon_startup_s": round(startup, 1),
             "daemon_reading_to_estimate": in_daemon,
-            "daemon_gc_pauses_over_100ms": len(gc_pauses),
+            "daemon_gc_long_pauses": len(gc_pauses),
             "daemon_gc_longest_pause_ms": max(gc_pauses, default=None),
             "daemon_warnings": warned,
             "daemon_gc_most_tracked_objects": max((int(n) for _, n in gc_logged), default=None),
@@ -409,13 +396,14 @@ def main() -> int:
               f"of one core, {fig['daemon_cpu_ms_per_reading']} ms per reading; "
               f"peak RSS {fig['daemon_peak_rss_mb']} MB; online {fig['daemon_startup_s']} s "
               "after its start")
-        print(f"  the other processes on the {os.cpu_count()} cores: Mosquitto "
+        print(f"  the other processes on the {len(os.sched_getaffinity(0))} cores: Mosquitto "
               f"{fig['broker_cpu_share_of_core']:.1%} of one core, this measuring process "
               f"{fig['bench_cpu_share_of_core']:.1%}")
         print(f"  MQTT packets per reading: in {fig['packets_per_reading']['in']} (the reading, "
               f"PUBACKs of estimates), out {fig['packets_per_reading']['out']} (its PUBACK, "
               + ", ".join(f"{k} {v}" for k, v in out.items()) + ")")
-        print(f"  full garbage collections pausing the daemon > 100 ms: {len(gc_pauses)}"
+        print(f"  full garbage collections holding the daemon > {LONG_PAUSE_S * 1e3:g} ms: "
+              f"{len(gc_pauses)}"
               + (f", the longest {max(gc_pauses):g} ms, up to "
                  f"{fig['daemon_gc_most_tracked_objects']} tracked objects left"
                  if gc_pauses else ""))

@@ -4,7 +4,8 @@ temporary folder, ready when returned.
 Nothing a script starts may outlive it (issue 11: a benchmark left its broker running):
 children get the kernel's parent-death signal (SIGTERM when the script dies, even by
 SIGKILL), :func:`stop_process` ends one for sure, and :func:`exit_on_signals` turns SIGTERM
-and SIGHUP into SystemExit so the scripts' ``finally`` blocks run.
+and SIGHUP into SystemExit so the scripts' ``finally`` blocks run. :func:`proc_stats` and
+:func:`thread_cpu` read what a process (and each of its threads) has cost from /proc.
 """
 
 from __future__ import annotations
@@ -81,3 +82,29 @@ def start_broker(folder: Path, port: int, extra: str = "") -> subprocess.Popen:
             time.sleep(0.05)
     stop_process(proc, signal.SIGKILL)
     sys.exit("the broker did not start")
+
+def proc_stats(pid: int) -> tuple[float, int]:
+    """CPU seconds (user + system) and peak RSS [kB] of a process."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    ticks = os.sysconf("SC_CLK_TCK")
+    cpu = (int(fields[11]) + int(fields[12])) / ticks
+    hwm = 0
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                hwm = int(line.split()[1])
+    return cpu, hwm
+
+
+def thread_cpu(pid: int) -> dict[int, float]:
+    """CPU seconds (user + system) of each thread of a process."""
+    ticks = os.sysconf("SC_CLK_TCK")
+    out = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:  # the thread ended meanwhile
+            continue
+        out[int(task.name)] = (int(fields[11]) + int(fields[12])) / ticks
+    return out

@@ -283,7 +283,11 @@ def _serve(process: Service | Recorder) -> int:
     import signal
     import threading
 
-    from pseudotwin.core.heap import freeze_long_lived, watch_full_collections
+    from pseudotwin.core.heap import (
+        freeze_long_lived,
+        log_long_collections,
+        watch_full_collections,
+    )
 
     done = threading.Event()
 
@@ -301,6 +305,7 @@ def _serve(process: Service | Recorder) -> int:
         log.error("configuration error: %s", exc)
         return EX_CONFIG
     while not done.wait(0.2):
+        log_long_collections()
         if process.fatal is not None:  # e.g. a wrong password: retrying will not help
             log.error("%s; exiting with status %d", process.fatal[1], process.fatal[0])
             break

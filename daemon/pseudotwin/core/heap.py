@@ -8,10 +8,10 @@ a thousand twins stopped every thread for ~0.7 s, and a backfill in one process 
 of its CPU in them (30 days of one twin: 6.0 s → 4.8–5.2 s). The backfill's worker processes
 measured no gain (their work is the same, their heap smaller), so they do not freeze.
 
-What is allocated later still gets collected, and a full collection stops every thread:
-:func:`watch_full_collections` logs each one that pauses the process for longer than a
-reading's latency budget can spare, so a latency spike in a daemon's log has its cause next
-to it.
+What is allocated later still gets collected, and a full collection holds every Python
+thread: :func:`watch_full_collections` records each one longer than :data:`LONG_PAUSE_S`, and
+:func:`log_long_collections` (called by the process's main loop, not inside the collection)
+logs them, so a latency spike in a daemon's log has its cause next to it.
 """
 
 from __future__ import annotations
@@ -19,12 +19,15 @@ from __future__ import annotations
 import gc
 import logging
 import time
+from collections import deque
 from typing import Any
 
 log = logging.getLogger(__name__)
 
-#: A full collection pausing the process for longer than this is logged [s].
+#: A full collection holding the process for longer than this is logged [s].
 LONG_PAUSE_S = 0.1
+#: The log line of one (scripts/bench_daemon.py counts them): pause [ms], tracked objects.
+LONG_PAUSE_PATTERN = r"a full garbage collection took (\d+) ms\b.*?(\d+) tracked objects"
 
 
 def freeze_long_lived() -> None:
@@ -35,10 +38,12 @@ def freeze_long_lived() -> None:
 
 
 class _FullCollectionWatch:
-    """A ``gc.callbacks`` entry timing generation-2 collections."""
+    """A ``gc.callbacks`` entry timing generation-2 collections; the long ones wait in
+    ``long`` as (pause [s], objects freed, tracked objects left) until logged."""
 
     def __init__(self, threshold_s: float) -> None:
         self.threshold_s = threshold_s
+        self.long: deque[tuple[float, int, int]] = deque(maxlen=100)
         self._started: float | None = None
 
     def __call__(self, phase: str, info: dict[str, Any]) -> None:
@@ -50,14 +55,26 @@ class _FullCollectionWatch:
             pause = time.perf_counter() - self._started
             self._started = None
             if pause > self.threshold_s:
-                # What it had to traverse: what survived it, counted only for a long pause.
-                log.warning("a full garbage collection paused every thread for %.0f ms "
-                            "(%d objects freed, %d tracked objects left)", pause * 1e3,
-                            info.get("collected", 0), len(gc.get_objects(generation=2)))
+                # Counted after the pause was taken (a walk over what survived; a few ms).
+                self.long.append((pause, int(info.get("collected", 0)),
+                                  len(gc.get_objects(generation=2))))
 
 
 def watch_full_collections(threshold_s: float = LONG_PAUSE_S) -> None:
-    """Log every full collection that pauses the process longer than ``threshold_s`` [s].
+    """Record every full collection that holds the process longer than ``threshold_s`` [s].
     Once per process; a second call changes nothing."""
-    if not any(isinstance(cb, _FullCollectionWatch) for cb in gc.callbacks):
+    if _watch() is None:
         gc.callbacks.append(_FullCollectionWatch(threshold_s))
+
+
+def log_long_collections() -> None:
+    """Log the long full collections recorded since the last call (a warning each)."""
+    watch = _watch()
+    while watch is not None and watch.long:
+        pause, freed, tracked = watch.long.popleft()
+        log.warning("a full garbage collection took %.0f ms, holding every Python thread "
+                    "(%d objects freed, %d tracked objects left)", pause * 1e3, freed, tracked)
+
+
+def _watch() -> _FullCollectionWatch | None:
+    return next((cb for cb in gc.callbacks if isinstance(cb, _FullCollectionWatch)), None)
