@@ -83,6 +83,7 @@ def start_broker(folder: Path, port: int, extra: str = "") -> subprocess.Popen:
     stop_process(proc, signal.SIGKILL)
     sys.exit("the broker did not start")
 
+
 def proc_stats(pid: int) -> tuple[float, int]:
     """CPU seconds (user + system) and peak RSS [kB] of a process."""
     with open(f"/proc/{pid}/stat") as f:
