@@ -17,8 +17,11 @@ readings published) and its peak RSS (VmHWM). The CPU is also split by thread, l
 first: the worker (models, payloads, publish calls), then paho's network thread (reading the
 broker's messages and PUBACKs, writing ours). Next to it, the CPU of Mosquitto and of this
 measuring process over the same time (the cores they share). From the daemon's log while the
-readings went in: its full garbage collections longer than 100 ms (pseudotwin/core/heap.py)
-and its other warnings, counted by kind. Prints a table and, last, one JSON line.
+readings went in: its full garbage collections longer than 100 ms (pseudotwin/core/heap.py),
+its worker batches that held the readings behind them longer than 0.5 s (edge/service.py:
+their wall time, the worker's CPU in it and their journal writes, so a stall tells a
+blocked worker from a busy one) and its other warnings, counted by kind. Prints a table
+and, last, one JSON line.
 
 ``--profile FILE`` also samples the running daemon with py-spy (``pip install -e
 '.[profile]'``; non-blocking, 100 Hz, idle samples left out) while the readings go in, keeps
@@ -70,6 +73,7 @@ from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.edge.clock import ReplayClock
 from pseudotwin.edge.prometheus import LATENCY_BUCKETS
+from pseudotwin.edge.service import LONG_BATCH_PATTERN, LONG_BATCH_S
 from pseudotwin.history.convert import load
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -340,10 +344,14 @@ def main() -> int:
         # a full queue, ...): the message of each kind, digits blanked, with its count.
         warned: dict[str, int] = {}
         for m in re.finditer(r" (WARNING|ERROR) (.*)", log_text):
-            if not re.search(LONG_PAUSE_PATTERN, m.group(2)):
+            if not re.search(f"{LONG_PAUSE_PATTERN}|{LONG_BATCH_PATTERN}", m.group(2)):
                 kind = re.sub(r"\d+(\.\d+)?", "#", m.group(2).strip())[:120]
                 warned[kind] = warned.get(kind, 0) + 1
         gc_pauses = [float(pause) for pause, _ in gc_logged]
+        # ... and each worker batch that held the readings behind it > LONG_BATCH_S, with
+        # its own CPU and its journal write (edge/service.py): blocked or computing?
+        long_batches = np.array(re.findall(LONG_BATCH_PATTERN, log_text), dtype=float
+                                ).reshape(-1, 3)
         fig = {
             "twins": a.twins, "speed": a.speed, "day_hours": a.hours,
             "baselines": a.baselines,
@@ -367,6 +375,11 @@ def main() -> int:
             "daemon_gc_longest_pause_ms": max(gc_pauses, default=None),
             "daemon_warnings": warned,
             "daemon_gc_most_tracked_objects": max((int(n) for _, n in gc_logged), default=None),
+            "daemon_long_batches": len(long_batches),
+            "daemon_long_batches_ms": {k: round(float(v), 1) for k, v in zip(
+                ("wall", "worker_cpu", "journal"), long_batches.sum(axis=0), strict=True)},
+            "daemon_longest_batch_ms": (round(float(long_batches[:, 0].max()), 1)
+                                        if len(long_batches) else None),
             "messages_out_per_reading": out,
             "packets_per_reading": {"in": round(1 + out["estimate"], 3),
                                     "out": round(1 + sum(out.values()), 3)},
@@ -407,6 +420,12 @@ def main() -> int:
               + (f", the longest {max(gc_pauses):g} ms, up to "
                  f"{fig['daemon_gc_most_tracked_objects']} tracked objects left"
                  if gc_pauses else ""))
+        print(f"  worker batches holding the readings > {LONG_BATCH_S * 1e3:g} ms: "
+              f"{len(long_batches)}"
+              + (f", the longest {fig['daemon_longest_batch_ms']:g} ms; together "
+                 f"{fig['daemon_long_batches_ms']['wall']:g} ms, of it the worker's CPU "
+                 f"{fig['daemon_long_batches_ms']['worker_cpu']:g} ms and its journal writes "
+                 f"{fig['daemon_long_batches_ms']['journal']:g} ms" if len(long_batches) else ""))
         for kind, n in sorted(warned.items(), key=lambda kv: -kv[1])[:5]:
             print(f"  the daemon warned {n}×: {kind}")
         print(f"  daemon CPU by thread [s], largest first (worker, network): "

@@ -506,3 +506,55 @@ def test_baselines_are_published_on_the_grid_only_by_default(
     assert svc._sent == svc._confirmed
     pub.loop_stop()
     viewer.close()
+
+
+def test_a_batch_held_up_by_its_journal_write_is_logged_with_where_the_time_went(
+    service_factory, mosquitto, caplog, monkeypatch
+) -> None:
+    """A worker batch that holds the readings behind it past LONG_BATCH_S says so, with the
+    share of its journal write: the one cause of a stall the worker's CPU does not show."""
+    import re
+    import time as real_time
+
+    import pseudotwin.edge.service as service_module
+    from pseudotwin.edge.service import LONG_BATCH_PATTERN, LONG_BATCH_S
+
+    class Stopwatch:
+        """The service's clock for intervals, moved only by the journal below."""
+
+        now = 0.0
+
+        def perf_counter(self) -> float:
+            return self.now
+
+        def __getattr__(self, name: str) -> object:
+            return getattr(real_time, name)
+
+    caplog.set_level(logging.WARNING, logger="pseudotwin.edge.service")
+    svc = service_factory(HOURS.at(DAY, 9.0), 1.0)
+    clock = Stopwatch()
+    monkeypatch.setattr(service_module, "time", clock)
+    stall = 2 * LONG_BATCH_S  # [s]
+    stalls = [stall]  # the first journal write takes this long, the next none
+    write = svc.journal.append_many
+
+    def append_many(readings) -> None:
+        write(readings)
+        clock.now += stalls.pop() if stalls else 0.0
+
+    monkeypatch.setattr(svc.journal, "append_many", append_many)
+    viewer = Viewer(mosquitto.port, "pt/desk/estimate")
+    pub = publisher(mosquitto.port, "slow-disk-bridge")
+    for h in (8.5, 8.75):  # one batch each: the second is published after the first's estimate
+        ts = HOURS.at(DAY, h)
+        pub.publish("house/dining/temp", reading(ts, 17.0), qos=1).wait_for_publish(10)
+        wait_for(lambda ts=ts: any(e["ts"] == stamp(ts) for e in viewer.on("/estimate")),
+                 what="the reading's estimate")
+    pub.loop_stop()
+    viewer.close()
+    found = [m for r in caplog.records if (m := re.search(LONG_BATCH_PATTERN, r.getMessage()))]
+    assert len(found) == 1  # the stalled batch, not the other one
+    took_ms, cpu_ms, journal_ms = (float(g) for g in found[0].groups())
+    assert took_ms == journal_ms == 1e3 * stall
+    assert cpu_ms < took_ms  # the worker was held, not computing
+    assert "for 1 reading(s)" in caplog.text

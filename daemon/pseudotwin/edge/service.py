@@ -87,6 +87,14 @@ MONITORING_QOS = 0
 # after it, and evaluate and backfill count it in. A reading stamped past the instant
 # starts the instant's work at once (_catch_up_grid): it must not be in it.
 TICK_GRACE = dt.timedelta(seconds=2)
+# A worker batch that holds the readings behind it longer than this [s] is logged with where
+# its time went (journal write, readings, grid work) and how much of it was the worker's own
+# CPU: wall time without CPU is the worker blocked (the disk under the journal, another
+# thread holding the GIL), not computing. A batch normally takes a few ms.
+LONG_BATCH_S = 0.5
+#: The log line of one (scripts/bench_daemon.py counts the daemon's warnings by kind).
+LONG_BATCH_PATTERN = (r"a worker batch took (\d+) ms \((\d+) ms of it the worker's CPU; "
+                      r"journal (\d+) ms")
 
 
 def check_artifact(
@@ -170,6 +178,7 @@ class Service:
         # JOURNAL_RETRY_SECONDS (bounded by the broker's in-flight window; see _hold).
         self._held: list[tuple[Reading, tuple[int, int, int]]] = []
         self._journal_retry_at = 0.0
+        self._journal_s = 0.0  # the current batch's journal writes [s] (_log_long_batch)
         self._journal_recreated = 0
         # Grid work of the current tick(s) not done yet: the twins in the order to do them,
         # and per twin its pending (instant, health snapshot; None: no monitor then).
@@ -391,10 +400,20 @@ class Service:
             if not batch and not self._tick_work:
                 self.health.idle()
                 continue
+            t0, cpu0, self._journal_s = time.perf_counter(), time.thread_time(), 0.0
             # The batch's acks and messages wake paho's network thread once (wakeup.py).
             with self.wakeups.held():
                 if not self._work(batch, paced):
                     return
+            if (took := time.perf_counter() - t0) > LONG_BATCH_S:
+                self._log_long_batch(batch, took, time.thread_time() - cpu0)
+
+    def _log_long_batch(self, batch: list[tuple[Any, ...]], took: float, cpu: float) -> None:
+        readings = sum(1 for item in batch if item[0] == "msg")
+        log.warning("a worker batch took %.0f ms (%.0f ms of it the worker's CPU; journal %.0f "
+                    "ms) for %d reading(s) and %d twins' grid work left; the readings behind "
+                    "it waited", took * 1e3, cpu * 1e3, self._journal_s * 1e3, readings,
+                    len(self._tick_work))
 
     def _work(self, batch: list[tuple[Any, ...]], paced: bool) -> bool:
         """Handle a batch of queue items, then a slice of grid work; False on stop."""
@@ -510,6 +529,7 @@ class Service:
             for r, token, *_ in good:
                 self._hold(r, token)
             return
+        t_journal = time.perf_counter()
         try:
             self.journal.append_many([r for r, *_ in good])
         except (OSError, ValueError) as exc:  # ValueError: a file closed under the worker
@@ -520,6 +540,8 @@ class Service:
             self.health.journal_failed(exc, len(self._held))
             self._journal_retry_at = time.monotonic() + JOURNAL_RETRY_SECONDS
             return
+        finally:
+            self._journal_s += time.perf_counter() - t_journal
         if self.journal.recreated > self._journal_recreated:
             self._journal_recreated = self.journal.recreated
             self.health.journal_rebuilt(self.journal.recreated)
