@@ -246,6 +246,12 @@ PERFORMANCE = (
      "The same from 07:30 to 18:30 of day time: the evening's larger windows (~140 GP points "
      "per twin and model), the day state a thousand twins hold by then (peak RSS), and the "
      "latency by hour of the day."),
+    ("bench_daemon_1000_day_none.txt",
+     ".venv/bin/python scripts/bench_daemon.py --twins 1000 --hours 11 --baselines none",
+     "The daemon with 1,000 twins through a whole operating day, without baselines",
+     "The whole day with `[service] baselines = \"none\"`, the configuration for a fleet "
+     "whose controllers read only the estimate: the twins run their primary model only, so "
+     "no GP baseline's window grows through the day."),
     ("bench_daemon_10000.txt",
      ".venv/bin/python scripts/bench_daemon.py --twins 10000 --hours 0.25 --speed 10",
      "The daemon with 10,000 twins",
@@ -284,7 +290,10 @@ def _performance() -> list[str]:
     not rerun here because they take minutes and measure time, not accuracy)."""
     out = ["## Performance", "",
            "Recorded outputs of the benchmark commands below (rerun a command to refresh its "
-           "file: `CMD > docs/FILE`). Figures are from this 2-core machine.", ""]
+           "file: `CMD > docs/FILE`). Figures are from a 2-core machine on the date in each "
+           "file's header. The machines of different days differ in speed: compare figures "
+           "of the same date, with a bare paho client's CPU per reading "
+           "(`bench_mqtt_floor.txt`) as the yardstick.", ""]
     for name, cmd, title, what in PERFORMANCE:
         path = DOCS / name
         if not path.exists():
