@@ -538,8 +538,9 @@ class ServiceConfig:
         only: they are for monitoring, and at every reading they would quintuple the
         messages), "reading" (also at every reading that moves the twin) or "none" (the
         twins run their primary model only, and what it needs: no baselines, live or
-        backfilled; two fifths less CPU at 1,000 twins and half the memory by the
-        evening, scripts/bench_daemon.py --baselines none: a fleet's setting).
+        backfilled; with a TRIV-type primary two fifths less CPU at 1,000 twins and
+        half the memory by the evening, scripts/bench_daemon.py --baselines none: a
+        fleet's setting).
     monitor_every_minutes: ``<twin>/monitor`` goes out at the day's first and last grid
         instants and at the first grid instant at or after each multiple of this since
         local midnight [min] (every grid instant when it is not longer than

@@ -87,10 +87,10 @@ MONITORING_QOS = 0
 # after it, and evaluate and backfill count it in. A reading stamped past the instant
 # starts the instant's work at once (_catch_up_grid): it must not be in it.
 TICK_GRACE = dt.timedelta(seconds=2)
-# A worker batch that holds the readings behind it longer than this [s] is logged with where
-# its time went (journal write, readings, grid work) and how much of it was the worker's own
-# CPU: wall time without CPU is the worker blocked (the disk under the journal, another
-# thread holding the GIL), not computing. A batch normally takes a few ms.
+# A worker batch that holds the readings behind it longer than this [s] is logged with its
+# wall time, the worker's own CPU in it and its journal writes: wall time without CPU is the
+# worker blocked (the disk under the journal, another thread holding the GIL), not
+# computing. A batch normally takes a few ms.
 LONG_BATCH_S = 0.5
 #: The log line of one (scripts/bench_daemon.py counts the daemon's warnings by kind).
 LONG_BATCH_PATTERN = (r"a worker batch took (\d+) ms \((\d+) ms of it the worker's CPU; "
