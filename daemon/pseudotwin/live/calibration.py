@@ -14,6 +14,11 @@ e [unit] are split into
 - a within-day part w = e − b_d whose variance grows with how fast the references move:
   w² ≈ a(τ) + k·|ṙ| (non-negative least squares), a(τ) in 1-hour bins of wall-clock time,
   each shrunk towards the pooled a (the pooled value counts as ``SHRINK_DAYS`` extra days);
+  a bin stands out only as far as two training days show it: the day with the bin's largest
+  mean square counts at the next day's level. One wild hour of one day (say a CO2 spike at
+  noon) is a tail of the held-out errors, a few per cent of them, that a ±2σ band is not
+  meant to hold; widening every noon for it would make the band too wide on ordinary days
+  (it stays in the pooled a that the bins shrink towards);
 
 σ²(t) = C · (s_b² + a(τ) + k·|ṙ(t)|), with ṙ the references' slope over the last
 ``SLOPE_WINDOW_H`` of today's window [unit/h] and C = (t_ν(Φ(2)) / 2)² the small-sample
@@ -86,7 +91,8 @@ class SigmaCalibration:
             sel = idx == bi
             n = float(sel.sum())
             n0 = SHRINK_DAYS * n / n_days
-            bins[int(bi)] = max((n * float(np.mean(rest[sel])) + n0 * a) / (n + n0), BIN_FLOOR * a)
+            bins[int(bi)] = max((n * _two_day_mean(inverse[sel], rest[sel]) + n0 * a)
+                                / (n + n0), BIN_FLOOR * a)
         within = float(np.mean(w2))
         total = day_var + within
         # The held-out day levels are centred on the other days' mean: n − 1 dof.
@@ -113,3 +119,15 @@ class SigmaCalibration:
             float(d["factor"]), int(d["days"]),
             {int(k): float(v) for k, v in d.get("bins", {}).items()},
         )
+
+
+def _two_day_mean(day: np.ndarray, value: np.ndarray) -> float:
+    """Mean of ``value`` [n] over its days ``day`` [n] (labels), the day with the largest mean
+    taken at the second largest day's mean (winsorized), so no single day sets it alone."""
+    labels, inverse, counts = np.unique(day, return_inverse=True, return_counts=True)
+    if len(labels) < 2:
+        return float(np.mean(value))
+    means = np.bincount(inverse, weights=value) / counts
+    top = int(np.argmax(means))
+    means[top] = float(np.max(np.delete(means, top)))
+    return float(np.sum(means * counts) / np.sum(counts))
