@@ -23,10 +23,12 @@ def _held_out_errors(wild_days: int) -> tuple[np.ndarray, np.ndarray, np.ndarray
 
 
 def test_a_time_of_day_stands_out_in_sigma_only_when_two_training_days_show_it() -> None:
-    """One training day's wild noon is a tail of the errors, not noon's usual spread: σ at
-    noon stays near the afternoon's; a wild noon on two days is noon's own, and σ widens
-    there."""
+    """One training day's wild noon says a wild hour can come, not when: σ widens at every
+    hour alike and noon does not stand out; a wild noon on two days is noon's own, and σ
+    widens there."""
+    calm = SigmaCalibration.fit(*_held_out_errors(0))
     once = SigmaCalibration.fit(*_held_out_errors(1))
     twice = SigmaCalibration.fit(*_held_out_errors(2))
     assert once.sigma(12.5, 0.0) < 1.2 * once.sigma(15.5, 0.0)
+    assert once.sigma(15.5, 0.0) > 1.3 * calm.sigma(15.5, 0.0)
     assert twice.sigma(12.5, 0.0) > 2.5 * twice.sigma(15.5, 0.0)

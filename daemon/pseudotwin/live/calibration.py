@@ -15,10 +15,9 @@ e [unit] are split into
   w² ≈ a(τ) + k·|ṙ| (non-negative least squares), a(τ) in 1-hour bins of wall-clock time,
   each shrunk towards the pooled a (the pooled value counts as ``SHRINK_DAYS`` extra days);
   a bin stands out only as far as two training days show it: the day with the bin's largest
-  mean square counts at the next day's level. One wild hour of one day (say a CO2 spike at
-  noon) is a tail of the held-out errors, a few per cent of them, that a ±2σ band is not
-  meant to hold; widening every noon for it would make the band too wide on ordinary days
-  (it stays in the pooled a that the bins shrink towards);
+  mean square counts at the next day's level, and what that takes off is spread over every
+  hour. One wild hour of one day (say a CO2 spike at noon) says that such an hour can come,
+  not that it comes at noon: σ keeps the risk, but not its time of day;
 
 σ²(t) = C · (s_b² + a(τ) + k·|ṙ(t)|), with ṙ the references' slope over the last
 ``SLOPE_WINDOW_H`` of today's window [unit/h] and C = (t_ν(Φ(2)) / 2)² the small-sample
@@ -87,12 +86,16 @@ class SigmaCalibration:
         rest = w2 - k * s
         bins: dict[int, float] = {}
         idx = np.floor(hours / BIN_HOURS).astype(int)
-        for bi in np.unique(idx):
-            sel = idx == bi
-            n = float(sel.sum())
+        keys = np.unique(idx)
+        count = {bi: float(np.sum(idx == bi)) for bi in keys}
+        own = {bi: _two_day_mean(inverse[idx == bi], rest[idx == bi]) for bi in keys}
+        # What the winsorizing took from single days is spread over every hour: the risk
+        # stays in σ, only its time of day is not believed.
+        spread = (float(np.sum(rest)) - sum(count[bi] * own[bi] for bi in keys)) / len(rest)
+        for bi in keys:
+            n = count[bi]
             n0 = SHRINK_DAYS * n / n_days
-            bins[int(bi)] = max((n * _two_day_mean(inverse[sel], rest[sel]) + n0 * a)
-                                / (n + n0), BIN_FLOOR * a)
+            bins[int(bi)] = max((n * (own[bi] + spread) + n0 * a) / (n + n0), BIN_FLOOR * a)
         within = float(np.mean(w2))
         total = day_var + within
         # The held-out day levels are centred on the other days' mean: n − 1 dof.
