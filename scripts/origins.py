@@ -8,7 +8,9 @@ as results.py does (validation picks the primary and calibrates σ on the five t
 only) and scores the next ``--test-days`` days. Per origin: the published estimate's mean
 daily NRMSE against TRIV's and the floor (the lower of TRIV's and the best raw reference's),
 the ±2σ coverage of the estimate on the test days next to the nested coverage validation
-measured on the training days, and mean σ / RMSE. Then per run and over all origins: how
+measured on the training days, mean σ / RMSE and CRPS / RMSE (the mean CRPS of the estimate,
+a proper score of estimate and σ together, over its RMSE: for the same estimates, lower means
+a σ of the better size). Then per run and over all origins: how
 often each figure of docs/results.md holds.
 
 The default models are the quick candidates (no GP: a Corr-GP fit per origin and fold would
@@ -86,6 +88,7 @@ def one(name: str, start: dt.date, test_days: int, models: tuple[str, ...]) -> d
         "cover2_pct": f.cover2, "cover_met": f.cover_met,
         "nested_cover2_pct": float(v["scores"][f.primary]["cover2_pct"]),
         "std_over_rmse": f.mean_std / f.rmse if f.rmse > 0 else math.nan,
+        "crps_over_rmse": f.crps / f.rmse if f.rmse > 0 else math.nan,
         "seconds": round(time.perf_counter() - t0, 1),
     }
 
@@ -109,6 +112,8 @@ def summary(rows: list[dict[str, Any]], name: str) -> dict[str, Any]:
         "median_cover2_pct": float(np.median(cov)) if ok else math.nan,
         "median_nested_pct": (float(np.median([r["nested_cover2_pct"] for r in ok]))
                               if ok else math.nan),
+        "mean_crps_over_rmse": (float(np.mean([r["crps_over_rmse"] for r in ok]))
+                                if ok else math.nan),
     }
 
 
@@ -149,7 +154,7 @@ def main() -> None:
             ("floor %", "floor_pct", 2), ("est / floor", "ratio_floor", 3),
             ("est / triv", "ratio_triv", 3), ("±2σ cover %", "cover2_pct", 1),
             ("nested cover % (training)", "nested_cover2_pct", 1),
-            ("mean σ / RMSE", "std_over_rmse", 2)]
+            ("mean σ / RMSE", "std_over_rmse", 2), ("CRPS / RMSE", "crps_over_rmse", 3)]
     print_markdown([r for r in rows if "error" not in r], cols)
     for r in rows:
         if "error" in r:
@@ -166,7 +171,8 @@ def main() -> None:
         ("worst est / floor", "worst_ratio_floor", 2),
         ("cover 90–98 %", "cover_in_pct", 0), ("cover < 90 %", "cover_low_pct", 0),
         ("cover > 98 %", "cover_high_pct", 0), ("median ±2σ cover %", "median_cover2_pct", 1),
-        ("median nested cover %", "median_nested_pct", 1)])
+        ("median nested cover %", "median_nested_pct", 1),
+        ("mean CRPS / RMSE", "mean_crps_over_rmse", 3)])
 
 
 if __name__ == "__main__":

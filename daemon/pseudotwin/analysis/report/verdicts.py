@@ -65,6 +65,7 @@ class Figures:
     cover2: float
     mean_std: float
     rmse: float
+    crps: float  # the estimate's mean CRPS [unit] over the scored readings
     sigma_cv: float
     varma: float
     varma_withheld: str  # why VARMA is not published live ("" when it is)
@@ -137,6 +138,7 @@ def figures(res: RunResult) -> Figures:
         estimate=float(g.get(ESTIMATE, np.nan)), triv=float(g.get(BASE, np.nan)),
         best_ref=best_ref, ref=float(raw.min()) if len(raw) else float("nan"), n=s.n,
         cover1=s.cover1_pct, cover2=s.cover2_pct, mean_std=s.mean_std, rmse=s.rmse,
+        crps=s.crps,
         sigma_cv=cv, varma=float(g.get("varma", np.nan)),
         varma_withheld=str(art.withheld.get("varma", "")),
         best_model=best, best_nrmse=float(trained.min()) if len(trained) else float("nan"),
