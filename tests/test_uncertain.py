@@ -16,7 +16,7 @@ import pytest
 from daemon_support import DAY, HOURS, REF, day_readings, sml
 from pseudotwin.analysis.criteria import MIN_DAYS, MIN_RATIO, MIN_ROWS, criteria_table, select
 from pseudotwin.analysis.replay import UNLIKE_SEP
-from pseudotwin.analysis.selfaware import selfaware, training_share
+from pseudotwin.analysis.selfaware import criteria_on_test, selfaware, training_share
 from pseudotwin.edge.outputs import monitor_payload
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.envelope import MARGIN, Q_HI, Q_LO, WIDEN, Envelope
@@ -287,3 +287,21 @@ def test_an_envelope_with_a_wrong_slot_grid_is_a_corrupt_artifact(art) -> None:
         Artifact.from_dict(d)
     assert isinstance(art.envelope, Envelope)
     assert DAY > dt.date.fromisoformat(art.training["end"])
+
+
+def test_the_criteria_are_scored_on_the_test_days_by_validations_rule(trained, history) -> None:
+    """criteria_on_test: the reference pushed out of its training range on two test days
+    (13–16 h) while the target stays: the level criterion fires there, the estimate errs
+    there, and validation's rule would keep it; on the untouched days it fires less."""
+    quiet = dataclasses.replace(trained, envelope=trained.envelope.keeping(frozenset(), 1.0)) \
+        if trained.envelope is not None else trained
+    end = HOURS.at(DAY + dt.timedelta(days=2), 0.0)
+    days = history[history["ts"] < end]
+    local, at = HOURS.day_and_hours(days["ts"])
+    hot = ((days["sensor"] == REF).to_numpy() & (local >= np.datetime64(DAY))
+           & (at >= 13.0) & (at < 16.0))
+    pushed = days.assign(value=days["value"].where(~hot, days["value"] + 15.0))
+    level = criteria_on_test(quiet, pushed, DAY)[LEVEL]
+    assert level.judged.kept and level.judged.days == 2 and level.judged.ratio >= MIN_RATIO
+    assert 0.0 < level.share_pct < 50.0 and level.cover2_pct < 50.0
+    assert criteria_on_test(quiet, days, DAY)[LEVEL].share_pct < level.share_pct

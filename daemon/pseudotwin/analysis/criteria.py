@@ -26,6 +26,7 @@ not a criterion.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -85,25 +86,37 @@ def judge(key: str, fired: np.ndarray, quiet: np.ndarray, err: np.ndarray,
                   f"{n} readings on {days} days")
 
 
+def fired_sets(rows: pd.DataFrame) -> list[set[str]]:
+    """The criteria that fired on each of ``rows`` (their ``unlike`` column)."""
+    return [set(str(u).split(UNLIKE_SEP)) - {""} for u in rows.get("unlike", pd.Series(dtype=str))]
+
+
+def abs_errors(rows: pd.DataFrame) -> np.ndarray:
+    """|value − truth| of ``rows`` [n] [unit]."""
+    return (rows["value"] - rows["truth"]).abs().to_numpy(dtype=float) if len(rows) else \
+        np.zeros(0)
+
+
+def judge_rows(keys: Iterable[str], rows: pd.DataFrame) -> dict[str, Judged]:
+    """Each criterion of ``keys`` judged on ``rows`` (value, truth, day and ``unlike``)."""
+    fired_on, err = fired_sets(rows), abs_errors(rows)
+    day = rows["day"].astype(str).to_numpy() if len(rows) else np.zeros(0, dtype=str)
+    quiet = np.array([not f for f in fired_on], dtype=bool)
+    return {key: judge(key, np.array([key in f for f in fired_on], dtype=bool), quiet, err, day)
+            for key in keys}
+
+
 def select(envelope: Envelope, held_out: pd.DataFrame, primary: str,
            calibration: SigmaCalibration | None, hours: OperatingHours) -> Envelope:
     """``envelope`` with only the criteria the primary's held-out rows (validation's, with
     their ``unlike`` column) show to flag larger errors, and the σ widening of those rows."""
     rows = held_out[(held_out["model"] == primary) & (held_out["quality"] == "ok")] \
         if not held_out.empty and "unlike" in held_out else held_out.iloc[0:0]
-    fired_sets = [set(str(u).split(UNLIKE_SEP)) - {""}
-                  for u in rows.get("unlike", pd.Series(dtype=str))]
-    err = (rows["value"] - rows["truth"]).abs().to_numpy(dtype=float) if len(rows) else \
-        np.zeros(0)
-    day = rows["day"].astype(str).to_numpy() if len(rows) else np.zeros(0, dtype=str)
-    quiet = np.array([not f for f in fired_sets], dtype=bool)
-    judged: dict[str, Judged] = {}
-    for key in envelope.criteria:
-        fired = np.array([key in f for f in fired_sets], dtype=bool)
-        judged[key] = judge(key, fired, quiet, err, day)
+    judged = judge_rows(envelope.criteria, rows)
+    err = abs_errors(rows)
     kept = frozenset(k for k, j in judged.items() if j.kept)
     widen = 1.0
-    flagged = np.array([bool(f & kept) for f in fired_sets], dtype=bool)
+    flagged = np.array([bool(f & kept) for f in fired_sets(rows)], dtype=bool)
     if kept and calibration is not None and flagged.any():
         r = rows[flagged]
         sigma = np.array([calibration.sigma(hours.hours_of(t), s)

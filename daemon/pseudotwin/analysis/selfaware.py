@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from pseudotwin.analysis.criteria import Judged, abs_errors, fired_sets, judge_rows
 from pseudotwin.analysis.replay import ESTIMATE, replay_estimates
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.twin import Quality
@@ -74,3 +75,39 @@ def training_share(artifact: Artifact, history: pd.DataFrame) -> float:
     if e.empty:
         return float("nan")
     return float(np.mean(e["quality"] == Quality.UNCERTAIN.value))
+
+
+@dataclass(frozen=True)
+class OnTest:
+    """One criterion on the test days, recorded but not acting: judged there by the rule
+    validation applies to the held-out days (analysis/criteria.py), the share of the published
+    estimates it fired on [%] and the ±2σ coverage of those, with their σ as published [%]."""
+
+    judged: Judged
+    share_pct: float
+    cover2_pct: float
+
+
+def criteria_on_test(artifact: Artifact, history: pd.DataFrame,
+                     test_start: dt.date) -> dict[str, OnTest]:
+    """Every criterion of the artifact's training ranges on the days from ``test_start`` on,
+    as if it acted: would it have flagged larger errors where validation could not tell? The
+    evidence behind validation's choice, not an input to it (a replay of the primary only)."""
+    if artifact.envelope is None:
+        return {}
+    est = replay_estimates(artifact, history, test_start, models=[artifact.primary],
+                           criteria=True)
+    rows = est[(est["model"] == ESTIMATE)
+               & est["quality"].isin([Quality.OK.value, Quality.UNCERTAIN.value])]
+    days, _ = artifact.hours.day_and_hours(rows["ts"])
+    rows = rows.assign(day=days)
+    judged = judge_rows(artifact.envelope.criteria, rows)
+    fired_on, err = fired_sets(rows), abs_errors(rows)
+    inside = err <= 2 * rows["std"].to_numpy(dtype=float)
+    out: dict[str, OnTest] = {}
+    for key, j in judged.items():
+        fired = np.array([key in f for f in fired_on], dtype=bool)
+        out[key] = OnTest(j, 100.0 * float(np.mean(fired)) if len(fired) else float("nan"),
+                          100.0 * float(np.mean(inside[fired])) if fired.any() else float("nan"))
+    return out
+

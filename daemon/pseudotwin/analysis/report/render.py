@@ -150,7 +150,12 @@ HOW_TO_READ = f"""\
   in validation: a day-level part (never below the day-to-day spread of the reference–target
   offset, which no reading of today reveals) plus a within-day part that depends on the time
   of day and on how fast the references move, widened for the few days it is estimated from.
-  So σ varies within a day.
+  So σ varies within a day. A time of day stands out only as far as two training days show
+  it: one day's wild hour widens every hour alike.
+* **Self-aware indication**: which criteria of `uncertain` validation kept on the held-out
+  training days, what `ok` and `uncertain` estimates scored on the test days, and every
+  criterion on the test days recorded but not acting (the evidence whether validation's
+  verdicts hold on days it never saw).
 * **Calibration tables** (per model, pooled over all scored readings): the share of true
   readings inside the estimate's ±1σ and ±2σ bands (a calibrated Gaussian σ covers 68.3 % and
   95.4 %), the mean σ next to the RMSE (mean σ / RMSE ≈ 1 when σ is the right size), and the

@@ -23,7 +23,7 @@ from pseudotwin.analysis.evaluate import (
     evaluate,
     write_outputs,
 )
-from pseudotwin.analysis.selfaware import training_share
+from pseudotwin.analysis.selfaware import OnTest, criteria_on_test, training_share
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.history.convert import load
@@ -136,6 +136,8 @@ class RunResult:
     seconds: float
     notes: list[str] = field(default_factory=list)
     train_uncertain: float = float("nan")  # share of `uncertain` replaying the training days
+    # every criterion of `uncertain` on the test days, recorded but not acting
+    test_criteria: dict[str, OnTest] = field(default_factory=dict)
 
     @property
     def primary_ref(self) -> str:
@@ -206,8 +208,10 @@ def run_one(spec: RunSpec, history: pd.DataFrame, out_root: Path,
         if q != "ok" and not str(model).startswith(REF_PREFIX):
             notes.append(f"{n} estimate(s) of {model} had quality `{q}`")
     train_uncertain = training_share(ev.artifact, history)
+    test_start = dt.date.fromisoformat(ev.artifact.training["end"]) + dt.timedelta(days=1)
+    test_criteria = criteria_on_test(ev.artifact, history, test_start)
     return RunResult(spec, ev, daily, monthly, estimates, time.perf_counter() - t0, notes,
-                     train_uncertain)
+                     train_uncertain, test_criteria)
 
 
 def run_all(specs: Sequence[RunSpec], out_root: Path,
