@@ -39,11 +39,15 @@ def _ordered(models: Sequence[str]) -> list[str]:
 
 def md_table(header: Sequence[str], rows: Sequence[Sequence[str]], left: int = 1,
            text: Sequence[int] = ()) -> str:
-    """Markdown table: the first ``left`` columns and those in ``text`` left-aligned."""
-    lines = ["| " + " | ".join(header) + " |",
+    """Markdown table: the first ``left`` columns and those in ``text`` left-aligned. A "|"
+    in a cell (a pair criterion's key) is escaped: even inside backticks it ends the cell."""
+    def line(cells: Sequence[str]) -> str:
+        return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"
+
+    lines = [line(header),
              "|" + "|".join("---" if i < left or i in text else "---:"
                             for i in range(len(header))) + "|"]
-    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    lines += [line(r) for r in rows]
     return "\n".join(lines)
 
 
