@@ -20,11 +20,13 @@ def watch_only(request: pytest.FixtureRequest) -> Iterator[None]:
     gc.callbacks[:] = [cb for cb in before if not isinstance(cb, heap._FullCollectionWatch)]
     heap.watch_full_collections(request.param)
     gc.disable()
+    gc.unfreeze()  # an in-process backfill of an earlier test may have frozen some
     try:
         yield
     finally:
         gc.enable()
         gc.callbacks[:] = before
+        gc.unfreeze()  # what the test froze goes back to the collector
 
 
 @pytest.mark.parametrize("watch_only", [0.0], indirect=True)  # every full collection is long
@@ -59,3 +61,37 @@ def test_a_short_full_collection_is_not_logged(
 def test_the_watch_is_installed_once(watch_only: None) -> None:
     heap.watch_full_collections()
     assert sum(isinstance(cb, heap._FullCollectionWatch) for cb in gc.callbacks) == 1
+
+
+@pytest.mark.parametrize("watch_only", [0.0], indirect=True)
+def test_what_a_long_full_collection_left_is_frozen(watch_only: None) -> None:
+    survivor = [object()]
+    gc.collect()
+    assert gc.is_tracked(survivor) and gc.get_freeze_count() == 0
+    heap.log_long_collections()
+    assert gc.get_freeze_count() > 0
+    assert not any(o is survivor for o in gc.get_objects(generation=2))  # not traversed
+
+
+@pytest.mark.parametrize("watch_only", [3600.0], indirect=True)
+def test_a_short_full_collection_freezes_nothing(watch_only: None) -> None:
+    gc.collect()
+    heap.log_long_collections()
+    assert gc.get_freeze_count() == 0
+
+
+@pytest.mark.parametrize("watch_only", [0.0], indirect=True)
+def test_frozen_objects_go_back_to_the_collector_once_a_thaw_period_is_over(
+        watch_only: None, caplog: pytest.LogCaptureFixture) -> None:
+    watch = heap._watch()
+    assert watch is not None
+    gc.collect()
+    heap.log_long_collections(now=watch.thawed_at + 1.0)
+    frozen = gc.get_freeze_count()
+    heap.log_long_collections(now=watch.thawed_at + heap.THAW_S - 1.0)
+    assert frozen > 0 and gc.get_freeze_count() == frozen
+    with caplog.at_level(logging.INFO, logger="pseudotwin.core.heap"):
+        heap.log_long_collections(now=watch.thawed_at + heap.THAW_S)
+    assert gc.get_freeze_count() == 0
+    assert any(f"{frozen} frozen objects handed back" in r.getMessage() for r in caplog.records)
+
