@@ -80,18 +80,34 @@ def test_a_short_full_collection_freezes_nothing(watch_only: None) -> None:
     assert gc.get_freeze_count() == 0
 
 
-@pytest.mark.parametrize("watch_only", [0.0], indirect=True)
-def test_frozen_objects_go_back_to_the_collector_once_a_thaw_period_is_over(
+@pytest.mark.parametrize("watch_only", [3600.0], indirect=True)  # no collection is long
+def test_a_thaw_hands_frozen_objects_back_and_the_next_full_collection_refreezes(
         watch_only: None, caplog: pytest.LogCaptureFixture) -> None:
     watch = heap._watch()
     assert watch is not None
-    gc.collect()
-    heap.log_long_collections(now=watch.thawed_at + 1.0)
+    gc.freeze()  # as freeze_long_lived does at startup
     frozen = gc.get_freeze_count()
     heap.log_long_collections(now=watch.thawed_at + heap.THAW_S - 1.0)
-    assert frozen > 0 and gc.get_freeze_count() == frozen
+    assert frozen > 0 and gc.get_freeze_count() == frozen  # not yet
     with caplog.at_level(logging.INFO, logger="pseudotwin.core.heap"):
         heap.log_long_collections(now=watch.thawed_at + heap.THAW_S)
     assert gc.get_freeze_count() == 0
     assert any(f"{frozen} frozen objects handed back" in r.getMessage() for r in caplog.records)
+    heap.log_long_collections(now=watch.thawed_at)
+    assert gc.get_freeze_count() == 0  # no full collection has passed over them yet
+    gc.collect()  # a short one: not logged, but it follows the thaw
+    heap.log_long_collections(now=watch.thawed_at)
+    assert gc.get_freeze_count() > 0
 
+
+@pytest.mark.parametrize("watch_only", [0.0], indirect=True)
+def test_a_long_collection_from_before_a_thaw_does_not_refreeze_at_once(
+        watch_only: None) -> None:
+    watch = heap._watch()
+    assert watch is not None
+    gc.collect()  # long, still to be logged
+    heap.log_long_collections(now=watch.thawed_at + heap.THAW_S)  # the thaw comes first
+    assert gc.get_freeze_count() == 0
+    gc.collect()
+    heap.log_long_collections(now=watch.thawed_at)
+    assert gc.get_freeze_count() > 0

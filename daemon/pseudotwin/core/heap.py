@@ -12,12 +12,14 @@ What is allocated later still gets collected, and a full collection holds every 
 thread: :func:`watch_full_collections` records each one longer than :data:`LONG_PAUSE_S`, and
 :func:`log_long_collections` (called by the process's main loop, not inside the collection)
 logs them, so a latency spike in a daemon's log has its cause next to it. It then freezes
-what that collection left: it survived a full collection, so it is long-lived (the state each
-twin builds at its first readings, ~20 objects a twin: at 10,000 twins the full collections
-traversed 200k of them for up to 214 ms, again and again). A frozen object is still freed when
-its last reference goes; only a reference cycle that dies after it was frozen is not, so every
-:data:`THAW_S` the frozen objects are handed back to the collector (``gc.unfreeze``): the next
-full collection frees such cycles, and freezing after it starts the next period.
+what is alive (after a young collection, so young cycles are freed rather than frozen): most
+of it survived the full collection, so it is long-lived (the state each twin builds at its
+first readings, ~20 objects a twin: at 10,000 twins the full collections traversed 200k of
+them for up to 214 ms, again and again). A frozen object is still freed when its last
+reference goes; only a reference cycle that dies after it was frozen is not, so every
+:data:`THAW_S` every frozen object goes back to the collector (``gc.unfreeze``), the startup
+freeze's included: the next full collection frees such cycles, and whatever its length, what
+it leaves is frozen again.
 """
 
 from __future__ import annotations
@@ -53,7 +55,10 @@ class _FullCollectionWatch:
         self.threshold_s = threshold_s
         self.long: deque[tuple[float, int, int]] = deque(maxlen=100)
         self._started: float | None = None
+        self.full = 0  # full collections finished
         self.thawed_at = time.monotonic()  # the last gc.unfreeze (or the watch's start)
+        self.thawed_after = 0  # ``full`` at the last gc.unfreeze
+        self.refreeze = False  # freeze after the next full collection, however short
 
     def __call__(self, phase: str, info: dict[str, Any]) -> None:
         if info.get("generation") != 2:
@@ -63,6 +68,7 @@ class _FullCollectionWatch:
         elif self._started is not None:
             pause = time.perf_counter() - self._started
             self._started = None
+            self.full += 1
             if pause > self.threshold_s:
                 # Counted after the pause was taken (a walk over what survived; a few ms).
                 self.long.append((pause, int(info.get("collected", 0)),
@@ -78,23 +84,27 @@ def watch_full_collections(threshold_s: float = LONG_PAUSE_S) -> None:
 
 def log_long_collections(now: float | None = None) -> None:
     """Log the long full collections recorded since the last call (a warning each) and freeze
-    what they left; every :data:`THAW_S` of ``now`` [s] (``time.monotonic``), unfreeze."""
+    what they left; every :data:`THAW_S` of ``now`` [s] (``time.monotonic``), unfreeze, and
+    freeze again after the next full collection."""
     watch = _watch()
     if watch is None:
         return
     now = time.monotonic() if now is None else now
     if now - watch.thawed_at >= THAW_S:
-        watch.thawed_at = now
         log.info("%d frozen objects handed back to the garbage collector (every %.0f h)",
                  gc.get_freeze_count(), THAW_S / 3600)
         gc.unfreeze()
-    if not watch.long:
-        return
+        watch.thawed_at, watch.thawed_after, watch.refreeze = now, watch.full, True
+    logged = bool(watch.long)
     while watch.long:
         pause, freed, tracked = watch.long.popleft()
         log.warning("a full garbage collection took %.0f ms, holding every Python thread "
                     "(%d objects freed, %d tracked objects left)", pause * 1e3, freed, tracked)
-    gc.freeze()  # survivors of a full collection: later ones need not traverse them again
+    # Not before a full collection has passed over what a thaw handed back.
+    if (logged or watch.refreeze) and watch.full > watch.thawed_after:
+        gc.collect(1)
+        gc.freeze()  # later full collections need not traverse the survivors again
+        watch.refreeze = False
 
 
 def _watch() -> _FullCollectionWatch | None:
