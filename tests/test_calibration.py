@@ -32,3 +32,14 @@ def test_a_time_of_day_stands_out_in_sigma_only_when_two_training_days_show_it()
     assert once.sigma(12.5, 0.0) < 1.2 * once.sigma(15.5, 0.0)
     assert once.sigma(15.5, 0.0) > 1.3 * calm.sigma(15.5, 0.0)
     assert twice.sigma(12.5, 0.0) > 2.5 * twice.sigma(15.5, 0.0)
+
+
+def test_an_hour_seen_on_one_training_day_only_does_not_stand_out() -> None:
+    """The 18-h bin exists on one held-out day alone, with wild errors there: that day
+    cannot show it is the hour's own spread."""
+    day, at, error, slope = _held_out_errors(0)
+    lone = (day == 0) & (at >= 18.0)
+    others = ~((day > 0) & (at >= 18.0))
+    error = np.where(lone, 10.0 * error, error)
+    c = SigmaCalibration.fit(day[others], at[others], error[others], slope[others])
+    assert c.sigma(18.5, 0.0) < 1.2 * c.sigma(15.5, 0.0)

@@ -15,9 +15,10 @@ e [unit] are split into
   w² ≈ a(τ) + k·|ṙ| (non-negative least squares), a(τ) in 1-hour bins of wall-clock time,
   each shrunk towards the pooled a (the pooled value counts as ``SHRINK_DAYS`` extra days);
   a bin stands out only as far as two training days show it: the day with the bin's largest
-  mean square counts at the next day's level, and what that takes off is spread over every
-  hour. One wild hour of one day (say a CO2 spike at noon) says that such an hour can come,
-  not that it comes at noon: σ keeps the risk, but not its time of day;
+  mean of w² − k·|ṙ| counts at the next day's level (a bin seen on one day only is at the
+  level of the others), and what that takes off (or adds) is spread over every reading. One wild
+  hour of one day (say a CO2 spike at noon) says that such an hour can come, not that it
+  comes at noon: σ keeps the risk, but not its time of day;
 
 σ²(t) = C · (s_b² + a(τ) + k·|ṙ(t)|), with ṙ the references' slope over the last
 ``SLOPE_WINDOW_H`` of today's window [unit/h] and C = (t_ν(Φ(2)) / 2)² the small-sample
@@ -88,9 +89,14 @@ class SigmaCalibration:
         idx = np.floor(hours / BIN_HOURS).astype(int)
         keys = np.unique(idx)
         count = {bi: float(np.sum(idx == bi)) for bi in keys}
-        own = {bi: _two_day_mean(inverse[idx == bi], rest[idx == bi]) for bi in keys}
-        # What the winsorizing took from single days is spread over every hour: the risk
-        # stays in σ, only its time of day is not believed.
+        two_day = {bi: _two_day_mean(inverse[idx == bi], rest[idx == bi]) for bi in keys}
+        shown = {bi: v for bi, v in two_day.items() if v is not None}
+        # A bin seen on one day only is at the level of the bins two days show.
+        typical = (sum(count[bi] * v for bi, v in shown.items()) / sum(count[bi] for bi in shown)
+                   if shown else float(np.mean(rest)))
+        own = {bi: shown.get(bi, typical) for bi in keys}
+        # What the two-day rule took from single days is spread over every reading: the risk
+        # stays in σ (the bins' total is kept), only its time of day is not believed.
         spread = (float(np.sum(rest)) - sum(count[bi] * own[bi] for bi in keys)) / len(rest)
         for bi in keys:
             n = count[bi]
@@ -124,12 +130,13 @@ class SigmaCalibration:
         )
 
 
-def _two_day_mean(day: np.ndarray, value: np.ndarray) -> float:
+def _two_day_mean(day: np.ndarray, value: np.ndarray) -> float | None:
     """Mean of ``value`` [n] over its days ``day`` [n] (labels), the day with the largest mean
-    taken at the second largest day's mean (winsorized), so no single day sets it alone."""
+    taken at the second largest day's mean (winsorized), so no single day sets it alone;
+    None when only one day has values."""
     labels, inverse, counts = np.unique(day, return_inverse=True, return_counts=True)
     if len(labels) < 2:
-        return float(np.mean(value))
+        return None
     means = np.bincount(inverse, weights=value) / counts
     top = int(np.argmax(means))
     means[top] = float(np.max(np.delete(means, top)))
