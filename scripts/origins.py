@@ -112,7 +112,7 @@ def summary(rows: list[dict[str, Any]], name: str) -> dict[str, Any]:
         "median_cover2_pct": float(np.median(cov)) if ok else math.nan,
         "median_nested_pct": (float(np.median([r["nested_cover2_pct"] for r in ok]))
                               if ok else math.nan),
-        "mean_crps_over_rmse": (float(np.mean([r["crps_over_rmse"] for r in ok]))
+        "mean_crps_over_rmse": (float(np.nanmean([r["crps_over_rmse"] for r in ok]))
                                 if ok else math.nan),
     }
 

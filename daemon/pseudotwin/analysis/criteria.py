@@ -26,7 +26,7 @@ not a criterion.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -97,9 +97,10 @@ def abs_errors(rows: pd.DataFrame) -> np.ndarray:
         np.zeros(0)
 
 
-def judge_rows(keys: Iterable[str], rows: pd.DataFrame) -> dict[str, Judged]:
-    """Each criterion of ``keys`` judged on ``rows`` (value, truth, day and ``unlike``)."""
-    fired_on, err = fired_sets(rows), abs_errors(rows)
+def judge_rows(keys: Iterable[str], rows: pd.DataFrame, fired_on: Sequence[set[str]],
+               err: np.ndarray) -> dict[str, Judged]:
+    """Each criterion of ``keys`` judged on ``rows`` (their ``day``), whose criteria fired
+    are ``fired_on`` (:func:`fired_sets`) and absolute errors ``err`` (:func:`abs_errors`)."""
     day = rows["day"].astype(str).to_numpy() if len(rows) else np.zeros(0, dtype=str)
     quiet = np.array([not f for f in fired_on], dtype=bool)
     return {key: judge(key, np.array([key in f for f in fired_on], dtype=bool), quiet, err, day)
@@ -112,11 +113,11 @@ def select(envelope: Envelope, held_out: pd.DataFrame, primary: str,
     their ``unlike`` column) show to flag larger errors, and the σ widening of those rows."""
     rows = held_out[(held_out["model"] == primary) & (held_out["quality"] == "ok")] \
         if not held_out.empty and "unlike" in held_out else held_out.iloc[0:0]
-    judged = judge_rows(envelope.criteria, rows)
-    err = abs_errors(rows)
+    fired_on, err = fired_sets(rows), abs_errors(rows)
+    judged = judge_rows(envelope.criteria, rows, fired_on, err)
     kept = frozenset(k for k, j in judged.items() if j.kept)
     widen = 1.0
-    flagged = np.array([bool(f & kept) for f in fired_sets(rows)], dtype=bool)
+    flagged = np.array([bool(f & kept) for f in fired_on], dtype=bool)
     if kept and calibration is not None and flagged.any():
         r = rows[flagged]
         sigma = np.array([calibration.sigma(hours.hours_of(t), s)

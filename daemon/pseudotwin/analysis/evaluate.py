@@ -47,6 +47,16 @@ class Evaluation:
     monthly: pd.DataFrame  # month, model, nrmse_pct
     seconds: float
 
+    @property
+    def test_start(self) -> dt.date:
+        """The first scored day: the day after the last training day."""
+        return first_scored_day(self.artifact)
+
+
+def first_scored_day(artifact: Artifact) -> dt.date:
+    """The first day after ``artifact``'s training days, where scoring begins."""
+    return dt.date.fromisoformat(artifact.training["end"]) + dt.timedelta(days=1)
+
 
 DAILY_COLUMNS = ("day", "model", "nrmse_pct", "dmax_pct", "pearson_r", "n",
                  "cover1_pct", "cover2_pct", "crps", "mean_std", "rmse")
@@ -105,7 +115,7 @@ def evaluate(
                             f"({hours.timezone}), nothing to plot")
     artifact = train_twin(history, spec, train_start, train_days, models, options, primary,
                           thinning=thinning)
-    test_start = dt.date.fromisoformat(artifact.training["end"]) + dt.timedelta(days=1)
+    test_start = first_scored_day(artifact)
     if plot_day is not None and plot_day < test_start:
         raise DataError(f"--plot-day {plot_day} is not scored: the evaluated days begin on "
                         f"{test_start}, after training")

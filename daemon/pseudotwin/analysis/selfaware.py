@@ -79,9 +79,10 @@ def training_share(artifact: Artifact, history: pd.DataFrame) -> float:
 
 @dataclass(frozen=True)
 class OnTest:
-    """One criterion on the test days, recorded but not acting: judged there by the rule
-    validation applies to the held-out days (analysis/criteria.py), the share of the published
-    estimates it fired on [%] and the ±2σ coverage of those, with their σ as published [%]."""
+    """One criterion on the test days, kept or not (a dropped one is recorded, never acting):
+    judged there by the rule validation applies to the held-out days (analysis/criteria.py),
+    the share of the published estimates it fired on [%] and their ±2σ coverage with σ as
+    published [%]."""
 
     judged: Judged
     share_pct: float
@@ -90,9 +91,9 @@ class OnTest:
 
 def criteria_on_test(artifact: Artifact, history: pd.DataFrame,
                      test_start: dt.date) -> dict[str, OnTest]:
-    """Every criterion of the artifact's training ranges on the days from ``test_start`` on,
-    as if it acted: would it have flagged larger errors where validation could not tell? The
-    evidence behind validation's choice, not an input to it (a replay of the primary only)."""
+    """Every criterion of the artifact's training ranges on the days from ``test_start`` on:
+    would it have flagged larger errors where validation could not tell? The evidence behind
+    validation's choice, not an input to it (a replay of the primary only)."""
     if artifact.envelope is None:
         return {}
     est = replay_estimates(artifact, history, test_start, models=[artifact.primary],
@@ -101,13 +102,11 @@ def criteria_on_test(artifact: Artifact, history: pd.DataFrame,
                & est["quality"].isin([Quality.OK.value, Quality.UNCERTAIN.value])]
     days, _ = artifact.hours.day_and_hours(rows["ts"])
     rows = rows.assign(day=days)
-    judged = judge_rows(artifact.envelope.criteria, rows)
-    fired_on, err = fired_sets(rows), abs_errors(rows)
-    inside = err <= 2 * rows["std"].to_numpy(dtype=float)
+    fired_on = fired_sets(rows)
+    judged = judge_rows(artifact.envelope.criteria, rows, fired_on, abs_errors(rows))
     out: dict[str, OnTest] = {}
     for key, j in judged.items():
         fired = np.array([key in f for f in fired_on], dtype=bool)
-        out[key] = OnTest(j, 100.0 * float(np.mean(fired)) if len(fired) else float("nan"),
-                          100.0 * float(np.mean(inside[fired])) if fired.any() else float("nan"))
+        share = 100.0 * float(np.mean(fired)) if len(fired) else float("nan")
+        out[key] = OnTest(j, share, _mae_cover(rows[fired])[1])
     return out
-

@@ -154,8 +154,8 @@ HOW_TO_READ = f"""\
   it: one day's wild hour widens every hour alike.
 * **Self-aware indication**: which criteria of `uncertain` validation kept on the held-out
   training days, what `ok` and `uncertain` estimates scored on the test days, and every
-  criterion on the test days recorded but not acting (the evidence whether validation's
-  verdicts hold on days it never saw).
+  criterion on the test days, a dropped one recorded without acting (the evidence whether
+  validation's verdicts hold on days it never saw).
 * **Calibration tables** (per model, pooled over all scored readings): the share of true
   readings inside the estimate's ±1σ and ±2σ bands (a calibrated Gaussian σ covers 68.3 % and
   95.4 %), the mean σ next to the RMSE (mean σ / RMSE ≈ 1 when σ is the right size), and the

@@ -208,8 +208,7 @@ def run_one(spec: RunSpec, history: pd.DataFrame, out_root: Path,
         if q != "ok" and not str(model).startswith(REF_PREFIX):
             notes.append(f"{n} estimate(s) of {model} had quality `{q}`")
     train_uncertain = training_share(ev.artifact, history)
-    test_start = dt.date.fromisoformat(ev.artifact.training["end"]) + dt.timedelta(days=1)
-    test_criteria = criteria_on_test(ev.artifact, history, test_start)
+    test_criteria = criteria_on_test(ev.artifact, history, ev.test_start)
     return RunResult(spec, ev, daily, monthly, estimates, time.perf_counter() - t0, notes,
                      train_uncertain, test_criteria)
 

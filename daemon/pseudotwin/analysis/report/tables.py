@@ -124,26 +124,26 @@ def criteria_md(res: RunResult) -> str:
             "No criterion kept: the estimate is never `uncertain` on this run.")
     return md_table(["criterion (held-out training days)", "readings fired", "days",
                      "MAE fired / MAE where nothing fired", "verdict"], rows, text=(4,)) \
-        + "\n\n" + kept + "\n\n" + test_criteria_md(res)
+        + "\n\n" + kept + on_test_criteria_md(res)
 
 
-def test_criteria_md(res: RunResult) -> str:
-    """Every criterion on the test days, recorded but not acting: the evidence whether
-    validation's verdicts above hold on days it never saw."""
+def on_test_criteria_md(res: RunResult) -> str:
+    """Every criterion on the test days (a dropped one recorded, never acting), after a blank
+    line: the evidence whether validation's verdicts above hold on days it never saw."""
     if not res.test_criteria:
         return ""
     rows = [[f"`{k}`", fmt(t.share_pct, 1), str(t.judged.days), fmt(t.judged.ratio),
              fmt(t.cover2_pct, 1), "would be kept" if t.judged.kept else "would be dropped"]
             for k, t in res.test_criteria.items()]
-    return md_table(["criterion (test days, not acting)", "estimates fired %", "days",
-                     "MAE fired / MAE where nothing fired", "±2σ cover where fired %",
-                     "the same rule on the test days"], rows, text=(5,)) + (
-        "\n\nThe same criteria on the test days, recorded but never acting: the share of the "
-        "published estimates each fired on, the error there against the error where none "
-        "fired, and ±2σ coverage there with σ as published. The last column applies "
-        f"validation's rule (fired on ≥ {MIN_ROWS} readings of ≥ {MIN_DAYS} days, MAE ratio "
-        f"≥ {MIN_RATIO:g}) to the test days: the verdict validation would have given had it "
-        "seen them.")
+    table = md_table(["criterion (test days)", "estimates fired %", "days",
+                      "MAE fired / MAE where nothing fired", "±2σ cover where fired %",
+                      "the same rule on the test days"], rows, text=(5,))
+    return (f"\n\n{table}\n\nThe same criteria on the test days (a dropped one is recorded "
+            "but never acts): the share of the published estimates each fired on, the error "
+            "there against the error where none fired, and ±2σ coverage there with σ as "
+            f"published. The last column applies validation's rule (fired on ≥ {MIN_ROWS} "
+            f"readings of ≥ {MIN_DAYS} days, MAE ratio ≥ {MIN_RATIO:g}) to the test days: the "
+            "verdict validation would have given had it seen them.")
 
 
 def monthly_md(res: RunResult) -> str:
