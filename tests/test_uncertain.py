@@ -305,3 +305,4 @@ def test_the_criteria_are_scored_on_the_test_days_by_validations_rule(trained, h
     assert level.judged.kept and level.judged.days == 2 and level.judged.ratio >= MIN_RATIO
     assert 0.0 < level.share_pct < 50.0 and level.cover2_pct < 50.0
     assert criteria_on_test(quiet, days, DAY)[LEVEL].share_pct < level.share_pct
+    assert criteria_on_test(dataclasses.replace(trained, envelope=None), days, DAY) == {}

@@ -136,7 +136,7 @@ class RunResult:
     seconds: float
     notes: list[str] = field(default_factory=list)
     train_uncertain: float = float("nan")  # share of `uncertain` replaying the training days
-    # every criterion of `uncertain` on the test days, recorded but not acting
+    # every criterion of `uncertain` on the test days, kept or not (selfaware.criteria_on_test)
     test_criteria: dict[str, OnTest] = field(default_factory=dict)
 
     @property
