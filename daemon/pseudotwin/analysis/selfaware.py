@@ -107,6 +107,6 @@ def criteria_on_test(artifact: Artifact, history: pd.DataFrame,
     out: dict[str, OnTest] = {}
     for key, j in judged.items():
         fired = np.array([key in f for f in fired_on], dtype=bool)
-        share = 100.0 * float(np.mean(fired)) if len(fired) else float("nan")
+        share = 100.0 * j.n / len(rows) if len(rows) else float("nan")
         out[key] = OnTest(j, share, _mae_cover(rows[fired])[1])
     return out

@@ -88,8 +88,9 @@ class SigmaCalibration:
         bins: dict[int, float] = {}
         idx = np.floor(hours / BIN_HOURS).astype(int)
         keys = np.unique(idx)
-        count = {bi: float(np.sum(idx == bi)) for bi in keys}
-        two_day = {bi: _two_day_mean(inverse[idx == bi], rest[idx == bi]) for bi in keys}
+        sel = {bi: idx == bi for bi in keys}
+        count = {bi: float(np.sum(m)) for bi, m in sel.items()}
+        two_day = {bi: _two_day_mean(inverse[m], rest[m]) for bi, m in sel.items()}
         shown = {bi: v for bi, v in two_day.items() if v is not None}
         # A bin seen on one day only is at the level of the bins two days show.
         typical = (sum(count[bi] * v for bi, v in shown.items()) / sum(count[bi] for bi in shown)
