@@ -66,6 +66,9 @@ timezone = "{tz}"
 state_dir = "state"
 publish_every_minutes = 60
 stale_after_minutes = 45
+# every model at every reading (the default publishes the baselines on the grid only), so
+# the day's table compares them all at the same instants
+baselines = "reading"
 {sensors}{twins}"""
 
 
@@ -84,16 +87,8 @@ def _last_reading(df: pd.DataFrame, hours: OperatingHours, sensor: str, start: d
 
 def _complete(received: dict[str, list[dayscore.Published]],
               last: dict[str, dt.datetime | None]) -> bool:
-    """Every model of every twin has published its estimate of the last reading."""
-    for tid, t in last.items():
-        if t is None:
-            continue
-        models = {p.model for p in received[tid]}
-        done = {p.model for p in received[tid]
-                if p.ts == t and p.refs and max(r for _, r in p.refs) == t}
-        if not models or done != models:
-            return False
-    return True
+    """Every model of every twin has published an estimate that saw the last reading."""
+    return all(dayscore.answered(received[tid], t) for tid, t in last.items() if t is not None)
 
 
 def _day_scores(df: pd.DataFrame, hours: OperatingHours, day: dt.date, ref: str, tgt: str,

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from pseudotwin.live import metrics
-from pseudotwin.live.dayscore import Published, day_scores, one_per_instant
+from pseudotwin.live.dayscore import Published, answered, day_scores, one_per_instant
 
 T0 = dt.datetime(2012, 3, 20, 7, 0, tzinfo=dt.UTC)
 
@@ -79,3 +79,19 @@ def test_the_reference_is_held_until_its_next_reading() -> None:
     (score,) = day_scores([], truth, {"a": refs})
     assert score.n == 3 and score.max_abs_error == pytest.approx(1.0)
     assert score.nrmse_pct == pytest.approx(100.0 * 1.0 / 20.0)
+
+
+def test_the_day_is_answered_once_every_model_has_seen_the_last_reading() -> None:
+    last = at(60)
+    estimate = Published.from_payload("estimate", payload(last, 21.0, last))
+    grid_before = Published.from_payload("triv", payload(last, 21.0, at(45)))
+    grid_after = Published.from_payload("triv", payload(at(75), 21.0, last))
+    assert not answered([], last)
+    assert answered([estimate], last)
+    # a baseline's grid estimate of the last instant made before that reading is not enough
+    assert not answered([estimate, grid_before], last)
+    # its next grid estimate, which saw the reading, is
+    assert answered([grid_before, estimate, grid_after], last)
+    # an estimate that has not seen the last reading leaves the day open
+    assert not answered([Published.from_payload("estimate", payload(at(75), 21.0, at(45)))],
+                        last)

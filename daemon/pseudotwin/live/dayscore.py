@@ -66,6 +66,19 @@ def one_per_instant(estimates: Iterable[Published]) -> dict[str, dict[dt.datetim
     return out
 
 
+def answered(estimates: Iterable[Published], last: dt.datetime) -> bool:
+    """Every model in ``estimates`` has published an estimate that saw the reading at
+    ``last``: at that instant (a reading's estimate) or at a later one (a baseline published
+    on the grid only, by default, answers at the next grid instant)."""
+    models: set[str] = set()
+    done: set[str] = set()
+    for e in estimates:
+        models.add(e.model)
+        if e.ts >= last and e.refs and max(t for _, t in e.refs) == last:
+            done.add(e.model)
+    return bool(models) and done == models
+
+
 @dataclass(frozen=True)
 class DayScore:
     model: str
