@@ -313,6 +313,14 @@ def _serve(process: Service | Recorder) -> int:
     return process.fatal[0] if process.fatal is not None else 0
 
 
+def _config_error(command: str, path: Path, exc: ConfigError) -> int:
+    """Report a configuration error of ``run``/``record``: one line when it is one problem,
+    else a heading and one line per problem; EX_CONFIG (systemd does not restart on it)."""
+    sep = "\n" if "\n" in str(exc) else " "
+    print(f"pseudotwin {command}: configuration error in {path}:{sep}{exc}", file=sys.stderr)
+    return EX_CONFIG
+
+
 def _private_files() -> None:
     """Journal, spool and SQLite files 0600, directories 0700, whatever the launcher
     (systemd's UMask=0077 does the same; Docker and a shell do not)."""
@@ -323,14 +331,14 @@ def _private_files() -> None:
 
 def cmd_run(a: argparse.Namespace) -> int:
     _private_files()
+    from pseudotwin.config.checks import prepare_state_dir
     from pseudotwin.edge.clock import ReplayClock, SystemClock
     from pseudotwin.edge.service import Service
 
     try:
         cfg = _load_service_config(a.config)
     except ConfigError as exc:
-        print(f"pseudotwin run: configuration error in {a.config}:\n{exc}", file=sys.stderr)
-        return EX_CONFIG
+        return _config_error("run", a.config, exc)
     logging.getLogger().setLevel(a.log_level or cfg.log_level)
     member = None
     try:
@@ -343,9 +351,9 @@ def cmd_run(a: argparse.Namespace) -> int:
 
             cfg = dataclasses.replace(cfg, metrics=dataclasses.replace(cfg.metrics,
                                                                        port=a.metrics_port))
+        prepare_state_dir(cfg.state_dir)  # a fleet member's own subfolder
     except ConfigError as exc:
-        print(f"pseudotwin run: configuration error in {a.config}:\n{exc}", file=sys.stderr)
-        return EX_CONFIG
+        return _config_error("run", a.config, exc)
     clock = ReplayClock(a.replay_from, a.speed) if a.replay_from else SystemClock()
     if a.replay_from:
         log.info("replay mode: clock starts at %s and runs at %g× real time",
@@ -368,14 +376,15 @@ def cmd_replay(a: argparse.Namespace) -> int:
 def cmd_record(a: argparse.Namespace) -> int:
     _private_files()
     from pseudotwin.config import check_config
+    from pseudotwin.config.checks import prepare_state_dir
     from pseudotwin.edge.recorder import Recorder
 
     try:
         cfg = check_config(a.config)
+        prepare_state_dir(cfg.state_dir)  # its spool lives there
         rec = Recorder(cfg)
     except ConfigError as exc:
-        print(f"pseudotwin record: configuration error in {a.config}:\n{exc}", file=sys.stderr)
-        return EX_CONFIG
+        return _config_error("record", a.config, exc)
     return _serve(rec)
 
 

@@ -2,7 +2,8 @@
 
 :func:`check_config` is what ``pseudotwin check-config``, ``run`` and ``record`` use: every
 twin's artifact exists (and passes the artifact check), the CA file exists, the MQTT password
-source is readable, and the state dir is not a file.
+source is readable, and the state dir is not a file and could be created.
+:func:`prepare_state_dir` is what ``run`` and ``record`` do with it before they start.
 """
 
 from __future__ import annotations
@@ -14,8 +15,10 @@ from typing import Any
 from pseudotwin.config.loader import ArtifactCheck, Loader, load_file
 from pseudotwin.config.model import BrokerConfig, ServiceConfig, TwinConfig
 from pseudotwin.config.validate import Found
+from pseudotwin.errors import ConfigError
 
-__all__ = ["StartupLoader", "broker_problems", "check_config"]
+__all__ = ["StartupLoader", "broker_problems", "check_config", "prepare_state_dir",
+           "state_dir_problem"]
 
 
 def broker_problems(broker: BrokerConfig) -> Found:
@@ -30,6 +33,36 @@ def broker_problems(broker: BrokerConfig) -> Found:
     return found
 
 
+def state_dir_problem(state_dir: Path) -> str | None:
+    """Why ``state_dir`` can certainly not serve, judged without creating anything: it is a
+    file, or a part of its path is, or it would be on a read-only file system. Whether the
+    service's user may write there is left to :func:`prepare_state_dir` (systemd creates a
+    StateDirectory for its own, often dynamic, user: the checking user's rights say nothing)."""
+    if state_dir.exists():
+        if not state_dir.is_dir():
+            return f"{state_dir} exists and is not a directory"
+        existing = state_dir
+    else:
+        existing = next(p for p in state_dir.parents if p.exists())
+        if not existing.is_dir():
+            return f"{state_dir} cannot be created: {existing} is not a directory"
+    if os.statvfs(existing).f_flag & os.ST_RDONLY:
+        return f"{state_dir}: {existing} is on a read-only file system"
+    return None
+
+
+def prepare_state_dir(state_dir: Path) -> None:
+    """Create ``state_dir`` (and its parents) if need be and check it is writable; raises
+    ConfigError naming it and the OS's reason (``run`` and ``record`` exit 78 on it)."""
+    try:
+        state_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"service.state_dir: {state_dir} cannot be created: "
+                          f"{exc.strerror or exc}") from None
+    if not os.access(state_dir, os.W_OK | os.X_OK):
+        raise ConfigError(f"service.state_dir: {state_dir} is not writable by this user")
+
+
 class StartupLoader(Loader):
     """The loader plus the checks of what the service needs to start."""
 
@@ -40,8 +73,8 @@ class StartupLoader(Loader):
                 self.add(f"broker.{where}", msg)
         if service is not None:
             state_dir: Path = service["state_dir"]
-            if state_dir.exists() and not state_dir.is_dir():
-                self.add("service.state_dir", f"{state_dir} exists and is not a directory")
+            if (problem := state_dir_problem(state_dir)) is not None:
+                self.add("service.state_dir", problem)
         for loc, twin in twins:
             if not twin.artifact.is_file():
                 self.add(f"{loc}.artifact", f"{twin.artifact} does not exist (train the twin "
@@ -54,5 +87,5 @@ def check_config(path: str | os.PathLike[str], *,
                  artifact_check: ArtifactCheck | None = None) -> ServiceConfig:
     """Everything :func:`~pseudotwin.config.loader.load_config` checks, plus what the service
     needs to start: each artifact exists (and passes ``artifact_check``), the CA file exists,
-    the password source is readable, and the state dir is not a file."""
+    the password source is readable, and the state dir is not a file and could be created."""
     return load_file(path, StartupLoader, artifact_check)
