@@ -8,10 +8,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pandas as pd
 import pytest
 
 from daemon_support import write_config
+from pseudotwin.cli import main
 from pseudotwin.cli.check_config import main as check_config_main
+from pseudotwin.core.series import require_sensors
+from pseudotwin.errors import DataError
 
 EXE = [sys.executable, "-m", "pseudotwin.cli"]
 
@@ -70,3 +74,66 @@ def test_check_config_reports_a_state_dir_under_a_file(
     assert f"service.state_dir: {blocker}/x/state cannot be created: {blocker} is not a " \
            "directory" in err
     assert not (tmp_path / "state").exists()  # check-config creates nothing
+
+
+# ------------------------------------------------------------------ 2. bad history files
+
+
+def run(*args: str) -> int:
+    return main(["--log-level", "WARNING", *args])
+
+
+def _csv(folder: Path, name: str, rows: str) -> Path:
+    path = folder / name
+    path.write_text("sensor,ts,value\n" + rows, encoding="utf-8")
+    return path
+
+
+TRAIN = ("--references", "a", "--target", "b", "--quantity", "temperature")
+
+
+def _every_command(path: Path, tmp_path: Path) -> list[tuple[str, ...]]:
+    return [("import", str(path), "--store", str(tmp_path / "h.db")),
+            ("train", "--history", str(path), *TRAIN, "--out", str(tmp_path / "z.json")),
+            ("evaluate", "--history", str(path), *TRAIN, "--train-start", "2012-03-14",
+             "--out", str(tmp_path / "ev"))]
+
+
+@pytest.mark.parametrize(
+    "rows,message",
+    [("a,2012-03-14T10:00:00+00:00,nan\n",
+      "no valid readings (every one of its 1 rows has a blank, NaN or infinite value)"),
+     ("a,2012-03-14T10:00:00+00:00,inf\nb,2012-03-14T10:00:00+00:00,\n",
+      "no valid readings (every one of its 2 rows has a blank, NaN or infinite value)"),
+     (",2012-03-14T10:00:00+00:00,1\n", "data row 1 has no sensor name"),
+     ("a,2012-03-14T10:00:00+00:00,1\n  ,2012-03-14T10:01:00+00:00,1\n",
+      "data row 2 has no sensor name"),
+     ("a,,1\n", "data row 1 has no timestamp")],
+)
+def test_a_history_file_without_valid_readings_is_one_line(
+    tmp_path: Path, capsys, rows: str, message: str
+) -> None:
+    path = _csv(tmp_path, "bad.csv", rows)
+    for args in _every_command(path, tmp_path):
+        assert run(*args) == 2, args
+        line = _one_line(capsys.readouterr().err)
+        assert line == f"pseudotwin {args[0]}: error: {path}: {message}"
+    assert not (tmp_path / "h.db").exists() and not (tmp_path / "z.json").exists()
+
+
+def test_dropped_rows_are_counted_and_explained(tmp_path: Path, capsys, caplog) -> None:
+    path = _csv(tmp_path, "some.csv", "a,2012-03-14T10:00:00+00:00,nan\n"
+                                      "a,2012-03-14T10:01:00+00:00,1\n"
+                                      "a,2012-03-14T10:01:00+00:00,1\n"
+                                      "a,2012-03-14T10:02:00+00:00,-inf\n")
+    assert run("import", str(path), "--store", str(tmp_path / "h.db")) == 0
+    assert "1 readings of 1 sensor(s)" in capsys.readouterr().out
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert warnings == [f"{path}: dropped 3 of 4 rows (2 with a blank, NaN or infinite value, "
+                        "1 exact duplicate(s))"]
+
+
+def test_missing_sensors_of_a_file_without_readings_say_so() -> None:
+    empty = pd.DataFrame({"sensor": pd.Series([], dtype=str), "ts": [], "value": []})
+    with pytest.raises(DataError, match=r"sensor\(s\) a, b not found; it has no valid readings"):
+        require_sensors(empty, ["a", "b"], "x.csv")

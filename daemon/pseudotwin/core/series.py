@@ -8,6 +8,7 @@ message that names the file and what is wrong.
 from __future__ import annotations
 
 import datetime as dt
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -19,6 +20,8 @@ from pseudotwin.errors import DataError
 
 COLUMNS = ("sensor", "ts", "value")
 
+log = logging.getLogger(__name__)
+
 
 def _epoch(num: pd.Series) -> pd.Series:
     # Epoch milliseconds are > 1e11 for any date after 1973; seconds stay below until 5138.
@@ -27,17 +30,33 @@ def _epoch(num: pd.Series) -> pd.Series:
     return out.where(~ms, pd.to_datetime(num.where(ms) * 1e6, unit="ns", utc=True))
 
 
+def _row(mask: pd.Series | np.ndarray) -> int:
+    """The 1-based data row (the header not counted) of the first True in ``mask``."""
+    return int(np.flatnonzero(np.asarray(mask))[0]) + 1
+
+
 def parse_timestamps(raw: pd.Series, where: str) -> pd.Series:
     """ISO 8601 with offset, or epoch seconds / milliseconds (row by row) → UTC timestamps."""
     if pd.api.types.is_numeric_dtype(raw):
+        if raw.isna().any():
+            raise DataError(f"{where}: data row {_row(raw.isna())} has no timestamp")
         return _epoch(raw.astype(float))
     text = raw.astype(str).str.strip()
+    blank = raw.isna() | (text == "")
+    if blank.any():
+        raise DataError(f"{where}: data row {_row(blank)} has no timestamp")
     numeric = text.str.fullmatch(r"-?\d+(\.\d+)?")
     out = pd.Series(pd.NaT, index=raw.index, dtype="datetime64[ns, UTC]")
     if numeric.any():
         out[numeric] = _epoch(text[numeric].astype(float))
     iso = text[~numeric]
     if len(iso):
+        dated = iso.str.match(r"\d{4}-\d\d-\d\d")
+        if not dated.all():
+            raise DataError(
+                f"{where}: {iso[~dated].iloc[0]!r} in data row {_row(~numeric & ~dated)} is "
+                "not a timestamp (use ISO 8601 with a UTC offset, or epoch seconds / ms)"
+            )
         aware = iso.str.contains(r"(?:Z|[+-]\d\d:?\d\d)$", regex=True)
         if not aware.all():
             bad = iso[~aware].iloc[0]
@@ -51,8 +70,41 @@ def parse_timestamps(raw: pd.Series, where: str) -> pd.Series:
     return out
 
 
+def _sensors(raw: pd.Series, where: str) -> pd.Series:
+    """The sensor column as stripped strings; a blank or missing name is an error."""
+    names = raw.astype(str).str.strip()
+    blank = raw.isna() | (names == "")
+    if blank.any():
+        raise DataError(f"{where}: data row {_row(blank)} has no sensor name")
+    return names
+
+
+@dataclass(frozen=True)
+class Dropped:
+    """Rows :func:`normalize` left out: without a finite value (blank, NaN, ±inf) and exact
+    duplicates of an earlier row."""
+
+    rows: int
+    not_finite: int
+    duplicates: int
+
+    def line(self, where: str) -> str | None:
+        """One line saying how many rows were dropped and why; None when none were."""
+        reasons = [f"{n} {why}" for n, why in ((self.not_finite, "with a blank, NaN or "
+                                                                "infinite value"),
+                                               (self.duplicates, "exact duplicate(s)")) if n]
+        if not reasons:
+            return None
+        return (f"{where}: dropped {self.not_finite + self.duplicates} of {self.rows} rows "
+                f"({', '.join(reasons)})")
+
+
 def normalize(df: pd.DataFrame, where: str = "history") -> pd.DataFrame:
     """Validate and normalize a long frame; drops non-finite values and exact duplicates."""
+    return _normalize(df, where)[0]
+
+
+def _normalize(df: pd.DataFrame, where: str) -> tuple[pd.DataFrame, Dropped]:
     missing = [c for c in COLUMNS if c not in df.columns]
     if missing:
         raise DataError(
@@ -61,7 +113,7 @@ def normalize(df: pd.DataFrame, where: str = "history") -> pd.DataFrame:
     if df.empty:
         raise DataError(f"{where}: no rows")
     out = pd.DataFrame(
-        {"sensor": df["sensor"].astype(str).str.strip(), "ts": parse_timestamps(df["ts"], where)}
+        {"sensor": _sensors(df["sensor"], where), "ts": parse_timestamps(df["ts"], where)}
     )
     value = pd.to_numeric(df["value"], errors="coerce")
     bad = value.isna() & df["value"].notna() & (df["value"].astype(str).str.strip() != "")
@@ -73,15 +125,21 @@ def normalize(df: pd.DataFrame, where: str = "history") -> pd.DataFrame:
     out["ts"] = pd.DatetimeIndex(out["ts"]).as_unit("ns")  # one unit everywhere (pandas 3: us)
     out["value"] = value.astype(float)
     out = out[np.isfinite(out["value"].values)]
+    finite = len(out)
     out = out.drop_duplicates().sort_values(["ts", "sensor"], kind="stable").reset_index(drop=True)
-    return out
+    return out, Dropped(len(df), len(df) - finite, finite - len(out))
 
 
 def read_history(path: str | Path) -> pd.DataFrame:
-    """Read a canonical CSV (or Parquet) history file."""
+    """Read a canonical CSV (or Parquet) history file: the one place history files are
+    read (import, train, evaluate, replay). Rows without a finite value and exact duplicates
+    are dropped, with one warning saying how many; a file left without a valid reading, a
+    row without a sensor name or timestamp, a value that is no number: DataError."""
     p = Path(path)
     if not p.exists():
         raise DataError(f"{p}: no such file")
+    if p.is_dir():
+        raise DataError(f"{p}: is a directory, not a history file")
     try:
         if p.suffix.lower() in (".parquet", ".pq"):
             df = pd.read_parquet(p)
@@ -89,7 +147,13 @@ def read_history(path: str | Path) -> pd.DataFrame:
             df = pd.read_csv(p, dtype={"sensor": str, "ts": str}, comment="#")
     except (ValueError, pd.errors.ParserError, UnicodeDecodeError, ImportError) as exc:
         raise DataError(f"{p}: not a readable canonical history file ({exc})") from None
-    return normalize(df, str(p))
+    out, dropped = _normalize(df, str(p))
+    if out.empty:
+        raise DataError(f"{p}: no valid readings (every one of its {dropped.rows} rows has a "
+                        "blank, NaN or infinite value)")
+    if (line := dropped.line(str(p))) is not None:
+        log.warning("%s", line)
+    return out
 
 
 def write_history(df: pd.DataFrame, path: str | Path) -> None:
@@ -104,6 +168,9 @@ def write_history(df: pd.DataFrame, path: str | Path) -> None:
 def require_sensors(df: pd.DataFrame, sensors: list[str], where: str = "history") -> None:
     have = set(df["sensor"].unique())
     missing = [s for s in sensors if s not in have]
+    if missing and not have:
+        raise DataError(f"{where}: sensor(s) {', '.join(missing)} not found; it has no valid "
+                        "readings")
     if missing:
         known = ", ".join(sorted(have)[:20])
         raise DataError(f"{where}: sensor(s) {', '.join(missing)} not found; file has: {known}")
