@@ -9,8 +9,11 @@ rewrites, never duplicates). Readings outside the operating window are skipped b
 sensor's last before it and after it (:func:`window_frame`): the twin would only have
 noted them as the sensor's latest value. Each finished day is
 recorded (per artifact version) after its rows are written, so an interrupted backfill
-continues with the days not yet finished, and a retrained twin is backfilled anew. One day
-of readings is in memory at a time.
+continues with the days not yet finished, and a retrained twin is backfilled anew. Only a
+day with reference readings that has ended (in the twin's time zone) is finished: a day
+without readings is skipped and a day not over yet is estimated from the readings so far,
+both left unrecorded, so a later run fills them once the readings are there (rewriting a
+day's rows leaves one row per key). One day of readings is in memory at a time.
 
 Days are independent: a day's estimates depend only on that day's readings and on the last
 reading of each reference from before the day's init start (the carried-over value). A run
@@ -65,6 +68,7 @@ class BackfillSummary:
     days: int = 0
     estimates: int = 0
     skipped: dict[str, list[str]] = field(default_factory=dict)  # reason → days
+    unended: list[str] = field(default_factory=list)  # of ``days``: estimated, not done
     seconds: float = 0.0
 
     def skip(self, day: dt.date | str, reason: str) -> None:
@@ -74,11 +78,19 @@ class BackfillSummary:
         # seconds: summed over the twin's runs of days, which may have run side by side
         out = [f"backfilled {self.days} day(s), {self.estimates} estimates written "
                f"in {self.seconds:.1f} s of work"]
+        if self.unended:
+            out.append("not marked done " + _day_list(
+                self.unended, "the day has not ended (a run after its end completes it)"))
         for reason, days in self.skipped.items():
-            days = sorted(days)
-            shown = ", ".join(days[:10]) + (f" … (+{len(days) - 10})" if len(days) > 10 else "")
-            out.append(f"skipped {len(days)} day(s), {reason}: {shown}")
+            out.append(f"skipped {_day_list(days, reason)}")
         return out
+
+
+def _day_list(days: list[str], reason: str = "") -> str:
+    """``N day(s)[, reason]: d1, d2, …`` (the first ten days, sorted)."""
+    days = sorted(days)
+    shown = ", ".join(days[:10]) + (f" … (+{len(days) - 10})" if len(days) > 10 else "")
+    return f"{len(days)} day(s){', ' + reason if reason else ''}: {shown}"
 
 
 @dataclass(frozen=True)
@@ -90,6 +102,8 @@ class TwinJob:
     digest: str
     todo: tuple[dt.date, ...]
     done: tuple[dt.date, ...]  # already finished with this artifact version
+    # Of ``todo``: not over yet when planned (twin's time zone): estimated, never marked done.
+    unended: tuple[dt.date, ...] = ()
 
     @property
     def progress_key(self) -> str:
@@ -115,9 +129,10 @@ class ChunkResult:
     ``stopped`` means it was asked to stop (Ctrl-C) before its last day."""
 
     chunk: Chunk
-    days: int = 0
+    days: int = 0  # estimated, ``unended`` among them
     estimates: int = 0
-    empty: list[dt.date] = field(default_factory=list)
+    empty: list[dt.date] = field(default_factory=list)  # no reference readings: not marked
+    unended: list[dt.date] = field(default_factory=list)  # estimated, not over: not marked
     failed: tuple[dt.date, str] | None = None
     detail: str = ""  # the failure's traceback, for --log-level DEBUG
     stopped: bool = False
@@ -136,11 +151,17 @@ class ChunkResult:
         return f"twin {self.chunk.job.twin_id}, day {day}: {msg}{later}"
 
 
+def day_ended(hours: OperatingHours, day: dt.date, now: dt.datetime) -> bool:
+    """Whether local ``day`` lies entirely before ``now`` (aware) in the zone of ``hours``."""
+    return hours.day_of(now) > day
+
+
 def plan(cfg: ServiceConfig, twin_ids: list[str], start: dt.date, end: dt.date,
-         store: Store) -> list[TwinJob]:
+         store: Store, now: dt.datetime | None = None) -> list[TwinJob]:
     """The jobs of ``twin_ids`` over local days start … end, with the days already done
-    (of each twin's current artifact version) taken out. Checks twins, dates and artifacts
-    before any work starts."""
+    (of each twin's current artifact version) taken out and the days not ended by ``now``
+    (default: the clock) noted as such. Checks twins, dates and artifacts before any work
+    starts."""
     unknown = [t for t in twin_ids if t not in cfg.twins]
     if unknown:
         raise ConfigError(f"no twin {', '.join(repr(t) for t in unknown)} in the configuration "
@@ -149,17 +170,22 @@ def plan(cfg: ServiceConfig, twin_ids: list[str], start: dt.date, end: dt.date,
         raise ConfigError("the configuration has no twins to backfill")
     if end < start:
         raise ConfigError(f"--to {end} is before --from {start}")
+    # Taken before any day's readings are read: a day ended by then has all it will get.
+    now = now or dt.datetime.now(dt.UTC)
+    if now.tzinfo is None:
+        raise ValueError(f"now must be timezone-aware, not {now}")
     days = [start + dt.timedelta(days=i) for i in range((end - start).days + 1)]
     jobs = []
     for twin_id in dict.fromkeys(twin_ids):
         path = cfg.twins[twin_id].artifact
-        Artifact.load(path)  # a broken artifact fails here, before any twin starts
+        hours = Artifact.load(path).hours  # a broken artifact fails here, before any work
         digest = artifact_hash(path)
         job = TwinJob(twin_id, str(path), digest, (), ())
         done = store.done_days(job.progress_key)
-        jobs.append(TwinJob(twin_id, str(path), digest,
-                            tuple(d for d in days if d not in done),
-                            tuple(d for d in days if d in done)))
+        todo = tuple(d for d in days if d not in done)
+        jobs.append(TwinJob(twin_id, str(path), digest, todo,
+                            tuple(d for d in days if d in done),
+                            tuple(d for d in todo if not day_ended(hours, d, now))))
     return jobs
 
 
@@ -274,7 +300,8 @@ def day_rows(cfg: ServiceConfig, job: TwinJob, twin: Twin, day: dt.date,
 
 def run_chunk(cfg: ServiceConfig, chunk: Chunk, store: Store, artifact: Artifact,
               stop: StopFlag | None = None) -> ChunkResult:
-    """Backfill the days of ``chunk``: write each day's rows, then mark the day done.
+    """Backfill the days of ``chunk``: write each day's rows, then mark the day done,
+    unless it has no reference readings (nothing written) or has not ended yet.
 
     Checks ``stop`` between days (a day is finished or not started, never half marked).
     A failing day ends the chunk; the failure names the day.
@@ -303,12 +330,14 @@ def run_chunk(cfg: ServiceConfig, chunk: Chunk, store: Store, artifact: Artifact
                     for s, (ts, v) in store.last_readings_before(refs, init).items():
                         twin.observe(s, ts, v)
                 prev = day
-                if frame.empty:
+                if frame.empty:  # not marked: readings imported later fill it
                     res.empty.append(day)
-                    store.mark_day_done(job.progress_key, day, 0)
                     continue
                 n = store.write_estimates(day_rows(cfg, job, twin, day, frame))
-                store.mark_day_done(job.progress_key, day, n)
+                if day in job.unended:  # not marked: a run after its end completes it
+                    res.unended.append(day)
+                else:
+                    store.mark_day_done(job.progress_key, day, n)
                 log.debug("day %s written: %d estimates", day, n)
                 res.days += 1
                 res.estimates += n
@@ -345,11 +374,14 @@ def backfill(
     end: dt.date,
     store: Store,
     progress: bool = True,
+    now: dt.datetime | None = None,
 ) -> BackfillSummary:
-    """Backfill ``twin_id`` for local days start … end (inclusive), in this process."""
+    """Backfill ``twin_id`` for local days start … end (inclusive), in this process.
+    ``now`` (default: the clock) decides which days have ended (see :func:`plan`)."""
     from pseudotwin.history.backfill_pool import backfill_twins
 
-    run = backfill_twins(cfg, [twin_id], start, end, store, jobs=1, progress=progress)
+    run = backfill_twins(cfg, [twin_id], start, end, store, jobs=1, progress=progress,
+                         now=now)
     if run.failures:
         raise BackfillError("; ".join(r.failure_line() for r in run.failures))
     return run.twins[twin_id]

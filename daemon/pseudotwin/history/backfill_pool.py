@@ -65,6 +65,7 @@ class RunSummary:
         s.days += res.days
         s.estimates += res.estimates
         s.seconds += res.seconds
+        s.unended += [str(d) for d in res.unended]
         for d in res.empty:
             s.skip(d, "no reference readings")
         if res.failed is not None:
@@ -116,6 +117,7 @@ def backfill_twins(
     progress: bool = True,
     chunk_days: int | None = None,
     stream: TextIO | None = None,
+    now: dt.datetime | None = None,
 ) -> RunSummary:
     """Backfill ``twin_ids`` for local days start … end with up to ``jobs`` processes.
 
@@ -123,14 +125,15 @@ def backfill_twins(
     themselves. chunk_days: days per chunk (default: see
     :func:`~pseudotwin.history.backfill.chunk_size`). Failures do not stop other chunks;
     they are in the summary's ``failures``. Ctrl-C returns a summary with ``interrupted``.
-    Progress lines go to ``stream`` (default stderr).
+    Progress lines go to ``stream`` (default stderr). ``now`` (default: the clock) decides
+    which days have ended: one not ended is estimated but not marked done.
     """
     if jobs < 1:
         raise ConfigError(f"--jobs must be at least 1, not {jobs}")
     if chunk_days is not None and chunk_days < 1:
         raise ConfigError(f"chunk_days must be at least 1, not {chunk_days}")
     t0 = time.perf_counter()
-    twin_jobs = plan(cfg, twin_ids, start, end, store)
+    twin_jobs = plan(cfg, twin_ids, start, end, store, now)
     total = sum(len(j.todo) for j in twin_jobs)
     work = chunks(twin_jobs, chunk_days or chunk_size(total, jobs))
     run = RunSummary(workers=max(1, min(jobs, len(work))))
@@ -147,6 +150,7 @@ def backfill_twins(
                               "use --jobs 1")
         _run_pool(cfg, work, store.url, run, bar)
     for summary in run.twins.values():  # chunks finish in any order
+        summary.unended.sort()
         for days in summary.skipped.values():
             days.sort()
     run.seconds = time.perf_counter() - t0
