@@ -137,3 +137,78 @@ def test_missing_sensors_of_a_file_without_readings_say_so() -> None:
     empty = pd.DataFrame({"sensor": pd.Series([], dtype=str), "ts": [], "value": []})
     with pytest.raises(DataError, match=r"sensor\(s\) a, b not found; it has no valid readings"):
         require_sensors(empty, ["a", "b"], "x.csv")
+
+
+# ------------------------------------------------------------------ 3., 5.: argparse-level
+
+
+def _usage_error(capsys, *args: str) -> str:
+    """The last stderr line of a command argparse refuses (status 2)."""
+    with pytest.raises(SystemExit) as exc:
+        run(*args)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return err.strip().splitlines()[-1]
+
+
+REPLAY = ("replay", "--config", "c.toml", "--history", "h.csv",
+          "--start", "2012-03-20T06:30:00+01:00")
+
+
+@pytest.mark.parametrize("speed", ["0", "-1", "inf", "nan"])
+def test_speed_must_be_positive(capsys, speed: str) -> None:
+    line = _usage_error(capsys, "run", "--config", "c.toml",
+                        "--replay-from", "2012-03-20T06:30:00+01:00", "--speed", speed)
+    assert line == f"pseudotwin run: error: argument --speed: {speed}: the speed must be positive"
+    line = _usage_error(capsys, *REPLAY, "--end", "2012-03-20T19:30:00+01:00", "--speed", speed)
+    assert "argument --speed" in line and "the speed must be positive" in line
+
+
+def test_speed_without_replay_from_is_an_error(capsys) -> None:
+    line = _usage_error(capsys, "run", "--config", "c.toml", "--speed", "600")
+    assert line.startswith("pseudotwin run: error: --speed needs --replay-from")
+
+
+def _train(tmp_path: Path, *extra: str) -> tuple[str, ...]:
+    return ("train", "--history", str(tmp_path / "h.csv"), *TRAIN, *extra)
+
+
+def test_train_out_is_checked_before_training(tmp_path: Path, capsys) -> None:
+    folder = tmp_path / "somedir"
+    folder.mkdir()
+    line = _usage_error(capsys, *_train(tmp_path, "--out", str(folder)))
+    assert line.startswith(f"pseudotwin train: error: argument --out: {folder} is a directory")
+    line = _usage_error(capsys, *_train(tmp_path, "--out", ""))
+    assert line == "pseudotwin train: error: argument --out: an empty path"
+    blocker = tmp_path / "ok.csv"
+    blocker.write_text("x\n")
+    line = _usage_error(capsys, *_train(tmp_path, "--out", str(tmp_path / "a.json"),
+                                        "--report", str(blocker)))
+    assert line == f"pseudotwin train: error: argument --report: {blocker} exists and is not " \
+                   "a directory"
+    line = _usage_error(capsys, *_train(tmp_path, "--out", f"{blocker}/a.json"))
+    assert line.endswith(f"{blocker} is not a directory")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ok.csv", "somedir"]
+    assert not list(folder.iterdir())
+
+
+def test_evaluate_out_must_be_a_folder(tmp_path: Path, capsys) -> None:
+    blocker = tmp_path / "my.toml"
+    blocker.write_text("x\n")
+    line = _usage_error(capsys, "evaluate", "--history", str(tmp_path / "h.csv"), *TRAIN,
+                        "--train-start", "2012-03-14", "--out", str(blocker))
+    assert line == f"pseudotwin evaluate: error: argument --out: {blocker} exists and is not " \
+                   "a directory"
+
+
+def test_replay_end_before_start(capsys) -> None:
+    line = _usage_error(capsys, *REPLAY, "--end", "2012-03-20T06:00:00+01:00")
+    assert line == ("pseudotwin replay: error: --end 2012-03-20T06:00:00+01:00 is not after "
+                    "--start 2012-03-20T06:30:00+01:00")
+
+
+def test_init_minutes_must_not_be_negative(tmp_path: Path, capsys) -> None:
+    line = _usage_error(capsys, *_train(tmp_path, "--out", str(tmp_path / "a.json"),
+                                        "--init-minutes", "-5"))
+    assert line == "pseudotwin train: error: argument --init-minutes: -5 min: must be ≥ 0"

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import functools
 import logging
+import math
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -100,7 +102,7 @@ def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
                    help="IANA time zone of the building; operating hours are local (default UTC)")
     p.add_argument("--day-start", default="08:00", help="start of operating hours (default 08:00)")
     p.add_argument("--day-end", default="19:00", help="end of operating hours (default 19:00)")
-    p.add_argument("--init-minutes", type=float, default=30.0,
+    p.add_argument("--init-minutes", type=_minutes_at_least_zero, default=30.0,
                    help="init phase before day start, collected but not published (default 30)")
     p.add_argument("--slot-minutes", type=float, default=15.0,
                    help="time-of-day grid of TRIV, VARMA and GP training (default 15)")
@@ -256,6 +258,63 @@ def _positive_minutes(text: str) -> float:
     return minutes
 
 
+def _minutes_at_least_zero(text: str) -> float:
+    try:
+        minutes = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of minutes") from None
+    if not 0 <= minutes < math.inf:
+        raise argparse.ArgumentTypeError(f"{text} min: must be ≥ 0")
+    return minutes
+
+
+def _speed(text: str) -> float:
+    try:
+        speed = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not 0 < speed < math.inf:
+        raise argparse.ArgumentTypeError(f"{text}: the speed must be positive")
+    return speed
+
+
+def _output(text: str) -> Path:
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty path")
+    path = Path(text)
+    parent = next((p for p in path.absolute().parents if p.exists()), None)
+    if parent is not None and not parent.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: {parent} is not a directory")
+    return path
+
+
+def _artifact_out(text: str) -> Path:
+    """An artifact file to write: not a directory, its folder creatable."""
+    path = _output(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a directory; give the artifact's file "
+                                         f"name, e.g. {path / 'twin.json'}")
+    return path
+
+
+def _folder_out(text: str) -> Path:
+    """An output folder: absent (it is created) or a directory."""
+    path = _output(text)
+    if path.exists() and not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} exists and is not a directory")
+    return path
+
+
+def _check_run(p: argparse.ArgumentParser, a: argparse.Namespace) -> None:
+    if a.speed is not None and a.replay_from is None:
+        p.error("--speed needs --replay-from (the live clock runs at real time)")
+
+
+def _check_replay(p: argparse.ArgumentParser, a: argparse.Namespace) -> None:
+    if a.end <= a.start:
+        p.error(f"--end {a.end.isoformat()} is not after --start {a.start.isoformat()}")
+
+
 def _aware(text: str) -> dt.datetime:
     try:
         t = dt.datetime.fromisoformat(text)
@@ -354,10 +413,10 @@ def cmd_run(a: argparse.Namespace) -> int:
         prepare_state_dir(cfg.state_dir)  # a fleet member's own subfolder
     except ConfigError as exc:
         return _config_error("run", a.config, exc)
-    clock = ReplayClock(a.replay_from, a.speed) if a.replay_from else SystemClock()
+    clock = ReplayClock(a.replay_from, a.speed or 1.0) if a.replay_from else SystemClock()
     if a.replay_from:
         log.info("replay mode: clock starts at %s and runs at %g× real time",
-                 a.replay_from.isoformat(), a.speed)
+                 a.replay_from.isoformat(), a.speed or 1.0)
     return _serve(Service(cfg, clock, member))
 
 
@@ -447,14 +506,15 @@ def build_parser() -> argparse.ArgumentParser:
                                    "the first --train-days days on which every sensor reports "
                                    "in operating hours are chosen (and printed).")
     _add_twin_args(t, train=True)
-    t.add_argument("--out", required=True, type=Path, help="artifact file to write (.json)")
+    t.add_argument("--out", required=True, type=_artifact_out,
+                   help="artifact file to write (.json); checked before training")
     t.add_argument("--min-interval", type=_positive_seconds, default=None, metavar="SECONDS",
                    help="the daemon's window keeps at most one point per sensor and interval, "
                         "the mean of its readings in it; training learns from those points, "
                         "not from single samples of a chatty sensor, and replays the held-out "
                         "days through that window (default: with --config, the sensors' "
                         "min_interval_seconds; else 60)")
-    t.add_argument("--report", type=Path, metavar="DIR",
+    t.add_argument("--report", type=_folder_out, metavar="DIR",
                    help="also write a commissioning report, DIR/<twin>.html (<twin>: the "
                         "artifact's file name): one self-contained HTML page with the data "
                         "found per sensor and day and whether it is enough, every candidate's "
@@ -469,7 +529,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "target at every true reading of the following days using "
                                    "only earlier data, and score per day and month.")
     _add_twin_args(e)
-    e.add_argument("--out", required=True, type=Path,
+    e.add_argument("--out", required=True, type=_folder_out,
                    help="output folder: daily.csv, monthly.csv, estimates.csv, plots")
     e.add_argument("--min-interval", type=_positive_seconds, default=60.0, metavar="SECONDS",
                    help="the window keeps at most one point per sensor and interval, the mean "
@@ -491,8 +551,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--replay-from", type=_aware, metavar="INSTANT",
                    help="replay mode: the daemon's clock starts at this instant "
                         "(ISO 8601 with offset) instead of now")
-    r.add_argument("--speed", type=float, default=1.0,
-                   help="replay mode: clock speed-up factor (default 1)")
+    r.add_argument("--speed", type=_speed,
+                   help="replay mode (needs --replay-from): clock speed-up factor, > 0 "
+                        "(default 1)")
     fleet = r.add_mutually_exclusive_group()
     fleet.add_argument("--shard", type=_shard, metavar="I/N",
                        help="fleet: run only shard I of N (0-based), the twins whose "
@@ -505,7 +566,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--metrics-port", type=int, metavar="PORT",
                    help="serve Prometheus metrics on this port instead of [metrics] port "
                         "(one per instance when several run on one host)")
-    r.set_defaults(func=cmd_run)
+    r.set_defaults(func=cmd_run, check=functools.partial(_check_run, r))
 
     rp = sub.add_parser("replay", help="publish stored readings through the broker",
                         description="Publish a canonical history's readings of the configured "
@@ -519,8 +580,9 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--end", required=True, type=_aware, metavar="INSTANT",
                     help="instant to stop before: ISO 8601 with a UTC offset, "
                          "e.g. 2012-03-20T20:00:00+01:00 (or Z)")
-    rp.add_argument("--speed", type=float, default=60.0, help="speed-up factor (default 60)")
-    rp.set_defaults(func=cmd_replay)
+    rp.add_argument("--speed", type=_speed, default=60.0,
+                    help="speed-up factor, > 0 (default 60)")
+    rp.set_defaults(func=cmd_replay, check=functools.partial(_check_replay, rp))
 
     rc = sub.add_parser("record", help="record every valid reading into the history store",
                         description="Subscribe to the configured sensor topics and write every "
@@ -562,6 +624,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return DELEGATED[args[first]](args[first + 1:])
     parser = build_parser()
     a = parser.parse_args(args)
+    if check := getattr(a, "check", None):
+        check(a)  # what one option alone cannot tell: argparse's error, status 2
     if not getattr(a, "func", None):
         parser.print_help()
         return 2
