@@ -4,6 +4,7 @@ user test after ab178f3). Real files, real subprocesses or the CLI's main functi
 
 from __future__ import annotations
 
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -11,7 +12,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from daemon_support import write_config
+from daemon_support import REF, write_config
 from pseudotwin.cli import main
 from pseudotwin.cli.check_config import main as check_config_main
 from pseudotwin.core.series import require_sensors
@@ -212,3 +213,24 @@ def test_init_minutes_must_not_be_negative(tmp_path: Path, capsys) -> None:
     line = _usage_error(capsys, *_train(tmp_path, "--out", str(tmp_path / "a.json"),
                                         "--init-minutes", "-5"))
     assert line == "pseudotwin train: error: argument --init-minutes: -5 min: must be ≥ 0"
+
+
+# ------------------------------------------------------------------ 4. broker
+
+
+def _closed_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_replay_with_an_unreachable_broker_is_one_line(tmp_path: Path, capsys) -> None:
+    port = _closed_port()
+    cfg = write_config(tmp_path, port, tmp_path / "none.json")
+    history = _csv(tmp_path, "h.csv", f"{REF},2012-03-20T06:40:00+00:00,20.5\n")
+    rc = run("replay", "--config", str(cfg), "--history", str(history),
+             "--start", "2012-03-20T06:30:00Z", "--end", "2012-03-20T07:00:00Z")
+    assert rc == 2
+    line = _one_line(capsys.readouterr().err)
+    assert line.startswith(f"pseudotwin replay: error: MQTT broker 127.0.0.1:{port} "
+                           "unreachable: ")

@@ -22,5 +22,9 @@ class NumericalError(PseudotwinError):
     """A kernel matrix could not be factorized even with the largest allowed jitter."""
 
 
+class BrokerError(PseudotwinError):
+    """The MQTT broker cannot be reached (a one-shot command; the daemon reconnects)."""
+
+
 class FitError(PseudotwinError):
     """Training failed (e.g. no converging optimizer start)."""

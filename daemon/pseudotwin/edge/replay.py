@@ -17,7 +17,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from pseudotwin.config import ServiceConfig
 from pseudotwin.edge.clock import Clock, ReplayClock
-from pseudotwin.errors import DataError
+from pseudotwin.errors import BrokerError, DataError
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +59,11 @@ def replay(
         c.username_pw_set(cfg.broker.username, cfg.broker.password())
     if cfg.broker.tls:
         c.tls_set(ca_certs=str(cfg.broker.ca_file) if cfg.broker.ca_file else None)
-    c.connect(cfg.broker.host, cfg.broker.port, keepalive=30)
+    try:
+        c.connect(cfg.broker.host, cfg.broker.port, keepalive=30)
+    except OSError as exc:  # refused, unknown host, unreachable network, timeout
+        raise BrokerError(f"MQTT broker {cfg.broker.host}:{cfg.broker.port} unreachable: "
+                          f"{exc.strerror or exc}") from None
     c.loop_start()
     clock = clock or ReplayClock(start, speed)
     n = 0
