@@ -4,6 +4,8 @@ user test after ab178f3). Real files, real subprocesses or the CLI's main functi
 
 from __future__ import annotations
 
+import datetime as dt
+import json
 import socket
 import subprocess
 import sys
@@ -12,11 +14,12 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from daemon_support import REF, write_config
+from daemon_support import HOURS, REF, TARGET, TZ, write_config
 from pseudotwin.cli import main
 from pseudotwin.cli.check_config import main as check_config_main
 from pseudotwin.core.series import require_sensors
 from pseudotwin.errors import DataError
+from pseudotwin.history.convert import load
 
 EXE = [sys.executable, "-m", "pseudotwin.cli"]
 
@@ -234,3 +237,24 @@ def test_replay_with_an_unreachable_broker_is_one_line(tmp_path: Path, capsys) -
     line = _one_line(capsys.readouterr().err)
     assert line.startswith(f"pseudotwin replay: error: MQTT broker 127.0.0.1:{port} "
                            "unreachable: ")
+
+
+# ------------------------------------------------------------------ 6. Parquet
+
+
+def test_import_and_train_from_parquet(tmp_path: Path, capsys) -> None:
+    """The help says CSV or Parquet: a slice of SML2010 through the project's converter,
+    written as Parquet, imports and trains like the CSV."""
+    df = load("sml2010")
+    df = df[(df["ts"] >= HOURS.at(dt.date(2012, 3, 14), 0.0))
+            & (df["ts"] < HOURS.at(dt.date(2012, 3, 19), 0.0))]
+    path = tmp_path / "sml.parquet"
+    df.to_parquet(path, index=False)
+    assert run("import", str(path), "--store", str(tmp_path / "h.db")) == 0
+    assert f"{len(df)} readings of 17 sensor(s)" in capsys.readouterr().out
+    out = tmp_path / "a.json"
+    assert run("train", "--history", str(path), "--references", REF, "--target", TARGET,
+               "--quantity", "temperature", "--timezone", TZ, "--models", "triv",
+               "--out", str(out)) == 0
+    art = json.loads(out.read_text())
+    assert art["training"]["days"] == [f"2012-03-{d}" for d in range(14, 19)]

@@ -36,7 +36,14 @@ def _row(mask: pd.Series | np.ndarray) -> int:
 
 
 def parse_timestamps(raw: pd.Series, where: str) -> pd.Series:
-    """ISO 8601 with offset, or epoch seconds / milliseconds (row by row) → UTC timestamps."""
+    """ISO 8601 with offset, or epoch seconds / milliseconds (row by row) → UTC timestamps;
+    a Parquet file's timestamp column must be time-zone aware."""
+    if isinstance(raw.dtype, pd.DatetimeTZDtype):
+        if raw.isna().any():
+            raise DataError(f"{where}: data row {_row(raw.isna())} has no timestamp")
+        return raw.dt.tz_convert("UTC")
+    if pd.api.types.is_datetime64_dtype(raw):
+        raise DataError(f"{where}: the ts column has no time zone (store UTC timestamps)")
     if pd.api.types.is_numeric_dtype(raw):
         if raw.isna().any():
             raise DataError(f"{where}: data row {_row(raw.isna())} has no timestamp")

@@ -1,9 +1,9 @@
 """Loading a canonical history file into the history store (``pseudotwin import``).
 
-The file is read and validated by :func:`pseudotwin.core.series.read_history` (CSV, or Parquet
-when pyarrow is installed) and written in chunks. Importing is idempotent: readings are
-keyed by (sensor, ts) and a key already stored is left alone, so importing a file twice
-adds nothing the second time and an interrupted import can simply be re-run.
+The file is read and validated by :func:`pseudotwin.core.series.read_history` (CSV or
+Parquet) and written in chunks. Importing is idempotent: readings are keyed by (sensor, ts)
+and a key already stored is left alone, so importing a file twice adds nothing the second
+time and an interrupted import can simply be re-run.
 """
 
 from __future__ import annotations
