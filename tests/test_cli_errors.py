@@ -17,7 +17,7 @@ import pytest
 from daemon_support import HOURS, REF, TARGET, TZ, write_config
 from pseudotwin.cli import main
 from pseudotwin.cli.check_config import main as check_config_main
-from pseudotwin.core.series import require_sensors
+from pseudotwin.core.series import require_sensors, write_history
 from pseudotwin.errors import DataError
 from pseudotwin.history.convert import load
 
@@ -258,3 +258,119 @@ def test_import_and_train_from_parquet(tmp_path: Path, capsys) -> None:
                "--out", str(out)) == 0
     art = json.loads(out.read_text())
     assert art["training"]["days"] == [f"2012-03-{d}" for d in range(14, 19)]
+
+
+# ------------------------------------------------------------------ 7. train --config
+
+
+CONFIG_HOURS = """
+[broker]
+host = "127.0.0.1"
+port = 1883
+
+[service]
+timezone = "Europe/Madrid"
+state_dir = "state"
+store = "h.db"
+day_start = "07:30"
+
+[[sensors]]
+id = "dining/temp"
+topic = "house/dining/temp"
+unit = "°C"
+min = -10
+max = 50
+
+[[sensors]]
+id = "room/temp"
+topic = "house/room/temp"
+unit = "°C"
+min = -10
+max = 50
+
+[[twins]]
+id = "desk"
+references = ["dining/temp"]
+target = "room/temp"
+quantity = "temperature"
+artifact = "desk.json"
+"""
+
+
+def test_train_with_config_takes_its_time_zone_and_hours(tmp_path: Path, capsys) -> None:
+    df = load("sml2010")
+    df = df[(df["ts"] >= HOURS.at(dt.date(2012, 3, 14), 0.0))
+            & (df["ts"] < HOURS.at(dt.date(2012, 3, 19), 0.0))]
+    write_history(df, tmp_path / "h.csv")
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(CONFIG_HOURS, encoding="utf-8")
+    assert run("import", str(tmp_path / "h.csv"), "--store", str(tmp_path / "h.db")) == 0
+    args = ("train", "--config", str(cfg), "--references", REF, "--target", TARGET,
+            "--quantity", "temperature", "--models", "triv")
+    assert run(*args, "--out", str(tmp_path / "desk.json")) == 0
+    hours = json.loads((tmp_path / "desk.json").read_text())["hours"]
+    assert (hours["timezone"], hours["day_start"]) == ("Europe/Madrid", 7.5)
+    capsys.readouterr()
+    assert run("check-config", str(cfg)) == 0  # the artifact fits the configuration
+    # an option may repeat the configuration, not contradict it
+    assert run(*args, "--timezone", TZ, "--day-start", "07:30",
+               "--out", str(tmp_path / "same.json")) == 0
+    assert run(*args, "--timezone", "UTC", "--out", str(tmp_path / "utc.json")) == 2
+    assert _one_line(capsys.readouterr().err) == (
+        f"pseudotwin train: error: --timezone UTC contradicts {cfg}, whose timezone is "
+        f"{TZ}: the artifact would not fit it (leave the option out)")
+    assert run(*args, "--day-start", "08:00", "--out", str(tmp_path / "utc.json")) == 2
+    assert "whose day_start is 07:30" in capsys.readouterr().err
+    assert not (tmp_path / "utc.json").exists()
+
+
+# ------------------------------------------------------------------ 8. wording
+
+
+def test_check_config_says_an_artifact_folder_is_a_folder(
+    desk_artifact: Path, tmp_path: Path, capsys
+) -> None:
+    folder = tmp_path / "artifacts"
+    folder.mkdir()
+    cfg = write_config(tmp_path, 1, folder)
+    assert check_config_main([str(cfg)]) == 1
+    err = capsys.readouterr().err
+    assert f"twins[0].artifact: {folder} is a directory, not an artifact file" in err
+    assert "does not exist" not in err
+
+
+def test_a_word_for_a_timestamp_is_not_a_timestamp(tmp_path: Path, capsys) -> None:
+    path = _csv(tmp_path, "t.csv", "a,2012-03-14T10:00:00+00:00,1\na,notatime,1\n")
+    assert run("import", str(path), "--store", str(tmp_path / "h.db")) == 2
+    assert _one_line(capsys.readouterr().err) == (
+        f"pseudotwin import: error: {path}: 'notatime' in data row 2 is not a timestamp (use "
+        "ISO 8601 with a UTC offset, or epoch seconds / ms)")
+    path = _csv(tmp_path, "n.csv", "a,2012-03-14T10:00:00,1\n")
+    assert run("import", str(path), "--store", str(tmp_path / "h.db")) == 2
+    assert "timestamp '2012-03-14T10:00:00' has no UTC offset" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "options,message",
+    [(("--day-start", "19:00", "--day-end", "08:00"),
+      "operating hours: day_start 19:00 must be before day_end 08:00"),
+     (("--slot-minutes", "7"), "slot_minutes 7: must divide a day and lie in 1..120"),
+     (("--day-start", "00:10"),
+      "operating hours: init phase of 30 min does not fit before day_start on the same day")],
+)
+def test_hours_problems_read_as_written(
+    tmp_path: Path, capsys, options: tuple[str, ...], message: str
+) -> None:
+    path = _csv(tmp_path, "h.csv", "a,2012-03-14T10:00:00+00:00,1\n")
+    assert run(*_train(tmp_path, "--out", str(tmp_path / "a.json"), *options)) == 2
+    assert _one_line(capsys.readouterr().err) == f"pseudotwin train: error: {message}"
+    assert path.exists()
+
+
+def test_evaluate_on_a_file_without_valid_readings(tmp_path: Path, capsys) -> None:
+    path = _csv(tmp_path, "h.csv", "a,2012-03-14T10:00:00+00:00,nan\nb,2012-03-14T10:00:00Z,\n")
+    assert run(*_every_command(path, tmp_path)[2]) == 2
+    line = _one_line(capsys.readouterr().err)
+    assert line.endswith("no valid readings (every one of its 2 rows has a blank, NaN or "
+                         "infinite value)")
+    assert "file has:" not in line

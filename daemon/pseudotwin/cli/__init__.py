@@ -74,7 +74,11 @@ def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
         src.add_argument("--store", metavar="URL",
                          help="history store: SQLite file, postgresql://host/db or "
                               "crate://host:4200")
-        src.add_argument("--config", type=Path, help="use the store of this daemon config")
+        src.add_argument("--config", type=Path,
+                         help="use the store of this daemon config, its sensors' "
+                              "min_interval_seconds, and its time zone and operating hours "
+                              "(an hours option below that contradicts them is an error: the "
+                              "artifact would not fit the configuration)")
     else:
         p.add_argument("--history", required=True, type=Path,
                        help="canonical history file (CSV or Parquet): sensor,ts,value")
@@ -98,14 +102,17 @@ def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
                         "that scores best with each training day held out in turn)")
     p.add_argument("--models", type=_csv, default=list(ALL_MODELS),
                    help=f"comma-separated models: {', '.join(ALL_MODELS)} (default: all)")
-    p.add_argument("--timezone", default="UTC",
-                   help="IANA time zone of the building; operating hours are local (default UTC)")
-    p.add_argument("--day-start", default="08:00", help="start of operating hours (default 08:00)")
-    p.add_argument("--day-end", default="19:00", help="end of operating hours (default 19:00)")
-    p.add_argument("--init-minutes", type=_minutes_at_least_zero, default=30.0,
-                   help="init phase before day start, collected but not published (default 30)")
-    p.add_argument("--slot-minutes", type=float, default=15.0,
-                   help="time-of-day grid of TRIV, VARMA and GP training (default 15)")
+    cfg = " (with --config: the configuration's)" if train else ""
+    p.add_argument("--timezone",
+                   help="IANA time zone of the building; operating hours are local (default "
+                        f"UTC{cfg})")
+    p.add_argument("--day-start", help=f"start of operating hours (default 08:00{cfg})")
+    p.add_argument("--day-end", help=f"end of operating hours (default 19:00{cfg})")
+    p.add_argument("--init-minutes", type=_minutes_at_least_zero,
+                   help="init phase before day start, collected but not published (default "
+                        f"30{cfg})")
+    p.add_argument("--slot-minutes", type=float,
+                   help=f"time-of-day grid of TRIV, VARMA and GP training (default 15{cfg})")
     p.add_argument("--kernel", choices=tuple(KERNEL_REGISTRY),
                    help="override the Corr-GP kernel")
     p.add_argument("--ref-mean", choices=("shifted", "profile"), default="shifted",
@@ -113,12 +120,46 @@ def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
                         "today's level in the init phase (default), or the unshifted profile")
 
 
-def _hours(a: argparse.Namespace) -> OperatingHours:
-    from pseudotwin.core.horizon import OperatingHours
+HOURS_OPTIONS = {"day_start": "--day-start", "day_end": "--day-end",
+                 "init_minutes": "--init-minutes", "slot_minutes": "--slot-minutes",
+                 "timezone": "--timezone"}
 
-    return OperatingHours.from_strings(
-        a.day_start, a.day_end, a.init_minutes, a.slot_minutes, a.timezone
-    )
+
+def _hours(a: argparse.Namespace) -> OperatingHours:
+    """The operating hours from the options given; the others from ``--config`` (train)
+    or the defaults. With --config an option may repeat the configuration, not contradict
+    it: the artifact is checked against that configuration's hours."""
+    import dataclasses
+
+    from pseudotwin.core.horizon import OperatingHours, parse_hhmm
+
+    given: dict[str, Any] = {
+        "day_start": None if a.day_start is None else parse_hhmm(a.day_start, "--day-start"),
+        "day_end": None if a.day_end is None else parse_hhmm(a.day_end, "--day-end"),
+        "init_minutes": a.init_minutes, "slot_minutes": a.slot_minutes,
+        "timezone": a.timezone}
+    given = {k: v for k, v in given.items() if v is not None}
+    if getattr(a, "config", None) is None:
+        return dataclasses.replace(OperatingHours(), **given)
+    from pseudotwin.config import load_config
+
+    hours = load_config(a.config).hours
+    for key, value in given.items():
+        if value != getattr(hours, key):
+            shown = getattr(a, key)
+            raise ConfigError(
+                f"{HOURS_OPTIONS[key]} {shown} contradicts {a.config}, whose {key} is "
+                f"{_shown(hours, key)}: the artifact would not fit it (leave the option out)")
+    return hours
+
+
+def _shown(hours: OperatingHours, key: str) -> str:
+    from pseudotwin.core.horizon import format_hhmm
+
+    value = getattr(hours, key)
+    if key in ("day_start", "day_end"):
+        return format_hhmm(value)
+    return f"{value:g}" if isinstance(value, float) else str(value)
 
 
 def _options(a: argparse.Namespace) -> dict[str, dict[str, Any]]:

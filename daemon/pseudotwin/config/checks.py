@@ -76,7 +76,10 @@ class StartupLoader(Loader):
             if (problem := state_dir_problem(state_dir)) is not None:
                 self.add("service.state_dir", problem)
         for loc, twin in twins:
-            if not twin.artifact.is_file():
+            if twin.artifact.is_dir():
+                self.add(f"{loc}.artifact", f"{twin.artifact} is a directory, not an "
+                                            "artifact file")
+            elif not twin.artifact.is_file():
                 self.add(f"{loc}.artifact", f"{twin.artifact} does not exist (train the twin "
                                             "first)")
             elif self.artifact_check is not None:

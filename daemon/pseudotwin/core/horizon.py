@@ -37,6 +37,13 @@ def parse_hhmm(text: str, what: str = "time of day") -> float:
     return h + mi / 60.0
 
 
+def format_hhmm(hours: float) -> str:
+    """``"HH:MM"`` of wall-clock ``hours`` [h] (8.5 → ``"08:30"``): :func:`parse_hhmm`'s
+    inverse."""
+    m = int(round(hours * 60))
+    return f"{m // 60:02d}:{m % 60:02d}"
+
+
 @dataclass(frozen=True)
 class OperatingHours:
     """When a twin works each day.
@@ -56,16 +63,19 @@ class OperatingHours:
     def __post_init__(self) -> None:
         if not (0.0 <= self.day_start < self.day_end <= 24.0):
             raise ConfigError(
-                f"operating hours: day_start {self.day_start} must be before day_end {self.day_end}"
+                f"operating hours: day_start {format_hhmm(self.day_start)} must be before "
+                f"day_end {format_hhmm(self.day_end)}"
             )
-        if not (0.0 <= self.init_minutes <= 60.0 * self.day_start):
+        if not self.init_minutes >= 0.0:
+            raise ConfigError(f"init_minutes {self.init_minutes:g}: must be ≥ 0")
+        if not self.init_minutes <= 60.0 * self.day_start:
             raise ConfigError(
-                f"operating hours: init phase of {self.init_minutes} min does not fit before "
+                f"operating hours: init phase of {self.init_minutes:g} min does not fit before "
                 "day_start on the same day"
             )
         if not (1.0 <= self.slot_minutes <= 120.0) or (24 * 60) % self.slot_minutes:
             raise ConfigError(
-                f"slot_minutes {self.slot_minutes}: must divide a day and lie in 1..120"
+                f"slot_minutes {self.slot_minutes:g}: must divide a day and lie in 1..120"
             )
         try:
             ZoneInfo(self.timezone)
@@ -205,12 +215,7 @@ class OperatingHours:
 
     def describe(self) -> str:
         """One readable line: ``08:00–19:00 Europe/Madrid, init 30 min, slots 15 min``."""
-
-        def hhmm(h: float) -> str:
-            m = int(round(h * 60))
-            return f"{m // 60:02d}:{m % 60:02d}"
-
-        return (f"{hhmm(self.day_start)}–{hhmm(self.day_end)} {self.timezone}, "
+        return (f"{format_hhmm(self.day_start)}–{format_hhmm(self.day_end)} {self.timezone}, "
                 f"init {self.init_minutes:g} min, slots {self.slot_minutes:g} min")
 
     def to_dict(self) -> dict:
