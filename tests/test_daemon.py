@@ -459,6 +459,37 @@ def reading_then_tick(svc: Service, port: int, client_id: str
     return viewer, pub, tick
 
 
+def test_a_late_reading_revises_the_newest_estimate_and_yesterday_is_rejected(
+    service_factory, mosquitto, caplog
+) -> None:
+    """A reading stamped before one already applied enters the window, and the estimate of the
+    newest instant goes out again: the retained estimate never goes back in time. Once today's
+    window has begun, a reading of yesterday is rejected and counted, not dropped unseen."""
+    svc = service_factory(HOURS.at(DAY, 10.0), 1.0)
+    viewer = Viewer(mosquitto.port, "pt/desk/estimate")
+    pub = publisher(mosquitto.port, "late-bridge")
+    newest, late = HOURS.at(DAY, 9.95), HOURS.at(DAY, 9.8)
+    pub.publish("house/dining/temp", reading(newest, 17.0), qos=1).wait_for_publish(10)
+    wait_for(lambda: len(viewer.on("/estimate")) == 1, what="the reading's estimate")
+    pub.publish("house/dining/temp", reading(late, 17.5), qos=1).wait_for_publish(10)
+    wait_for(lambda: len(viewer.on("/estimate")) == 2, what="the late reading's estimate")
+    first, second = viewer.on("/estimate")
+    assert first["ts"] == second["ts"] == stamp(newest)
+    assert second["refs"] == {REF: stamp(newest)}
+    (rt,) = svc.twins.values()
+    assert late in [p.ts for p in rt.twin.window if p.sensor == REF]
+    with caplog.at_level(logging.WARNING, logger="pseudotwin"):
+        yesterday = HOURS.at(DAY - dt.timedelta(days=1), 10.0)
+        pub.publish("house/dining/temp", reading(yesterday, 17.0), qos=1).wait_for_publish(10)
+        wait_for(lambda: svc.rejections.counts[(REF, "too-old")] == 1,
+                 what="yesterday's reading rejected")
+    assert any("too-old" in r.getMessage() for r in caplog.records)
+    assert len(viewer.on("/estimate")) == 2  # handled before its rejection was counted
+    assert yesterday not in [p.ts for p in rt.twin.window]
+    pub.loop_stop()
+    viewer.close()
+
+
 def test_without_baselines_a_grid_instant_publishes_the_estimate_alone(
     service_factory, mosquitto, desk_artifact
 ) -> None:

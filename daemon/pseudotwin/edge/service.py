@@ -50,6 +50,7 @@ from pseudotwin.live.monitor import TwinMonitor
 from pseudotwin.live.readings import (
     UNPROCESSABLE,
     Reading,
+    Reason,
     Rejected,
     RejectionCounter,
     parse_payload,
@@ -487,9 +488,17 @@ class Service:
             self._held.pop(0)
 
     def _accept(self, r: Reading, token: tuple[int, int, int]) -> None:
-        self.accepted += 1
-        self.metrics.accepted_one(r.sensor)
         try:
+            twins = self.by_sensor.get(r.sensor, ())
+            if twins and all(rt.twin.before_window(r.ts) for rt in twins):
+                # Yesterday's readings give today's carry-over only until today's window
+                # opens; after that no window can take them (DESIGN §6: rejected, counted).
+                self.rejections.add(r.sensor, Rejected(
+                    Reason.TOO_OLD, f"timestamp {r.ts.isoformat()} is before the current "
+                    "window of every twin it feeds"), self.hours.day_of(self.clock.now()))
+                return
+            self.accepted += 1
+            self.metrics.accepted_one(r.sensor)
             if r.ts > self._grid_next:
                 self._catch_up_grid(r.ts)
             self._apply(r, publish=True)
@@ -588,8 +597,12 @@ class Service:
                         if rt.twin.observe(r.sensor, r.ts, r.value):
                             rt.last_input = r.ts.timestamp()
                             if publish:
+                                # A late reading (another input is newer) revises the
+                                # estimate of the newest instant: the retained estimate
+                                # never goes back in time.
+                                at = max(r.ts, rt.twin.newest() or r.ts)
                                 self._publish_estimates(
-                                    rt, rt.twin.estimate(r.ts, kinds=rt.reading_kinds))
+                                    rt, rt.twin.estimate(at, kinds=rt.reading_kinds))
                     elif r.sensor == rt.cfg.target:
                         self._score_target(rt, r)
                 except Exception:  # noqa: BLE001 — logged with its traceback; the rest goes on

@@ -152,6 +152,7 @@ class Twin:
         # full collection of an evening take hundreds of ms. ``window`` shows them.
         self._points: list[tuple[str, dt.datetime, float, float]] = []
         self.last: dict[str, tuple[dt.datetime, float]] = {}
+        self._window_start: dt.datetime | None = None  # the open window's init start
         self._thinner = WindowThinner(self.thinning)
         self._est: dict[str, DayEstimator] = {}
         # The primary's failovers' live state: lost reference → estimator (live/failover.py).
@@ -192,7 +193,7 @@ class Twin:
                           if self.artifact.primary in self.kinds else {})
         self.uncertain_since, self.uncertain_why = None, ()
         self.failover_since, self.failover_lost = None, ()
-        init_ts = self.hours.at(day, self.hours.init_start)
+        init_ts = self._window_start = self.hours.at(day, self.hours.init_start)
         for s in self.inputs:
             last = self.last.get(s)
             if last and last[0] < init_ts and init_ts - last[0] <= self.max_carry:
@@ -290,6 +291,18 @@ class Twin:
         else:
             self._revise(sensor, point_ts, point_value)
         return True
+
+    def before_window(self, ts: dt.datetime) -> bool:
+        """Whether a reading at ``ts`` comes too late for any use: today's window is open and
+        ``ts`` lies before it (its carry-over was taken when the window opened)."""
+        return self._window_start is not None and ts < self._window_start
+
+    def newest(self) -> dt.datetime | None:
+        """The latest reading time of any input (reference or covariate), None before any.
+
+        The daemon's per-reading estimate is of this instant: a reading that arrives late
+        revises the current estimate rather than publishing one of its own, older time."""
+        return max((ts for ts, _ in self.last.values()), default=None)
 
     def _revise(self, sensor: str, ts: dt.datetime, value: float) -> None:
         """Give ``sensor``'s newest point (at ``ts``) the value ``value``."""
