@@ -104,6 +104,8 @@ def test_a_day_not_ended_is_estimated_not_recorded_and_a_later_run_completes_it(
     assert (f"not marked done 1 day(s), the day has not ended (a run after its end completes "
             f"it): {DAY}") in first.lines()
     partial = rows(db)
+    # nothing of the afternoon to come: the daemon has not published it either
+    assert not partial.empty and partial["ts"].max() <= NOON
     # The next morning: the afternoon's readings are stored, DAY has ended, NEXT has not.
     morning = HOURS.at(NEXT, 9.0)
     with open_store(str(db)) as store:

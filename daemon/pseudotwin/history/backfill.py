@@ -104,6 +104,8 @@ class TwinJob:
     done: tuple[dt.date, ...]  # already finished with this artifact version
     # Of ``todo``: not over yet when planned (twin's time zone): estimated, never marked done.
     unended: tuple[dt.date, ...] = ()
+    # When planned: an unended day's grid stops there (no estimates of instants to come).
+    now: dt.datetime | None = None
 
     @property
     def progress_key(self) -> str:
@@ -185,7 +187,7 @@ def plan(cfg: ServiceConfig, twin_ids: list[str], start: dt.date, end: dt.date,
         todo = tuple(d for d in days if d not in done)
         jobs.append(TwinJob(twin_id, str(path), digest, todo,
                             tuple(d for d in days if d in done),
-                            tuple(d for d in todo if not day_ended(hours, d, now))))
+                            tuple(d for d in todo if not day_ended(hours, d, now)), now))
     return jobs
 
 
@@ -289,10 +291,13 @@ def window_frame(frame: pd.DataFrame, hours: OperatingHours) -> pd.DataFrame:
 
 def day_rows(cfg: ServiceConfig, job: TwinJob, twin: Twin, day: dt.date,
              frame: pd.DataFrame) -> list[EstimateRow]:
-    """The rows of one day: one per (model, instant)."""
+    """The rows of one day: one per (model, instant); of a day not over when planned, only
+    the grid instants up to then (the daemon has not published the later ones either)."""
     rows: dict[tuple[str, dt.datetime], EstimateRow] = {}
-    for kind, e in day_estimates(twin, window_frame(frame, twin.hours),
-                                 grid_instants(cfg, day),
+    grid = grid_instants(cfg, day)
+    if day in job.unended and job.now is not None:
+        grid = [g for g in grid if g <= job.now]
+    for kind, e in day_estimates(twin, window_frame(frame, twin.hours), grid,
                                  cfg.per_reading_kinds(twin.artifact.primary)):
         rows[(kind, e.ts)] = EstimateRow.from_estimate(job.twin_id, kind, e, job.digest)
     return list(rows.values())
