@@ -374,3 +374,20 @@ def test_evaluate_on_a_file_without_valid_readings(tmp_path: Path, capsys) -> No
     assert line.endswith("no valid readings (every one of its 2 rows has a blank, NaN or "
                          "infinite value)")
     assert "file has:" not in line
+
+
+# ------------------------------------------------------------------ a reader that goes away
+
+
+def test_a_reader_that_closes_the_pipe_ends_the_command_quietly(tmp_path: Path) -> None:
+    """`pseudotwin … | head`: the pipe closes before the command has written; no traceback,
+    the shell's status for SIGPIPE."""
+    csv = tmp_path / "h.csv"
+    csv.write_text("sensor,ts,value\na,2012-03-14T10:00:00+00:00,20.5\n")
+    p = subprocess.Popen([*EXE, "import", str(csv), "--store", str(tmp_path / "h.db")],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert p.stdout is not None and p.stderr is not None
+    p.stdout.close()  # long before the interpreter has started and printed anything
+    stderr = p.stderr.read().decode()
+    assert p.wait(timeout=60) == 141, stderr
+    assert "Traceback" not in stderr and "BrokenPipe" not in stderr, stderr

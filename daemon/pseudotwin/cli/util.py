@@ -33,6 +33,8 @@ def run_reporting(prog: str, body: Callable[[], int]) -> int:
     except (UsageError, PseudotwinError) as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        raise  # the reader went away, not a failure: cli.main ends quietly
     except OSError as exc:
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"{prog}: error: {where}{exc.strerror or exc}", file=sys.stderr)
