@@ -391,3 +391,34 @@ def test_a_reader_that_closes_the_pipe_ends_the_command_quietly(tmp_path: Path) 
     stderr = p.stderr.read().decode()
     assert p.wait(timeout=60) == 141, stderr
     assert "Traceback" not in stderr and "BrokenPipe" not in stderr, stderr
+
+
+# ------------------------------------------------------------------ a store to read from
+
+
+def test_a_mistyped_store_to_read_from_is_an_error_not_a_new_database(
+    desk_artifact: Path, tmp_path: Path
+) -> None:
+    db = tmp_path / "histroy.db"  # the store is history.db
+    train = [*EXE, "train", "--store", str(db), "--references", REF, "--target", TARGET,
+             "--quantity", "temperature", "--train-start", "2012-03-14", "--timezone", TZ,
+             "--out", str(tmp_path / "a.json")]
+    cfg = write_config(tmp_path, 1883, desk_artifact, store=db.name)
+    backfill = [*EXE, "backfill", "--config", str(cfg), "--twin", "desk", "--from",
+                "2012-03-20", "--to", "2012-03-20"]
+    for command in (train, backfill):
+        p = subprocess.run(command, capture_output=True, text=True, timeout=120)
+        assert p.returncode != 0, command
+        assert "no such database file" in _one_line(p.stderr), command
+        assert not db.exists()
+
+
+def test_check_config_reports_a_store_in_a_folder_that_does_not_exist(
+    desk_artifact: Path, tmp_path: Path
+) -> None:
+    cfg = write_config(tmp_path, 1883, desk_artifact, store="nodir/history.db")
+    p = subprocess.run([*EXE, "check-config", str(cfg)], capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode != 0
+    assert "service.store" in p.stderr + p.stdout and "does not exist" in p.stderr + p.stdout
+    assert not (tmp_path / "nodir").exists()

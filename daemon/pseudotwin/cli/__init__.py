@@ -196,7 +196,7 @@ def _training_history(a: argparse.Namespace,
         url = load_config(a.config).store
         if url is None:
             raise ConfigError(f"{a.config}: no store configured in [service]")
-    with open_store(url) as store:
+    with open_store(url, existing=True) as store:
         return history_from_store(store, [*a.references, *a.covariates, a.target], hours,
                                   a.train_start,
                                   a.train_days)

@@ -77,7 +77,7 @@ def run(a: argparse.Namespace) -> int:
         if not twins:
             raise ConfigError("--twin: no twin id given")
     freeze_long_lived()
-    with open_store(cfg.store) as store:
+    with open_store(cfg.store, existing=True) as store:
         summary = backfill_twins(cfg, twins, a.start, a.end, store, jobs=a.jobs,
                                  progress=not a.quiet)
     print("\n".join(summary.lines()))

@@ -75,6 +75,11 @@ class StartupLoader(Loader):
             state_dir: Path = service["state_dir"]
             if (problem := state_dir_problem(state_dir)) is not None:
                 self.add("service.state_dir", problem)
+            store = service.get("store")
+            # A SQLite file's folder is never created (a mistyped path must not become a new
+            # empty database): missing, the recorder would only ever spool.
+            if store is not None and "://" not in store and not Path(store).parent.is_dir():
+                self.add("service.store", f"directory {Path(store).parent} does not exist")
         for loc, twin in twins:
             if twin.artifact.is_dir():
                 self.add(f"{loc}.artifact", f"{twin.artifact} is a directory, not an "

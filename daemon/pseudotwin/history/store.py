@@ -579,7 +579,7 @@ class SQLiteStore(Store):
         "finished_at = excluded.finished_at"
     )
 
-    def __init__(self, path: str, url: str | None = None) -> None:
+    def __init__(self, path: str, url: str | None = None, existing: bool = False) -> None:
         super().__init__(url or (path if path == ":memory:" else f"sqlite:///{path}"))
         self.path = path
         if path != ":memory:":
@@ -588,6 +588,9 @@ class SQLiteStore(Store):
             # loudly instead of creating a fresh, empty DB somewhere else.
             if not parent.is_dir():
                 raise StoreError(f"{self.url}: directory {parent} does not exist")
+            if existing and not Path(path).is_file():
+                raise StoreError(f"{self.url}: no such database file (nothing to read: "
+                                 "import or record readings into it first)")
         try:
             # isolation_level=None: no implicit transactions; writes use BEGIN IMMEDIATE
             # so a writer takes the lock up front and busy_timeout applies (a deferred
@@ -829,9 +832,11 @@ def _bulk_count(results: list[dict] | None, sent: int, table: str, url: str) -> 
 # ------------------------------------------------------------------------------ factory
 
 
-def open_store(url: str | os.PathLike[str]) -> Store:
+def open_store(url: str | os.PathLike[str], existing: bool = False) -> Store:
     """Open (creating tables on first use) the store at ``url``; see the module docstring.
 
+    existing: the caller only reads what is there (train, evaluate, backfill): a SQLite file
+    that does not exist is an error, not a new empty database (a mistyped path).
     Raises ConfigError for a malformed URL, StoreError when the database cannot be used.
     """
     text = os.fspath(url).strip()
@@ -851,11 +856,11 @@ def open_store(url: str | os.PathLike[str]) -> Store:
         if not rest.startswith("/"):
             raise ConfigError(f"{text!r}: expected sqlite:///relative.db or "
                               "sqlite:////absolute/path.db")
-        return SQLiteStore(rest[1:], url=text)
+        return SQLiteStore(rest[1:], url=text, existing=existing)
     if scheme:
         raise ConfigError(f"{text!r}: unsupported history store (use a SQLite file path, "
                           "sqlite:///path, postgresql://host/db or crate://host:4200)")
-    return SQLiteStore(text)
+    return SQLiteStore(text, existing=existing)
 
 
 def _with_port(host: str) -> str:
