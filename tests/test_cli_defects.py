@@ -154,3 +154,22 @@ def test_global_log_level_before_a_delegated_subcommand(tmp_path: Path, capsys) 
     assert main(["--log-level", "WARNING", "check-config", str(missing)]) == 2
     err = capsys.readouterr().err
     assert str(missing) in err and "unrecognized arguments" not in err
+
+
+def test_train_says_whether_its_training_days_are_enough(sml: Path, tmp_path: Path,
+                                                          capsys) -> None:
+    """The commissioning report's verdict on the training data, in train's own output."""
+    args = ("train", "--references", "dining/temp", "--target", "room/temp", "--quantity",
+            "temperature", "--train-start", "2012-03-14", "--timezone", "Europe/Madrid",
+            "--models", "ref,triv")
+    assert run(*args, "--history", str(sml), "--out", str(tmp_path / "full.json")) == 0
+    assert "training data: Enough: 5 training days" in capsys.readouterr().out
+    # 2012-03-18 with its morning only: still a training day, but a thin one
+    df = pd.read_csv(sml)
+    ts = pd.to_datetime(df["ts"], utc=True).dt.tz_convert("Europe/Madrid")
+    cut = (ts.dt.date == dt.date(2012, 3, 18)) & (ts.dt.hour >= 10)
+    thin = tmp_path / "thin.csv"
+    df[~cut.to_numpy()].to_csv(thin, index=False)
+    assert run(*args, "--history", str(thin), "--out", str(tmp_path / "thin.json")) == 0
+    out = capsys.readouterr().out
+    assert "training data: Usable, but thin" in out and "on 2012-03-18" in out

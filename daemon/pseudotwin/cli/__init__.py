@@ -228,6 +228,12 @@ def cmd_train(a: argparse.Namespace) -> int:
     path = art.save(a.out)
     days = ", ".join(art.training["days"])
     print(f"trained {', '.join(art.models)} on {days}; artifact written to {path}")
+    from pseudotwin.analysis.commissioning.coverage import data_found
+
+    # The commissioning report's verdict on the data, here too: a thin training day makes
+    # every score below rest on less than it seems to.
+    found = data_found(df, spec, start, [dt.date.fromisoformat(d) for d in art.training["days"]])
+    print(f"training data: {found.verdict()}")
     for kind, m in art.models.items():
         if summary := m.fit_summary():
             print(f"  {kind}: {summary}")
