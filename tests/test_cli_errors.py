@@ -137,6 +137,18 @@ def test_dropped_rows_are_counted_and_explained(tmp_path: Path, capsys, caplog) 
                         "1 exact duplicate(s))"]
 
 
+def test_a_sensor_and_time_repeated_with_another_value_is_reported(
+    tmp_path: Path, capsys, caplog
+) -> None:
+    path = _csv(tmp_path, "conflict.csv", "a,2012-03-14T10:00:00+00:00,20.5\n"
+                                          "a,2012-03-14T10:00:00+00:00,21.5\n")
+    assert run("import", str(path), "--store", str(tmp_path / "h.db")) == 0
+    assert "1 already stored" in capsys.readouterr().out
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert warnings == [f"{path}: 1 row(s) repeat a sensor and time with another value (the "
+                        "first is used: the store and the window keep it)"]
+
+
 def test_missing_sensors_of_a_file_without_readings_say_so() -> None:
     empty = pd.DataFrame({"sensor": pd.Series([], dtype=str), "ts": [], "value": []})
     with pytest.raises(DataError, match=r"sensor\(s\) a, b not found; it has no valid readings"):

@@ -94,16 +94,22 @@ class Dropped:
     rows: int
     not_finite: int
     duplicates: int
+    conflicts: int = 0  # kept, but a reading of the same sensor and time came first
 
     def line(self, where: str) -> str | None:
-        """One line saying how many rows were dropped and why; None when none were."""
+        """One line saying how many rows were dropped and why, and how many repeat a sensor
+        and time with another value; None when neither happened."""
         reasons = [f"{n} {why}" for n, why in ((self.not_finite, "with a blank, NaN or "
                                                                 "infinite value"),
                                                (self.duplicates, "exact duplicate(s)")) if n]
-        if not reasons:
-            return None
-        return (f"{where}: dropped {self.not_finite + self.duplicates} of {self.rows} rows "
-                f"({', '.join(reasons)})")
+        parts = []
+        if reasons:
+            parts.append(f"dropped {self.not_finite + self.duplicates} of {self.rows} rows "
+                         f"({', '.join(reasons)})")
+        if self.conflicts:
+            parts.append(f"{self.conflicts} row(s) repeat a sensor and time with another "
+                         "value (the first is used: the store and the window keep it)")
+        return f"{where}: {'; '.join(parts)}" if parts else None
 
 
 def normalize(df: pd.DataFrame, where: str = "history") -> pd.DataFrame:
@@ -134,7 +140,8 @@ def _normalize(df: pd.DataFrame, where: str) -> tuple[pd.DataFrame, Dropped]:
     out = out[np.isfinite(out["value"].values)]
     finite = len(out)
     out = out.drop_duplicates().sort_values(["ts", "sensor"], kind="stable").reset_index(drop=True)
-    return out, Dropped(len(df), len(df) - finite, finite - len(out))
+    conflicts = int(out.duplicated(["sensor", "ts"]).sum())
+    return out, Dropped(len(df), len(df) - finite, finite - len(out), conflicts)
 
 
 def read_history(path: str | Path) -> pd.DataFrame:
