@@ -434,3 +434,17 @@ def test_check_config_reports_a_store_in_a_folder_that_does_not_exist(
     assert p.returncode != 0
     assert "service.store" in p.stderr + p.stdout and "does not exist" in p.stderr + p.stdout
     assert not (tmp_path / "nodir").exists()
+
+
+def test_an_unreachable_crate_store_is_one_line(tmp_path: Path) -> None:
+    """The CrateDB client's HTTP pool warned once per retry before the store's own error."""
+    path = _csv(tmp_path, "one.csv", "a,2012-03-14T10:00:00+00:00,1\n")
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    p = subprocess.run([*EXE, "import", str(path), "--store", f"crate://127.0.0.1:{port}"],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2
+    assert "Retrying" not in p.stderr and "urllib3" not in p.stderr
+    assert "cannot connect to CrateDB" in _one_line(
+        "\n".join(x for x in p.stderr.splitlines() if " INFO " not in x))

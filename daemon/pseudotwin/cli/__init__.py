@@ -43,6 +43,10 @@ def setup_logging(level: str = "INFO") -> None:
     )
     for noisy in ("GP", "paramz", "matplotlib"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
+    if logging.getLogger().level > logging.DEBUG:
+        # The CrateDB client's HTTP pool warns at every retry; the store's own error (or
+        # the recorder's outage line) says it once.
+        logging.getLogger("urllib3").setLevel(logging.ERROR)
 
 
 def _csv(text: str) -> list[str]:
