@@ -125,14 +125,20 @@ def test_a_history_file_without_valid_readings_is_one_line(
     assert not (tmp_path / "h.db").exists() and not (tmp_path / "z.json").exists()
 
 
+def _import_warnings(path: Path, capsys, caplog) -> tuple[str, list[str]]:
+    """Import ``path`` into a new store beside it: (stdout, the warnings logged)."""
+    assert run("import", str(path), "--store", str(path.with_suffix(".db"))) == 0
+    return (capsys.readouterr().out,
+            [r.getMessage() for r in caplog.records if r.levelname == "WARNING"])
+
+
 def test_dropped_rows_are_counted_and_explained(tmp_path: Path, capsys, caplog) -> None:
     path = _csv(tmp_path, "some.csv", "a,2012-03-14T10:00:00+00:00,nan\n"
                                       "a,2012-03-14T10:01:00+00:00,1\n"
                                       "a,2012-03-14T10:01:00+00:00,1\n"
                                       "a,2012-03-14T10:02:00+00:00,-inf\n")
-    assert run("import", str(path), "--store", str(tmp_path / "h.db")) == 0
-    assert "1 readings of 1 sensor(s)" in capsys.readouterr().out
-    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    out, warnings = _import_warnings(path, capsys, caplog)
+    assert "1 readings of 1 sensor(s)" in out
     assert warnings == [f"{path}: dropped 3 of 4 rows (2 with a blank, NaN or infinite value, "
                         "1 exact duplicate(s))"]
 
@@ -142,9 +148,8 @@ def test_a_sensor_and_time_repeated_with_another_value_is_reported(
 ) -> None:
     path = _csv(tmp_path, "conflict.csv", "a,2012-03-14T10:00:00+00:00,20.5\n"
                                           "a,2012-03-14T10:00:00+00:00,21.5\n")
-    assert run("import", str(path), "--store", str(tmp_path / "h.db")) == 0
-    assert "1 already stored" in capsys.readouterr().out
-    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    out, warnings = _import_warnings(path, capsys, caplog)
+    assert "1 already stored" in out
     assert warnings == [f"{path}: 1 row(s) repeat a sensor and time with another value (the "
                         "first is used: the store and the window keep it)"]
 
@@ -275,47 +280,12 @@ def test_import_and_train_from_parquet(tmp_path: Path, capsys) -> None:
 # ------------------------------------------------------------------ 7. train --config
 
 
-CONFIG_HOURS = """
-[broker]
-host = "127.0.0.1"
-port = 1883
-
-[service]
-timezone = "Europe/Madrid"
-state_dir = "state"
-store = "h.db"
-day_start = "07:30"
-
-[[sensors]]
-id = "dining/temp"
-topic = "house/dining/temp"
-unit = "°C"
-min = -10
-max = 50
-
-[[sensors]]
-id = "room/temp"
-topic = "house/room/temp"
-unit = "°C"
-min = -10
-max = 50
-
-[[twins]]
-id = "desk"
-references = ["dining/temp"]
-target = "room/temp"
-quantity = "temperature"
-artifact = "desk.json"
-"""
-
-
 def test_train_with_config_takes_its_time_zone_and_hours(tmp_path: Path, capsys) -> None:
     df = load("sml2010")
     df = df[(df["ts"] >= HOURS.at(dt.date(2012, 3, 14), 0.0))
             & (df["ts"] < HOURS.at(dt.date(2012, 3, 19), 0.0))]
     write_history(df, tmp_path / "h.csv")
-    cfg = tmp_path / "c.toml"
-    cfg.write_text(CONFIG_HOURS, encoding="utf-8")
+    cfg = write_config(tmp_path, 1883, tmp_path / "desk.json", store="h.db", day_start="07:30")
     assert run("import", str(tmp_path / "h.csv"), "--store", str(tmp_path / "h.db")) == 0
     args = ("train", "--config", str(cfg), "--references", REF, "--target", TARGET,
             "--quantity", "temperature", "--models", "triv")

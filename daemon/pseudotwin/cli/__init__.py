@@ -288,11 +288,16 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     return 0
 
 
-def _positive_seconds(text: str) -> float:
+def _number(text: str, of: str = "") -> float:
+    """``text`` as a float, or argparse's error naming what was expected (``of``)."""
     try:
-        seconds = float(text)
+        return float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number{of}") from None
+
+
+def _positive_seconds(text: str) -> float:
+    seconds = _number(text, " of seconds")
     from pseudotwin.core.thinning import MIN_INTERVAL_SECONDS
 
     lo, hi = MIN_INTERVAL_SECONDS  # as a sensor's min_interval_seconds
@@ -302,30 +307,21 @@ def _positive_seconds(text: str) -> float:
 
 
 def _positive_minutes(text: str) -> float:
-    try:
-        minutes = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of minutes") from None
+    minutes = _number(text, " of minutes")
     if not minutes > 0 or minutes == float("inf"):
         raise argparse.ArgumentTypeError(f"{text} min is not a positive number of minutes")
     return minutes
 
 
 def _minutes_at_least_zero(text: str) -> float:
-    try:
-        minutes = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of minutes") from None
+    minutes = _number(text, " of minutes")
     if not 0 <= minutes < math.inf:
         raise argparse.ArgumentTypeError(f"{text} min: must be ≥ 0")
     return minutes
 
 
 def _speed(text: str) -> float:
-    try:
-        speed = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    speed = _number(text)
     if not 0 < speed < math.inf:
         raise argparse.ArgumentTypeError(f"{text}: the speed must be positive")
     return speed
