@@ -459,6 +459,22 @@ def reading_then_tick(svc: Service, port: int, client_id: str
     return viewer, pub, tick
 
 
+def retained(port: int, topic: str) -> dict:
+    """The retained message of ``topic``, as a new subscriber gets it."""
+    got: list[dict] = []
+    c = mqtt.Client(CallbackAPIVersion.VERSION2)
+    c.on_connect = lambda c, u, f, rc, p: c.subscribe(topic, 1)
+    c.on_message = lambda c, u, m: got.append(json.loads(m.payload)) if m.retain else None
+    c.connect("127.0.0.1", port)
+    c.loop_start()
+    try:
+        wait_for(lambda: got, what=f"the retained message of {topic}")
+    finally:
+        c.disconnect()
+        c.loop_stop()
+    return got[0]
+
+
 def test_a_late_reading_revises_the_newest_estimate_and_yesterday_is_rejected(
     service_factory, mosquitto, caplog
 ) -> None:
@@ -478,13 +494,24 @@ def test_a_late_reading_revises_the_newest_estimate_and_yesterday_is_rejected(
     assert second["refs"] == {REF: stamp(newest)}
     (rt,) = svc.twins.values()
     assert late in [p.ts for p in rt.twin.window if p.sensor == REF]
+    # A reading that arrives after a later grid estimate: its estimate goes out, unretained
+    tick = HOURS.at(DAY, 10.0)
+    svc.queue.put(("tick", tick))
+    wait_for(lambda: any(e["ts"] == stamp(tick) for e in viewer.on("/estimate")),
+             what="the grid estimate")
+    after_tick = HOURS.at(DAY, 9.97)
+    pub.publish("house/dining/temp", reading(after_tick, 17.2), qos=1).wait_for_publish(10)
+    wait_for(lambda: any(e["ts"] == stamp(after_tick) for e in viewer.on("/estimate")),
+             what="the estimate of the reading behind the tick")
+    assert retained(mosquitto.port, "pt/desk/estimate")["ts"] == stamp(tick)
     with caplog.at_level(logging.WARNING, logger="pseudotwin"):
         yesterday = HOURS.at(DAY - dt.timedelta(days=1), 10.0)
         pub.publish("house/dining/temp", reading(yesterday, 17.0), qos=1).wait_for_publish(10)
         wait_for(lambda: svc.rejections.counts[(REF, "too-old")] == 1,
                  what="yesterday's reading rejected")
     assert any("too-old" in r.getMessage() for r in caplog.records)
-    assert len(viewer.on("/estimate")) == 2  # handled before its rejection was counted
+    n = len(viewer.on("/estimate"))
+    assert n == 4, n  # nothing for yesterday's reading (handled before it was counted)
     assert yesterday not in [p.ts for p in rt.twin.window]
     pub.loop_stop()
     viewer.close()

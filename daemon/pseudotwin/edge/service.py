@@ -23,7 +23,7 @@ import queue
 import threading
 import time
 from collections import defaultdict, deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from operator import attrgetter
 from pathlib import Path
 from typing import Any
@@ -126,6 +126,10 @@ class TwinRuntime:
     # Time [unix s] of the last reading that moved the twin: the grid work goes to the
     # twins that heard from their sensors longest ago first (see Service._start_tick).
     last_input: float = 0.0
+    # Model → the latest instant it has published: an estimate of an earlier instant (a
+    # reading that arrived after a later grid estimate) goes out unretained, so the retained
+    # message, what a new subscriber gets, never goes back in time.
+    newest_published: dict[str, dt.datetime] = field(default_factory=dict)
 
 
 class Service:
@@ -630,7 +634,11 @@ class Service:
                 rt.monitor.record_estimate(e.std)
             else:
                 topic, qos = rt.baseline_topics[kind], MONITORING_QOS
-            self._publish(topic, estimate_payload(e, unit), qos=qos)
+            newest = rt.newest_published.get(kind)
+            retain = newest is None or e.ts >= newest
+            if retain:
+                rt.newest_published[kind] = e.ts
+            self._publish(topic, estimate_payload(e, unit), retain=retain, qos=qos)
             if kind == primary:
                 self.metrics.published(rt.cfg.id, e.quality, e.ts)
 
