@@ -161,7 +161,17 @@ def train_validated(
     check_plausible(points[np.isin(local_day, [np.datetime64(d.day) for d in days])], spec)
     ts = TrainingSet(spec, tuple(days))
     fitted: dict[str, TwinModel] = {}
-    opts = options or {}
+    opts = dict(options or {})
+    validated = validate and len(days) >= MIN_DAYS
+    # A setting a model leaves to validation (VARMA's order) is chosen before the model is
+    # fit, so the fit, its validation and the artifact all have the chosen value.
+    tuned: dict[str, validation.SettingChoice] = {}
+    for kind in models if validated else ():
+        if choice := validation.choose_setting(df, spec, days, kind, opts.get(kind), policy):
+            tuned[kind] = choice
+            opts[kind] = {**opts.get(kind, {}), **model_class(kind).tuned_with,
+                          choice.name: choice.chosen}
+            log.info("%s: %s (validation on the training days)", kind, choice.reason)
     for kind in models:
         if model_class(kind).stacked:
             continue  # made from the others after validation
@@ -170,7 +180,6 @@ def train_validated(
         log.info("trained %s in %.1f s", kind, time.perf_counter() - t0)
     if primary is not None and primary not in models:
         raise DataError(f"primary {primary!r} is not among the trained models")
-    validated = validate and len(days) >= MIN_DAYS
     if primary is not None and model_class(primary).stacked and not validated:
         raise DataError(f"primary {primary!r} is made from validation's held-out scores; "
                         f"it needs validation on at least {MIN_DAYS} training days")
@@ -181,6 +190,8 @@ def train_validated(
     if validated:
         v = validation.validate(df, spec, days, [*fitted, *stacked], opts, primary, policy)
         primary, calibration, checked = v.primary, v.calibration, v.to_dict()
+        if tuned:
+            checked["tuned"] = {k: c.to_dict() for k, c in tuned.items()}
         log.info("validated on the training days in %.1f s; primary %s", v.seconds, v.reason)
         if v.blend and "blend" in stacked:
             fitted["blend"] = BlendModel({k: fitted[k] for k in v.blend}, v.blend).fit(ts)

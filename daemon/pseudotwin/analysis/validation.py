@@ -129,7 +129,18 @@ def validation_table(v: Mapping[str, Any], unit: str) -> str:
         lines.append(f"  {kind:<12} {_num(s['nrmse_pct'], 2):>16} {_num(s['crps'], 3):>12} "
                      f"{_num(s['cover2_pct'], 1):>11}  {note}")
     lines.append(f"  primary {v.get('reason', '')}")
+    lines.extend(tuned_lines(v))
     return "\n".join(lines)
+
+
+def tuned_lines(v: Mapping[str, Any]) -> list[str]:
+    """One line per setting validation chose (an artifact's ``validation["tuned"]``)."""
+    out = []
+    for kind, t in v.get("tuned", {}).items():
+        tried = ", ".join(f"{t['setting']} = {k}: {_num(x, 2)} %"
+                          for k, x in t["nrmse_pct"].items())
+        out.append(f"  {kind} {t['reason']} (held-out daily NRMSE {tried})")
+    return out
 
 
 def _num(x: object, digits: int) -> str:
@@ -246,6 +257,92 @@ def validate(
     return Validation(scores, chosen, reason, calibration, float(np.sqrt(offset_var)),
                       time.perf_counter() - t0, _withheld(scores, chosen), held, blend_weights,
                       selection)
+
+
+@dataclass(frozen=True)
+class SettingChoice:
+    """A model setting chosen by validation (the model's ``tuned``): held-out mean daily
+    NRMSE [%] per value tried (NaN: could not be trained or scored), the value chosen, why."""
+
+    kind: str
+    name: str
+    scores: dict[int, float]
+    chosen: int
+    reason: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"setting": self.name, "chosen": self.chosen, "reason": self.reason,
+                "nrmse_pct": {str(k): v for k, v in self.scores.items()}}
+
+
+def choose_setting(
+    df: pd.DataFrame,
+    spec: TwinSpec,
+    days: Sequence[DayReadings],
+    kind: str,
+    options: Mapping[str, Any] | None = None,
+    thinning: Thinning | None = None,
+) -> SettingChoice | None:
+    """``kind``'s ``tuned`` setting from the training days: each value is scored like a
+    candidate (leave-one-day-out, the model refit without the held-out day and the day
+    replayed), and the smallest value whose held-out error is within noise of the lowest
+    wins (:func:`smallest_within_noise`). None when the model has no such setting, the user
+    set it (``options``), there are too few days, or no value could be scored."""
+    tuned = MODELS[kind].tuned
+    opts = dict(options or {})
+    if tuned is None or tuned[0] in opts or len(days) < MIN_DAYS:
+        return None
+    name, values = tuned
+    daily: dict[int, dict[dt.date, float]] = {}
+    with collapsed(_FOLD_LOGGERS, f"{kind}'s {len(values)} × {len(days)} folds for {name}"):
+        for value in values:
+            failures: dict[str, str] = {}
+            per_day = {}
+            for d in days:
+                f = _fold(df, spec, [x for x in days if x.day != d.day], d.day, [kind],
+                          {kind: {**opts, name: value}}, failures, thinning)
+                rows = f[f["model"] == kind] if not f.empty else f
+                if not rows.empty:
+                    per_day[d.day] = metrics.nrmse_pct(rows["truth"], rows["value"])
+            if not failures and len(per_day) == len(days):
+                daily[value] = per_day
+    scores = {v: float(np.mean(list(daily[v].values()))) if v in daily else float("nan")
+              for v in values}
+    if not daily:
+        log.warning("validation: %s's %s could not be scored for any of %s; the default stays",
+                    kind, name, ", ".join(map(str, values)))
+        return None
+    order = sorted(daily)
+    table = np.array([[daily[v][d.day] for d in days] for v in order])  # [values, days]
+    i, best, why = smallest_within_noise(table)
+    chosen = order[i]
+    if i == best:
+        reason = f"{name} = {chosen}: lowest held-out daily NRMSE ({scores[chosen]:.2f} %)"
+    else:
+        reason = (f"{name} = {chosen}: held-out daily NRMSE {scores[chosen]:.2f} % against "
+                  f"{scores[order[best]]:.2f} % for {name} = {order[best]}, {why}, and smaller")
+    return SettingChoice(kind, name, scores, chosen, reason)
+
+
+def smallest_within_noise(table: np.ndarray) -> tuple[int, int, str]:
+    """Of settings ordered from the simplest, each with its held-out daily NRMSE on the same
+    days (``table`` [settings, days]), the simplest one whose mean is within noise of the
+    lowest mean: within ``TIE_RELATIVE`` of it, or within one standard error of the paired
+    day-by-day difference (the one-standard-error rule of cross-validation). Five days cannot
+    tell a difference smaller than that from chance, and the simpler setting has fewer
+    coefficients to get wrong. Returns (chosen, lowest, why it counts as a tie)."""
+    means = table.mean(axis=1)
+    best = int(np.argmin(means))
+    for i in range(best):
+        diff = table[i] - table[best]
+        margin = means[best] * TIE_RELATIVE
+        se = float(np.std(diff, ddof=1) / np.sqrt(len(diff))) if len(diff) > 1 else 0.0
+        if diff.mean() <= margin:
+            return i, best, f"within {TIE_RELATIVE:.0%}"
+        if diff.mean() <= se:
+            return i, best, (f"within one standard error ({se:.2f} points) of the day-by-day "
+                             "difference")
+    return best, best, ""
 
 
 def _score(kind: str, rows: pd.DataFrame, spec: TwinSpec, offset_var: float,

@@ -91,6 +91,12 @@ class TwinModel(ABC):
     # Settings of the refits on held-out training days (validation): cheaper where a full
     # fit per fold would cost minutes.
     validation_options: ClassVar[dict[str, Any]] = {}
+    # A setting that validation chooses when the user leaves it unset: (name, values). Each
+    # value is scored leave-one-day-out on the training days and the smallest value within
+    # the tie margin of the lowest held-out error wins (analysis/validation.choose_setting).
+    tuned: ClassVar[tuple[str, tuple[int, ...]] | None] = None
+    # Settings that go with a tuned value, so the model fit is the form validation scored.
+    tuned_with: ClassVar[dict[str, Any]] = {}
     # Made from other fitted models and validation's held-out scores (models/blend.py) rather
     # than fit on days: training builds it after validation, validation's folds skip it.
     stacked: ClassVar[bool] = False

@@ -229,6 +229,10 @@ def validation_md(res: RunResult) -> str:
         parts.append(f"Covariates ({', '.join(f'`{c}`' for c in art.covariates)}), each "
                      f"added to TRIV alone and scored leave-one-day-out inside every fold's "
                      f"training days: {cov.fit_summary()}.")
+    for kind, t in v.get("tuned", {}).items():  # a setting validation chose (VARMA's order)
+        tried = ", ".join(f"{t['setting']} = {k}: {fmt(x)} %" for k, x in t["nrmse_pct"].items())
+        parts.append(f"`{kind}` {t['reason']} (held-out daily NRMSE by {t['setting']}: "
+                     f"{tried}).")
     if blend := v.get("blend"):
         parts.append("Blend (members and weights from all held-out training days): "
                      + ", ".join(f"`{k}` {w:.2f}" for k, w in blend.items())
