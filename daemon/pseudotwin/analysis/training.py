@@ -168,9 +168,10 @@ def train_validated(
     tuned: dict[str, validation.SettingChoice] = {}
     for kind in models if validated else ():
         if choice := validation.choose_setting(df, spec, days, kind, opts.get(kind), policy):
+            setting = model_class(kind).tuned
+            assert setting is not None  # choose_setting answers for tuned models only
             tuned[kind] = choice
-            opts[kind] = {**opts.get(kind, {}), **model_class(kind).tuned_with,
-                          choice.name: choice.chosen}
+            opts[kind] = {**opts.get(kind, {}), **setting.fit_with, choice.name: choice.chosen}
             log.info("%s: %s (validation on the training days)", kind, choice.reason)
     for kind in models:
         if model_class(kind).stacked:

@@ -139,7 +139,8 @@ def tuned_lines(v: Mapping[str, Any]) -> list[str]:
     for kind, t in v.get("tuned", {}).items():
         tried = ", ".join(f"{t['setting']} = {k}: {_num(x, 2)} %"
                           for k, x in t["nrmse_pct"].items())
-        out.append(f"  {kind} {t['reason']} (held-out daily NRMSE {tried})")
+        out.append(f"  {kind} {t['reason']} (held-out daily NRMSE {tried}; of the choice, "
+                   f"nested: {_num(t.get('nested_nrmse_pct'), 2)} %)")
     return out
 
 
@@ -261,18 +262,27 @@ def validate(
 
 @dataclass(frozen=True)
 class SettingChoice:
-    """A model setting chosen by validation (the model's ``tuned``): held-out mean daily
-    NRMSE [%] per value tried (NaN: could not be trained or scored), the value chosen, why."""
+    """A model setting chosen by validation (the model's ``tuned``).
+
+    scores: value → mean held-out daily NRMSE [%] over the days every scored value has (NaN:
+    its fit failed on a fold, or it left days unscored); chosen: the value fitted; reason:
+    why; nested: the held-out NRMSE [%] of the choice itself, each day scored by the value
+    the other days choose (reported: far above the chosen value's own score, it says the
+    choice rests on which days were held out; the live-baseline limit stays on the chosen
+    value's own score, as for every baseline, a little optimistic as the lowest of a few).
+    """
 
     kind: str
     name: str
     scores: dict[int, float]
     chosen: int
     reason: str
+    nested: float = float("nan")
 
     def to_dict(self) -> dict[str, Any]:
         return {"setting": self.name, "chosen": self.chosen, "reason": self.reason,
-                "nrmse_pct": {str(k): v for k, v in self.scores.items()}}
+                "nrmse_pct": {str(k): v for k, v in self.scores.items()},
+                "nested_nrmse_pct": self.nested}
 
 
 def choose_setting(
@@ -285,64 +295,94 @@ def choose_setting(
 ) -> SettingChoice | None:
     """``kind``'s ``tuned`` setting from the training days: each value is scored like a
     candidate (leave-one-day-out, the model refit without the held-out day and the day
-    replayed), and the smallest value whose held-out error is within noise of the lowest
-    wins (:func:`smallest_within_noise`). None when the model has no such setting, the user
-    set it (``options``), there are too few days, or no value could be scored."""
+    replayed; TRIV alongside, as the twin's fallback is in validation), and
+    :func:`pick_setting` chooses. None when the model has no such setting, the user set it
+    or a form of their own (``options``), or there are too few days to hold out."""
     tuned = MODELS[kind].tuned
     opts = dict(options or {})
-    if tuned is None or tuned[0] in opts or len(days) < MIN_DAYS:
+    if tuned is None or tuned.pinned(opts) or len(days) < MIN_DAYS:
         return None
-    name, values = tuned
+    kinds = [kind, *(["triv"] if kind != "triv" else [])]
     daily: dict[int, dict[dt.date, float]] = {}
-    with collapsed(_FOLD_LOGGERS, f"{kind}'s {len(values)} × {len(days)} folds for {name}"):
-        for value in values:
+    with collapsed(_FOLD_LOGGERS, f"{kind}'s {len(tuned.values)} × {len(days)} folds for "
+                                  f"{tuned.name}"):
+        for value in tuned.values:
             failures: dict[str, str] = {}
+            settings = {kind: {**opts, tuned.name: value}}
             per_day = {}
             for d in days:
-                f = _fold(df, spec, [x for x in days if x.day != d.day], d.day, [kind],
-                          {kind: {**opts, name: value}}, failures, thinning)
+                f = _fold(df, spec, [x for x in days if x.day != d.day], d.day, kinds,
+                          settings, failures, thinning)
                 rows = f[f["model"] == kind] if not f.empty else f
                 if not rows.empty:
                     per_day[d.day] = metrics.nrmse_pct(rows["truth"], rows["value"])
-            if not failures and len(per_day) == len(days):
-                daily[value] = per_day
-    scores = {v: float(np.mean(list(daily[v].values()))) if v in daily else float("nan")
-              for v in values}
-    if not daily:
-        log.warning("validation: %s's %s could not be scored for any of %s; the default stays",
-                    kind, name, ", ".join(map(str, values)))
-        return None
-    order = sorted(daily)
-    table = np.array([[daily[v][d.day] for d in days] for v in order])  # [values, days]
+            if kind in failures:  # a fit that fails on some days is no choice
+                log.warning("validation: %s with %s = %s %s", kind, tuned.name, value,
+                            failures[kind])
+                continue
+            daily[value] = per_day
+    return pick_setting(kind, tuned.name, tuned.values, daily)
+
+
+def pick_setting(kind: str, name: str, values: Sequence[int],
+                 daily: Mapping[int, Mapping[dt.date, float]]) -> SettingChoice:
+    """The choice among ``values`` (from the simplest) from their held-out daily NRMSE
+    (value → day → NRMSE [%]; a value missing could not be fit): compared on the days every
+    value has a finite score, the simplest within noise of the lowest
+    (:func:`smallest_within_noise`). With fewer than ``MIN_DAYS`` such days, the last value
+    (the model's default) is kept and the reason says why."""
+    finite = {v: {d: x for d, x in daily[v].items() if np.isfinite(x)}
+              for v in values if v in daily}
+    common = sorted(set.intersection(*(set(f) for f in finite.values()))) if finite else []
+    scored = [v for v in values if v in finite]
+    scores = {v: float(np.mean([finite[v][d] for d in common])) if v in finite and common
+              else float("nan") for v in values}
+    if len(common) < MIN_DAYS:
+        return SettingChoice(kind, name, scores, values[-1],
+                             f"{name} = {values[-1]}, the default: the training days held out "
+                             f"scored every {name} on {len(common)} day(s) only")
+    table = np.array([[finite[v][d] for d in common] for v in scored])  # [values, days]
     i, best, why = smallest_within_noise(table)
-    chosen = order[i]
+    chosen = scored[i]
     if i == best:
         reason = f"{name} = {chosen}: lowest held-out daily NRMSE ({scores[chosen]:.2f} %)"
     else:
         reason = (f"{name} = {chosen}: held-out daily NRMSE {scores[chosen]:.2f} % against "
-                  f"{scores[order[best]]:.2f} % for {name} = {order[best]}, {why}, and smaller")
-    return SettingChoice(kind, name, scores, chosen, reason)
+                  f"{scores[scored[best]]:.2f} % for {name} = {scored[best]}, {why}, and "
+                  "smaller")
+    nested = [table[smallest_within_noise(np.delete(table, j, axis=1))[0], j]
+              for j in range(len(common))]
+    return SettingChoice(kind, name, scores, chosen, reason, float(np.mean(nested)))
 
 
 def smallest_within_noise(table: np.ndarray) -> tuple[int, int, str]:
     """Of settings ordered from the simplest, each with its held-out daily NRMSE on the same
-    days (``table`` [settings, days]), the simplest one whose mean is within noise of the
-    lowest mean: within ``TIE_RELATIVE`` of it, or within one standard error of the paired
-    day-by-day difference (the one-standard-error rule of cross-validation). Five days cannot
-    tell a difference smaller than that from chance, and the simpler setting has fewer
+    days (``table`` [settings, days], finite), the simplest one whose mean is within noise of
+    the lowest mean: within ``TIE_RELATIVE`` of it, or within one standard error of the
+    paired day-by-day difference (the one-standard-error rule of cross-validation). Five days
+    cannot tell a smaller difference from chance, and the simpler setting has fewer
     coefficients to get wrong. Returns (chosen, lowest, why it counts as a tie)."""
     means = table.mean(axis=1)
     best = int(np.argmin(means))
     for i in range(best):
         diff = table[i] - table[best]
-        margin = means[best] * TIE_RELATIVE
         se = float(np.std(diff, ddof=1) / np.sqrt(len(diff))) if len(diff) > 1 else 0.0
-        if diff.mean() <= margin:
+        if diff.mean() <= means[best] * TIE_RELATIVE:
             return i, best, f"within {TIE_RELATIVE:.0%}"
         if diff.mean() <= se:
             return i, best, (f"within one standard error ({se:.2f} points) of the day-by-day "
                              "difference")
     return best, best, ""
+
+
+def baseline_problem(nrmse_pct: float, scores: Mapping[str, CandidateScore]) -> str:
+    """Why a monitoring baseline with held-out daily NRMSE ``nrmse_pct`` [%] must not be
+    published live: more than ``BASELINE_LIMIT`` × TRIV's; empty when it may be."""
+    triv = scores.get("triv")
+    if triv is None or triv.error or not nrmse_pct > BASELINE_LIMIT * triv.nrmse_pct:
+        return ""
+    return (f"held-out daily NRMSE {nrmse_pct:.2f} % on the training days is more "
+            f"than {BASELINE_LIMIT:g}× TRIV's {triv.nrmse_pct:.2f} %")
 
 
 def _score(kind: str, rows: pd.DataFrame, spec: TwinSpec, offset_var: float,
@@ -448,16 +488,14 @@ def _nested_sigma(offset_var_without: Mapping[dt.date, float], rows: pd.DataFram
 
 def _withheld(scores: Mapping[str, CandidateScore], primary: str) -> dict[str, str]:
     """Baselines not to publish live, with the reason (the primary is always published)."""
-    triv = scores.get("triv")
     out = {}
     for kind, s in scores.items():
         if kind == primary or s.candidate:
             continue
         if s.error:
             out[kind] = f"could not be validated on the training days ({s.error})"
-        elif triv is not None and not triv.error and s.nrmse_pct > BASELINE_LIMIT * triv.nrmse_pct:
-            out[kind] = (f"held-out daily NRMSE {s.nrmse_pct:.2f} % on the training days is more "
-                         f"than {BASELINE_LIMIT:g}× TRIV's {triv.nrmse_pct:.2f} %")
+        elif why := baseline_problem(s.nrmse_pct, scores):
+            out[kind] = why
     return out
 
 

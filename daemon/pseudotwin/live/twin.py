@@ -65,7 +65,8 @@ class TwinEstimate:
     """One model's estimate of the target at ``ts``.
 
     value, std: [°C] or [ppm]; model: what produced the value (``triv`` on fallback,
-    ``var-fallback`` when VARMAX did not converge; the failover's kind when a reference is
+    ``var`` for VARMA as VAR(p), ``var-fallback`` when VARMAX did not converge; the
+    failover's kind when a reference is
     lost); refs: sensor → time of its last reading; why: what is unlike training when the
     quality is ``uncertain``; lost: the silent references a failover answered without;
     unlike: the keys of every envelope criterion that fired on an ``ok``/``uncertain``

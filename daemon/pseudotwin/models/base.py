@@ -9,7 +9,7 @@ from __future__ import annotations
 import datetime as dt
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar, Self
 
 from pseudotwin.core.series import DayReadings
@@ -71,6 +71,24 @@ class DayEstimator(ABC):
         return None
 
 
+@dataclass(frozen=True)
+class Tuned:
+    """A model setting chosen on the training days (analysis/validation.choose_setting): each
+    of ``values`` (from the simplest) is scored leave-one-day-out and the smallest one within
+    noise of the lowest held-out error wins. ``fit_with``: settings that go with a tuned value,
+    so that the model fit is the form validation scored; ``pinned_by``: settings by which a
+    user asks for a form of their own (with the setting itself, they skip the search)."""
+
+    name: str
+    values: tuple[int, ...]
+    fit_with: Mapping[str, Any] = field(default_factory=dict)
+    pinned_by: tuple[str, ...] = ()
+
+    def pinned(self, options: Mapping[str, Any]) -> bool:
+        """Whether the user's ``options`` set the setting, or a form of their own."""
+        return any(k in options for k in (self.name, *self.pinned_by, *self.fit_with))
+
+
 class TwinModel(ABC):
     """A trainable, serializable estimator of the target from the references.
 
@@ -91,12 +109,8 @@ class TwinModel(ABC):
     # Settings of the refits on held-out training days (validation): cheaper where a full
     # fit per fold would cost minutes.
     validation_options: ClassVar[dict[str, Any]] = {}
-    # A setting that validation chooses when the user leaves it unset: (name, values). Each
-    # value is scored leave-one-day-out on the training days and the smallest value within
-    # the tie margin of the lowest held-out error wins (analysis/validation.choose_setting).
-    tuned: ClassVar[tuple[str, tuple[int, ...]] | None] = None
-    # Settings that go with a tuned value, so the model fit is the form validation scored.
-    tuned_with: ClassVar[dict[str, Any]] = {}
+    # A setting validation chooses when the user leaves it unset (Tuned; None: none).
+    tuned: ClassVar[Tuned | None] = None
     # Made from other fitted models and validation's held-out scores (models/blend.py) rather
     # than fit on days: training builds it after validation, validation's folds skip it.
     stacked: ClassVar[bool] = False

@@ -10,7 +10,8 @@ slot count since 00:00 of the first training day.
 
 If VARMAX fails, does not converge within ``maxiter`` iterations / ``max_seconds``, or ends
 non-stationary, the model falls back to VAR(p) estimated by ordinary least squares on the
-same grid and says so in ``model_name_`` ("var-fallback"), ``converged_`` and
+same grid and says so in ``model_name_`` ("var-fallback"; "var" when VAR(p) was asked for,
+``force_fallback``, as training does with the order validation chose), ``converged_`` and
 ``fit_message_``. The fallback is stored as VARMAX(p, 0) parameters, so the live path is
 the same state-space filter either way.
 
@@ -62,7 +63,7 @@ import numpy as np
 
 from pseudotwin.core.spec import TwinSpec
 from pseudotwin.errors import ArtifactError, DataError, NumericalError
-from pseudotwin.models.base import DayEstimator, Estimate, TrainingSet, TwinModel
+from pseudotwin.models.base import DayEstimator, Estimate, TrainingSet, Tuned, TwinModel
 from pseudotwin.models.triv import fill_slots, list_mean
 
 log = logging.getLogger(__name__)
@@ -371,7 +372,7 @@ class VarmaModel(TwinModel):
     Fitted: references_, target_, sensors_ (k = len), hours_; profile_ [S, k] average daily
     profile per window slot [unit of the quantity]; train_day0_ first training day (τ = 0 at
     its 00:00); order_ (p, q) actually used; params_ [n_params] constrained VARMAX
-    parameters named by param_names_; model_name_ "varma" | "var-fallback"; converged_;
+    parameters named by param_names_; model_name_ "varma" | "var" | "var-fallback"; converged_;
     fit_message_; fit_warnings_ (what statsmodels warned, silenced on the console);
     fit_seconds_ {"varmax": s, "fallback": s}; ssm_ the state-space matrices;
     shift_profile_ [S, M] the references' unshifted profiles δ is measured against and
@@ -387,12 +388,12 @@ class VarmaModel(TwinModel):
     # The order, unless the user sets p: five days hold ~220 slots, and a VAR(4) of three
     # series has 36 lag coefficients, which the training days may not support (Room
     # Climate B: VAR(4) 1.59× TRIV on the test days, VAR(1) 1.06×, tied on the training days).
-    tuned = ("p", (1, 2, 4))
-    # Validation scores the OLS VAR(p) form (above): with a tuned order, that is what is fit.
-    # VARMAX by maximum likelihood is another model, which validation never saw (Room
-    # Climate B, order 1: VARMAX(1, 1) 1.99× TRIV on the test days, VARMAX(1, 0) 1.83×, the
-    # OLS VAR(1) 1.06×). A user who sets p gets VARMAX(p, q) with its fallback, as before.
-    tuned_with = {"force_fallback": True}
+    # Validation scores the OLS VAR(p) form (above), so that is what is fit: VARMAX by
+    # maximum likelihood is another model, which validation never saw (Room Climate B, order
+    # 1: VARMAX(1, 1) 1.99× TRIV on the test days, VARMAX(1, 0) 1.83×, the OLS VAR(1) 1.06×).
+    # A user who sets p, or a VARMAX setting, gets VARMAX(p, q) with its fallback, as before.
+    tuned = Tuned("p", (1, 2, 4), fit_with={"force_fallback": True},
+                  pinned_by=("q", "maxiter", "max_seconds"))
 
     def __init__(
         self,
@@ -482,7 +483,7 @@ class VarmaModel(TwinModel):
         ols_params, ols_radius = _ols_var(grid, self.p, self.trend)
         self.fit_seconds_["fallback"] = time.perf_counter() - t0
 
-        params, message = (None, "VARMAX skipped (force_fallback)")
+        params, message = None, ""
         if not self.force_fallback:
             t0 = time.perf_counter()
             params, message = self._fit_varmax(grid)
@@ -496,13 +497,17 @@ class VarmaModel(TwinModel):
         else:
             self.order_ = (self.p, 0)
             self.params_ = ols_params
-            self.model_name_ = "var-fallback"
+            # Asked for (validation's form, or the user's): "var"; VARMAX failed: the fallback.
+            self.model_name_ = "var" if self.force_fallback else "var-fallback"
             self.converged_ = False
             shrink = (
                 f"; OLS spectral radius {ols_radius:.4f} shrunk to {FALLBACK_RADIUS}"
                 if ols_radius >= FALLBACK_RADIUS else ""
             )
-            self.fit_message_ = f"{message}; fell back to VAR({self.p}) by least squares{shrink}"
+            self.fit_message_ = (
+                f"VAR({self.p}) by least squares, no VARMAX fit (force_fallback){shrink}"
+                if self.force_fallback else
+                f"{message}; fell back to VAR({self.p}) by least squares{shrink}")
             # Asked-for VARMA that ends as VAR is worth a warning; a forced VAR is not.
             (log.info if self.force_fallback else log.warning)("VARMA: %s", self.fit_message_)
         self.param_names_ = list(

@@ -150,7 +150,7 @@ def gp_md(res: RunResult) -> str:
     if v is not None:
         vm = art.models.get("varma")
         name = getattr(vm, "model_name_", "varma")
-        fell = (f" (here the fallback `{name}`: {getattr(vm, 'fit_message_', '')})"
+        fell = (f" (here `{name}`: {getattr(vm, 'fit_message_', '')})"
                 if name != "varma" else "")
         parts.append(f"Against VARMA{fell}: {v.sentence('VARMA')}.")
     lcm = duel(daily, "corrgp-lcm")

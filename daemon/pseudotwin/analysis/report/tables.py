@@ -232,7 +232,10 @@ def validation_md(res: RunResult) -> str:
     for kind, t in v.get("tuned", {}).items():  # a setting validation chose (VARMA's order)
         tried = ", ".join(f"{t['setting']} = {k}: {fmt(x)} %" for k, x in t["nrmse_pct"].items())
         parts.append(f"`{kind}` {t['reason']} (held-out daily NRMSE by {t['setting']}: "
-                     f"{tried}).")
+                     f"{tried}; of the choice itself, each held-out day scored by the "
+                     f"{t['setting']} the other days choose: "
+                     f"{fmt(t.get('nested_nrmse_pct'))} %: how much the choice itself "
+                     "depends on which days are held out).")
     if blend := v.get("blend"):
         parts.append("Blend (members and weights from all held-out training days): "
                      + ", ".join(f"`{k}` {w:.2f}" for k, w in blend.items())

@@ -200,7 +200,9 @@ def verdict_md(res: RunResult) -> str:
         mode = getattr(vm, "target_mode", None)
         fell = (f", re-levelled each day (target_mode `{mode}`)" if mode == "shifted" else
                 f", target_mode `{mode}`" if mode else "")
-        fell += f", here the fallback `{name}`" if name != "varma" else ""
+        fell += (f", here the fallback `{name}`" if name == "var-fallback" else
+                 f", here `{name}` ({getattr(vm, 'fit_message_', '')})" if name != "varma"
+                 else "")
         live = (f"not published live ({f.varma_withheld})" if f.varma_withheld
                 else "published live")
         within = (f"within the {BASELINE_LIMIT:g}× limit" if f.varma_ratio <= BASELINE_LIMIT
