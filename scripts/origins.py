@@ -14,12 +14,15 @@ a σ of the better size). Then per run and over all origins: how
 often each figure of docs/results.md holds.
 
 The default models are the quick candidates (no GP: a Corr-GP fit per origin and fold would
-take hours); ``--models`` adds others. Prints the origins' table, the summary table and, last,
-one JSON line.
+take hours) and VARMA, whose order validation chooses (``--varma-p`` pins it instead);
+``--models`` adds others. The summary also gives an *oracle*: per run, the one factor on σ
+that the test days themselves call right (pooled ±2σ coverage over all the run's origins
+95.45 %), and the share of origins that would land in 90–98 % with it: what σ of the right
+size for a data set as a whole still cannot do, because test spans differ from each other.
+Prints the origins' table, the summary table and, last, one JSON line.
 
     .venv/bin/python scripts/origins.py [--runs NAME,...] [--step-days 4] [--test-days 14]
-                                        [--models ref,triv,triv-shrunk,triv-week,triv-cov,blend]
-                                        [--jobs 2]
+                                        [--models MODEL,...] [--jobs 2] [--varma-p P]
 """
 
 from __future__ import annotations
@@ -37,14 +40,14 @@ import numpy as np
 import pandas as pd
 
 import pseudotwin  # noqa: F401  (one BLAS thread, before numpy does any work)
-from pseudotwin.analysis.evaluate import evaluate
+from pseudotwin.analysis.evaluate import ESTIMATE, evaluate
 from pseudotwin.analysis.report.runs import RUNS, RunResult, RunSpec
 from pseudotwin.analysis.report.verdicts import COVER2_RANGE, figures
 from pseudotwin.errors import DataError
 from pseudotwin.history.convert import load
 from tables import print_markdown, print_table
 
-QUICK = ("ref", "triv", "triv-shrunk", "triv-week", "triv-cov", "blend")
+QUICK = ("ref", "triv", "triv-shrunk", "triv-week", "triv-cov", "blend", "varma")
 TRIV_RATIO = 0.9  # Trust II: the estimate ≤ this × TRIV's mean daily NRMSE
 SLACK_DAYS = 16  # calendar days beyond the test days: training skips days a sensor missed
 
@@ -60,15 +63,18 @@ def _origins(spec: RunSpec, history: pd.DataFrame, step: int, test_days: int) ->
     return out
 
 
-def one(name: str, start: dt.date, test_days: int, models: tuple[str, ...]) -> dict[str, Any]:
-    """Train from ``start``, score the next ``test_days`` days after the training days."""
+def one(name: str, start: dt.date, test_days: int, models: tuple[str, ...],
+        varma: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Train from ``start``, score the next ``test_days`` days after the training days.
+    varma: VARMA's settings (None: its defaults, the order chosen by validation)."""
     t0 = time.perf_counter()
     spec = next(r for r in RUNS if r.name == name)
     history = load(spec.dataset)
     row: dict[str, Any] = {"run": name, "start": str(start)}
     cut = pd.Timestamp(start + dt.timedelta(days=5 + test_days + SLACK_DAYS), tz="UTC")
     try:
-        ev = evaluate(history[history["ts"] < cut], spec.twin, start, spec.train_days, models)
+        ev = evaluate(history[history["ts"] < cut], spec.twin, start, spec.train_days, models,
+                      options={"varma": varma} if varma else None)
     except DataError as exc:
         return {**row, "error": str(exc)}
     end = dt.date.fromisoformat(ev.artifact.training["end"])
@@ -80,6 +86,8 @@ def one(name: str, start: dt.date, test_days: int, models: tuple[str, ...]) -> d
     f = figures(RunResult(spec, ev, ev.daily[ev.daily["day"].isin(scored)], ev.monthly,
                           ev.estimates[in_span], ev.seconds))
     v = ev.artifact.validation
+    est = ev.estimates[in_span & (ev.estimates["model"] == ESTIMATE)]
+    est = est[np.isfinite(est["std"]) & (est["std"] > 0)]
     return {
         **row, "training_days": ",".join(ev.artifact.training["days"]),
         "training_end": str(end), "test_days": f.days, "primary": f.primary,
@@ -89,8 +97,34 @@ def one(name: str, start: dt.date, test_days: int, models: tuple[str, ...]) -> d
         "nested_cover2_pct": float(v["scores"][f.primary]["cover2_pct"]),
         "std_over_rmse": f.mean_std / f.rmse if f.rmse > 0 else math.nan,
         "crps_over_rmse": f.crps / f.rmse if f.rmse > 0 else math.nan,
+        # VARMA (when trained): its ratio to TRIV on the test span, whether it is published
+        # live, the figure's verdict, and the order it ran with
+        "varma_ratio": f.varma_ratio, "varma_live": "no" if f.varma_withheld else "yes",
+        "varma_met": f.varma_met if math.isfinite(f.varma) else math.nan,
+        "varma_p": getattr(ev.artifact.models.get("varma"), "p", math.nan),
         "seconds": round(time.perf_counter() - t0, 1),
+        # for the oracle (dropped before printing): |error| and σ of each scored estimate
+        "_abs_err": np.abs(est["value"] - est["truth"]).to_numpy(), "_std": est["std"].to_numpy(),
     }
+
+
+def oracle(rows: list[dict[str, Any]]) -> dict[str, float]:
+    """The coverage an oracle would reach, for one run's origins: σ × m with m set from the
+    test days themselves, the one factor that makes the ±2σ coverage pooled over all the run's
+    origins 95.45 %. Returns m and the share of origins whose own coverage with it lies in
+    90–98 %: what no σ of the right size for the data set *as a whole* can do better than,
+    because the test spans themselves differ."""
+    ok = [r for r in rows if "_abs_err" in r and len(r["_abs_err"])]
+    if not ok:
+        return {"oracle_factor": math.nan, "oracle_in_pct": math.nan}
+    err = np.concatenate([r["_abs_err"] for r in ok])
+    std = np.concatenate([r["_std"] for r in ok])
+    # the pooled coverage of σ × m rises with m: the m at which it crosses 95.45 %
+    m = float(np.quantile(err / (2.0 * std), 0.9545))
+    lo, hi = COVER2_RANGE
+    inside = [lo <= 100.0 * float(np.mean(r["_abs_err"] <= 2.0 * m * r["_std"])) <= hi
+              for r in ok]
+    return {"oracle_factor": m, "oracle_in_pct": 100.0 * float(np.mean(inside))}
 
 
 def summary(rows: list[dict[str, Any]], name: str) -> dict[str, Any]:
@@ -114,7 +148,20 @@ def summary(rows: list[dict[str, Any]], name: str) -> dict[str, Any]:
                               if ok else math.nan),
         "mean_crps_over_rmse": (float(np.nanmean([r["crps_over_rmse"] for r in ok]))
                                 if ok else math.nan),
+        **_varma_summary(ok),
     }
+
+
+def _varma_summary(ok: list[dict[str, Any]]) -> dict[str, Any]:
+    """VARMA's figure over the origins that trained it: the share that meets it (≤ 1.5×
+    TRIV, or not published live), the share published live, the median ratio to TRIV."""
+    rows = [r for r in ok if isinstance(r.get("varma_met"), bool)]
+    if not rows:
+        return {"varma_met_pct": math.nan, "varma_live_pct": math.nan,
+                "median_varma_ratio": math.nan}
+    return {"varma_met_pct": 100.0 * float(np.mean([r["varma_met"] for r in rows])),
+            "varma_live_pct": 100.0 * float(np.mean([r["varma_live"] == "yes" for r in rows])),
+            "median_varma_ratio": float(np.median([r["varma_ratio"] for r in rows]))}
 
 
 def main() -> None:
@@ -127,13 +174,17 @@ def main() -> None:
                     help="calendar days scored after the training days (%(default)s)")
     ap.add_argument("--models", default=",".join(QUICK), help="models trained (%(default)s)")
     ap.add_argument("--jobs", type=int, default=2, help="processes (%(default)s)")
+    ap.add_argument("--varma-p", type=int, default=None,
+                    help="pin VARMA's order to VAR(p) by least squares (default: the order "
+                         "validation chooses; 4 reproduces the fixed order before it did)")
     a = ap.parse_args()
     logging.basicConfig(level=logging.ERROR, stream=sys.stderr)
     wanted = [r.strip() for r in a.runs.split(",") if r.strip()]
     if unknown := sorted(set(wanted) - set(names)):
         ap.error(f"unknown run(s) {', '.join(unknown)}; runs: {', '.join(names)}")
-    if a.step_days < 1 or a.test_days < 1 or a.jobs < 1:
-        ap.error("--step-days, --test-days and --jobs must be at least 1")
+    if a.step_days < 1 or a.test_days < 1 or a.jobs < 1 or (a.varma_p or 1) < 1:
+        ap.error("--step-days, --test-days, --jobs and --varma-p must be at least 1")
+    varma = {"p": a.varma_p, "force_fallback": True} if a.varma_p else None
     models = tuple(m.strip() for m in a.models.split(",") if m.strip())
     if "triv" not in models:
         ap.error("--models must include triv (the floor and the ratios are against it)")
@@ -142,7 +193,7 @@ def main() -> None:
             for start in _origins(spec, load(spec.dataset), a.step_days, a.test_days)]
     with ProcessPoolExecutor(a.jobs) as pool:
         rows = list(pool.map(one, *zip(*work, strict=True), [a.test_days] * len(work),
-                             [models] * len(work)))
+                             [models] * len(work), [varma] * len(work)))
     # a start day without data trains on the same days as the next one: count those once
     unique: dict[tuple[str, str], dict[str, Any]] = {}
     for r in rows:
@@ -155,13 +206,24 @@ def main() -> None:
             ("est / triv", "ratio_triv", 3), ("±2σ cover %", "cover2_pct", 1),
             ("nested cover % (training)", "nested_cover2_pct", 1),
             ("mean σ / RMSE", "std_over_rmse", 2), ("CRPS / RMSE", "crps_over_rmse", 3)]
+    if "varma" in models:
+        cols += [("varma p", "varma_p", 0), ("varma / triv", "varma_ratio", 2),
+                 ("varma live", "varma_live", None)]
     print_markdown([r for r in rows if "error" not in r], cols)
     for r in rows:
         if "error" in r:
             print(f"{r['run']} from {r['start']}: failed: {r['error']}")
     print()
-    summaries = [summary([r for r in rows if r["run"] == n], n) for n in wanted]
-    summaries.append(summary(rows, "all"))
+    summaries = [{**summary(sel, n), **oracle(sel)}
+                 for n in wanted for sel in [[r for r in rows if r["run"] == n]]]
+    every = summary(rows, "all")
+    # over all runs: each run's origins judged with its own oracle factor
+    judged = [(s["origins"], s["oracle_in_pct"]) for s in summaries
+              if math.isfinite(s["oracle_in_pct"])]
+    summaries.append({**every, "oracle_factor": math.nan, "oracle_in_pct": (
+        sum(n * x for n, x in judged) / sum(n for n, _ in judged) if judged else math.nan)})
+    for r in rows:
+        r.pop("_abs_err", None), r.pop("_std", None)
     print(f"{len(rows)} origins, {len(models)} models ({', '.join(models)}), test span "
           f"{a.test_days} days, {time.perf_counter() - t0:.0f} s")
     print_table("origins", summaries, [
@@ -172,7 +234,11 @@ def main() -> None:
         ("cover 90–98 %", "cover_in_pct", 0), ("cover < 90 %", "cover_low_pct", 0),
         ("cover > 98 %", "cover_high_pct", 0), ("median ±2σ cover %", "median_cover2_pct", 1),
         ("median nested cover %", "median_nested_pct", 1),
-        ("mean CRPS / RMSE", "mean_crps_over_rmse", 3)])
+        ("mean CRPS / RMSE", "mean_crps_over_rmse", 3),
+        ("oracle σ factor", "oracle_factor", 2), ("oracle cover 90–98 %", "oracle_in_pct", 0),
+        *([("varma ≤ 1.5 × triv or not live %", "varma_met_pct", 0),
+           ("varma live %", "varma_live_pct", 0),
+           ("median varma / triv", "median_varma_ratio", 2)] if "varma" in models else [])])
 
 
 if __name__ == "__main__":
