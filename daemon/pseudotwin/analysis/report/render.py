@@ -140,10 +140,11 @@ HOW_TO_READ = f"""\
   by the candidate the other days choose);
   `varma` = VAR(p) by least squares
   with trend `n` (no constant, no drift) on the 15-min grid, every series re-levelled each
-  day by the references' init-phase shift; the order p ∈ {1, 2, 4} is chosen on the training
+  day by the references' init-phase shift; the order p (1, 2 or 4) is chosen on the training
   days like a candidate: the smallest whose held-out NRMSE is within 3 % or within one
   standard error of the day-by-day difference of the lowest (each run's validation section
-  gives the scores). A user who sets p gets VARMAX(p, q) with VAR(p) as its fallback.
+  gives the scores). A p set through the Python API fits VARMAX(p, q) instead, with VAR(p)
+  as its fallback.
   `ref:<sensor> (raw)` is the raw reference value held at the reading's time, without σ,
   scored as if it were an estimate: its NRMSE is the error of "just use the reference", and
   its **daily Pearson r** with the target is the evidence of how much that reference can tell
