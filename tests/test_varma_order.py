@@ -76,7 +76,7 @@ def test_with_too_few_common_days_the_default_stays_and_says_why() -> None:
     c = pick_setting("varma", "p", (1, 2, 4),
                      {1: {x: 1.0 for x in d[:2]}, 4: {x: 2.0 for x in d[2:]}})
     assert c.chosen == 4 and "default" in c.reason and np.isnan(c.nested)
-    assert f"{0} day(s)" in c.reason and MIN_DAYS == 3
+    assert "0 day(s)" in c.reason and MIN_DAYS == 3
     assert pick_setting("varma", "p", (1, 2, 4), {}).chosen == 4
 
 

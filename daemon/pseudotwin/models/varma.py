@@ -390,7 +390,8 @@ class VarmaModel(TwinModel):
     # Climate B: VAR(4) 1.59× TRIV on the test days, VAR(1) 1.06×, tied on the training days).
     # Validation scores the OLS VAR(p) form (above), so that is what is fit: VARMAX by
     # maximum likelihood is another model, which validation never saw (Room Climate B, order
-    # 1: VARMAX(1, 1) 1.99× TRIV on the test days, VARMAX(1, 0) 1.83×, the OLS VAR(1) 1.06×).
+    # 1, measured once with evaluate(..., options={"varma": {"p": 1, "q": 1}}) and q 0: VARMAX
+    # 1.99× and 1.83× TRIV on the test days, the OLS VAR(1) 1.06×).
     # A user who sets p, or a VARMAX setting, gets VARMAX(p, q) with its fallback, as before.
     tuned = Tuned("p", (1, 2, 4), fit_with={"force_fallback": True},
                   pinned_by=("q", "maxiter", "max_seconds"))

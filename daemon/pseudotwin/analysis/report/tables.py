@@ -13,6 +13,7 @@ from pseudotwin.analysis.criteria import MIN_DAYS, MIN_RATIO, MIN_ROWS
 from pseudotwin.analysis.evaluate import ESTIMATE, REF_PREFIX
 from pseudotwin.analysis.report.runs import BASE, GP, MODEL_ORDER, RunResult
 from pseudotwin.analysis.selfaware import selfaware
+from pseudotwin.analysis.validation import tuned_scores
 from pseudotwin.live import metrics
 
 
@@ -230,9 +231,8 @@ def validation_md(res: RunResult) -> str:
                      f"added to TRIV alone and scored leave-one-day-out inside every fold's "
                      f"training days: {cov.fit_summary()}.")
     for kind, t in v.get("tuned", {}).items():  # a setting validation chose (VARMA's order)
-        tried = ", ".join(f"{t['setting']} = {k}: {fmt(x)} %" for k, x in t["nrmse_pct"].items())
         parts.append(f"`{kind}` {t['reason']} (held-out daily NRMSE by {t['setting']}: "
-                     f"{tried}; of the choice itself, each held-out day scored by the "
+                     f"{tuned_scores(t)}; of the choice itself, each held-out day scored by the "
                      f"{t['setting']} the other days choose: "
                      f"{fmt(t.get('nested_nrmse_pct'))} %: how much the choice itself "
                      "depends on which days are held out).")
