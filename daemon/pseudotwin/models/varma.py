@@ -372,8 +372,9 @@ class VarmaModel(TwinModel):
     Fitted: references_, target_, sensors_ (k = len), hours_; profile_ [S, k] average daily
     profile per window slot [unit of the quantity]; train_day0_ first training day (τ = 0 at
     its 00:00); order_ (p, q) actually used; params_ [n_params] constrained VARMAX
-    parameters named by param_names_; model_name_ "varma" | "var" | "var-fallback"; converged_;
-    fit_message_; fit_warnings_ (what statsmodels warned, silenced on the console);
+    parameters named by param_names_; model_name_ "varma" | "var" | "var-fallback";
+    converged_ (False only for "var-fallback": the VARMAX asked for failed); fit_message_;
+    fit_warnings_ (what statsmodels warned, silenced on the console);
     fit_seconds_ {"varmax": s, "fallback": s}; ssm_ the state-space matrices;
     shift_profile_ [S, M] the references' unshifted profiles δ is measured against and
     train_shifts_ [D] the training days' δ (both None unless target_mode is "shifted").
@@ -500,7 +501,8 @@ class VarmaModel(TwinModel):
             self.params_ = ols_params
             # Asked for (validation's form, or the user's): "var"; VARMAX failed: the fallback.
             self.model_name_ = "var" if self.force_fallback else "var-fallback"
-            self.converged_ = False
+            # A VAR(p) asked for is a closed-form fit: nothing failed to converge.
+            self.converged_ = self.force_fallback
             shrink = (
                 f"; OLS spectral radius {ols_radius:.4f} shrunk to {FALLBACK_RADIUS}"
                 if ols_radius >= FALLBACK_RADIUS else ""
