@@ -65,12 +65,21 @@ def _origins(spec: RunSpec, history: pd.DataFrame, step: int, test_days: int) ->
 
 def one(name: str, start: dt.date, test_days: int, models: tuple[str, ...],
         varma: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Train from ``start``, score the next ``test_days`` days after the training days.
-    varma: VARMA's settings (None: its defaults, the order chosen by validation)."""
+    """Train the report's run ``name`` from ``start``, score the next ``test_days`` days after
+    the training days. varma: VARMA's settings (None: its defaults, the order validation
+    chooses)."""
+    return score_span(next(r for r in RUNS if r.name == name), start, test_days, models, varma)
+
+
+def score_span(spec: RunSpec, start: dt.date, test_days: int, models: tuple[str, ...],
+               varma: dict[str, Any] | None = None,
+               history: pd.DataFrame | None = None) -> dict[str, Any]:
+    """``spec``'s twin trained from ``start`` and scored on the ``test_days`` calendar days
+    after its training days, measured by the report's own figures (one row). history: the
+    canonical readings (default: ``spec``'s whole dataset)."""
     t0 = time.perf_counter()
-    spec = next(r for r in RUNS if r.name == name)
-    history = load(spec.dataset)
-    row: dict[str, Any] = {"run": name, "start": str(start)}
+    history = load(spec.dataset) if history is None else history
+    row: dict[str, Any] = {"run": spec.name, "start": str(start)}
     cut = pd.Timestamp(start + dt.timedelta(days=5 + test_days + SLACK_DAYS), tz="UTC")
     try:
         ev = evaluate(history[history["ts"] < cut], spec.twin, start, spec.train_days, models,
@@ -103,9 +112,17 @@ def one(name: str, start: dt.date, test_days: int, models: tuple[str, ...],
         "varma_met": f.varma_met if math.isfinite(f.varma) else math.nan,
         "varma_p": getattr(ev.artifact.models.get("varma"), "p", math.nan),
         "seconds": round(time.perf_counter() - t0, 1),
-        # for the oracle (dropped before printing): |error| and σ of each scored estimate
+        # for the oracle (dropped before printing): |error| and σ of each scored estimate,
+        # and its day's age: calendar days after the last training day
         "_abs_err": np.abs(est["value"] - est["truth"]).to_numpy(), "_std": est["std"].to_numpy(),
+        "_age": _age(spec, est["ts"], end),
     }
+
+
+def _age(spec: RunSpec, ts: pd.Series, end: dt.date) -> np.ndarray:
+    """Calendar days [n] from the last training day ``end`` to each instant's local day."""
+    days, _ = spec.twin.hours.day_and_hours(ts)
+    return (days - np.datetime64(end, "D")).astype(int)
 
 
 def oracle(rows: list[dict[str, Any]]) -> dict[str, float]:
@@ -223,7 +240,8 @@ def main() -> None:
     summaries.append({**every, "oracle_factor": math.nan, "oracle_in_pct": (
         sum(n * x for n, x in judged) / sum(n for n, _ in judged) if judged else math.nan)})
     for r in rows:
-        r.pop("_abs_err", None), r.pop("_std", None)
+        for k in ("_abs_err", "_std", "_age"):
+            r.pop(k, None)
     print(f"{len(rows)} origins, {len(models)} models ({', '.join(models)}), test span "
           f"{a.test_days} days, {time.perf_counter() - t0:.0f} s")
     print_table("origins", summaries, [
