@@ -208,6 +208,20 @@ def test_thin_and_missing_days_are_called_out() -> None:
     assert too_few.level is Level.MISSING and too_few.verdict().startswith("Not enough")
 
 
+def test_training_days_close_together_are_called_one_stretch_of_weather() -> None:
+    df = sml()
+    spec = TwinSpec((REF,), TARGET, Quantity.TEMPERATURE, HOURS)
+    together = data_found(df, spec, TRAINING_DAYS[0], TRAINING_DAYS)
+    assert together.span_days == 5 and together.level is Level.GOOD
+    assert together.verdict().startswith("Enough")
+    assert "within 5 calendar days" in together.verdict() and "weeks apart" in together.verdict()
+    # the same number of days, a week apart: nothing to add
+    apart = [dt.date(2012, 3, 14) + dt.timedelta(days=7 * i) for i in range(5)]
+    spread = data_found(df, spec, apart[0], apart)
+    assert spread.span_days == 29 and spread.span_advice() == ""
+    assert "calendar days" not in spread.verdict()
+
+
 def test_train_help_explains_the_report(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
         main(["train", "--help"])

@@ -22,6 +22,10 @@ from pseudotwin.analysis.validation import MIN_DAYS
 from pseudotwin.core.spec import TwinSpec
 
 GOOD_COVERAGE = 0.75  # share of operating-hours slots with a reading for a "good" sensor-day
+# Training days within fewer calendar days than this see one stretch of weather: held out in
+# turn, each is estimated from its neighbours, and validation cannot see the offset wander
+# over weeks (docs/pairs.txt measures what that does to σ and to the choice of the primary).
+ONE_STRETCH_DAYS = 14
 
 
 class Level(Enum):
@@ -85,8 +89,13 @@ class DataFound:
             return Level.MISSING
         return Level.GOOD if all(r.level is Level.GOOD for r in used) else Level.THIN
 
+    @property
+    def span_days(self) -> int:
+        """Calendar days from the first training day to the last, both counted."""
+        return (max(self.training_days) - min(self.training_days)).days + 1
+
     def verdict(self) -> str:
-        """One or two sentences a commissioning engineer can act on."""
+        """A few sentences a commissioning engineer can act on."""
         n = len(self.training_days)
         if self.level is Level.MISSING:
             return (f"Not enough: {n} training day(s); at least {MIN_DAYS} are needed to hold "
@@ -94,13 +103,28 @@ class DataFound:
                     "place longer.")
         thin = [r for r in self.rows if r.day in self.training_days and r.level is not Level.GOOD]
         if not thin:
-            return (f"Enough: {n} training days, and on each every sensor has readings in at "
+            said = (f"Enough: {n} training days, and on each every sensor has readings in at "
                     f"least {GOOD_COVERAGE:.0%} of the operating-hours slots.")
-        worst = min(thin, key=lambda r: r.coverage)
-        return (f"Usable, but thin: {len(thin)} sensor-day(s) of the {n} training days cover "
-                f"less than {GOOD_COVERAGE:.0%} of the operating hours (worst: {worst.sensor} "
-                f"on {worst.day}, {worst.coverage:.0%}). The scores below rest on less data "
-                "than they seem to; more days with the desk sensor would make them firmer.")
+        else:
+            worst = min(thin, key=lambda r: r.coverage)
+            said = (f"Usable, but thin: {len(thin)} sensor-day(s) of the {n} training days "
+                    f"cover less than {GOOD_COVERAGE:.0%} of the operating hours (worst: "
+                    f"{worst.sensor} on {worst.day}, {worst.coverage:.0%}). The scores below "
+                    "rest on less data than they seem to; more days with the desk sensor "
+                    "would make them firmer.")
+        return f"{said} {self.span_advice()}".strip()
+
+    def span_advice(self) -> str:
+        """What training days close together cannot show; empty when they are spread."""
+        if len(self.training_days) < 2 or self.span_days >= ONE_STRETCH_DAYS:
+            return ""
+        return (f"The training days lie within {self.span_days} calendar days, one stretch of "
+                "weather: σ is measured on days alike, and the offset between the rooms "
+                "wanders more over the weeks after, so expect σ to be too narrow later (on the "
+                "other room pairs of docs/pairs.txt, five days in a row left ±2σ covering a "
+                "median 83–90 % of the months after, five days six days apart 96–99 %). If "
+                "the desk sensor can come back, train on its days weeks apart (train takes the "
+                "first --train-days days on which every sensor reports).")
 
 
 def data_found(df: pd.DataFrame, spec: TwinSpec, first: dt.date,
