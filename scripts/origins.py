@@ -80,7 +80,8 @@ def score_span(spec: RunSpec, start: dt.date, test_days: int, models: tuple[str,
     t0 = time.perf_counter()
     history = load(spec.dataset) if history is None else history
     row: dict[str, Any] = {"run": spec.name, "start": str(start)}
-    cut = pd.Timestamp(start + dt.timedelta(days=5 + test_days + SLACK_DAYS), tz="UTC")
+    cut = pd.Timestamp(start + dt.timedelta(days=spec.train_days + test_days + SLACK_DAYS),
+                       tz="UTC")
     try:
         ev = evaluate(history[history["ts"] < cut], spec.twin, start, spec.train_days, models,
                       options={"varma": varma} if varma else None)
