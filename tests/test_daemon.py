@@ -125,6 +125,7 @@ def test_live_estimates_equal_evaluate(service_factory, mosquitto, desk_artifact
     # the monitor scored the live desk sensor, and nothing went to the init phase
     mon = viewer.on("/monitor")
     assert mon and mon[-1]["target"]["n"] > 40
+    assert mon[-1]["target"]["mean_std"] > 0 and 0 <= mon[-1]["target"]["cover2_pct"] <= 100
     assert all(e["quality"] != "init" for e in viewer.on("/estimate"))
     viewer.close()
 

@@ -620,7 +620,7 @@ class Service:
         est = rt.twin.estimate(r.ts, kinds=(primary,)).get(primary)
         if est is not None and est.finite:
             rt.monitor.roll(self.hours.day_of(r.ts))
-            rt.monitor.record_truth(r.value, est.value)
+            rt.monitor.record_truth(r.value, est.value, est.std)
 
     def _publish_estimates(self, rt: TwinRuntime, ests: dict[str, TwinEstimate]) -> None:
         primary = rt.twin.artifact.primary

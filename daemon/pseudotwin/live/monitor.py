@@ -30,7 +30,8 @@ class TwinMonitor:
         self.hours = hours
         self.day: dt.date | None = None
         self.stds: list[float] = []  # σ of every published primary estimate today
-        self.pairs: list[tuple[float, float]] = []  # (truth, estimate) of the target today
+        # (truth, estimate, σ) of the live target and the published primary at its time, today
+        self.pairs: list[tuple[float, float, float]] = []
 
     def roll(self, day: dt.date) -> None:
         """Start the bookkeeping of ``day`` if it is not today's already."""
@@ -41,9 +42,9 @@ class TwinMonitor:
         """A published primary estimate's σ (call :meth:`roll` for its day first)."""
         self.stds.append(std)
 
-    def record_truth(self, truth: float, estimate: float) -> None:
-        """A live target reading and the primary estimate at its time."""
-        self.pairs.append((truth, estimate))
+    def record_truth(self, truth: float, estimate: float, std: float) -> None:
+        """A live target reading, and the primary estimate and its σ at its time."""
+        self.pairs.append((truth, estimate, std))
 
     def snapshot(self, now: dt.datetime,
                  rejected: Mapping[tuple[str, str], int] | None = None) -> dict[str, Any]:
@@ -70,13 +71,15 @@ class TwinMonitor:
         }
         out.update(tw.numerics())
         if self.pairs:
-            truth = np.array([p[0] for p in self.pairs])
-            est = np.array([p[1] for p in self.pairs])
+            truth, est, std = np.array(self.pairs).T
+            s = metrics.score(truth, est, std)
+            # σ is a promise (DESIGN.md §6): a desk sensor put back for a day checks it too,
+            # the same figures as evaluate's daily.csv
             out["target"] = {
-                "n": len(truth),
-                "nrmse_pct": metrics.nrmse_pct(truth, est),
-                "dmax_pct": metrics.dmax_pct(truth, est),
-                "pearson_r": _or_none(metrics.pearson_r(truth, est)),
+                "n": s.n, "nrmse_pct": s.nrmse_pct, "dmax_pct": s.dmax_pct,
+                "pearson_r": _or_none(s.pearson_r), "rmse": s.rmse,
+                "mean_std": _or_none(s.mean_std), "cover1_pct": _or_none(s.cover1_pct),
+                "cover2_pct": _or_none(s.cover2_pct), "crps": _or_none(s.crps),
             }
         return out
 
