@@ -57,7 +57,7 @@ def _origins(spec: RunSpec, history: pd.DataFrame, step: int, test_days: int) ->
     days, _ = spec.twin.hours.day_and_hours(history.loc[history["sensor"] == spec.target, "ts"])
     have = sorted(set(pd.to_datetime(days).date))
     out, start = [], have[0]
-    while start + dt.timedelta(days=5 + test_days // 2) <= have[-1]:
+    while start + dt.timedelta(days=spec.train_days + test_days // 2) <= have[-1]:
         out.append(start)
         start += dt.timedelta(days=step)
     return out
@@ -72,11 +72,12 @@ def one(name: str, start: dt.date, test_days: int, models: tuple[str, ...],
 
 
 def score_span(spec: RunSpec, start: dt.date, test_days: int, models: tuple[str, ...],
-               varma: dict[str, Any] | None = None,
-               history: pd.DataFrame | None = None) -> dict[str, Any]:
+               varma: dict[str, Any] | None = None, history: pd.DataFrame | None = None,
+               score_from: dt.date | None = None) -> dict[str, Any]:
     """``spec``'s twin trained from ``start`` and scored on the ``test_days`` calendar days
     after its training days, measured by the report's own figures (one row). history: the
-    canonical readings (default: ``spec``'s whole dataset)."""
+    canonical readings (default: ``spec``'s whole dataset); score_from: score no day before
+    it (twins trained differently, scored on the same days)."""
     t0 = time.perf_counter()
     history = load(spec.dataset) if history is None else history
     row: dict[str, Any] = {"run": spec.name, "start": str(start)}
@@ -89,7 +90,8 @@ def score_span(spec: RunSpec, start: dt.date, test_days: int, models: tuple[str,
         return {**row, "error": str(exc)}
     end = dt.date.fromisoformat(ev.artifact.training["end"])
     scored = [d for d in ev.daily["day"].unique()
-              if (dt.date.fromisoformat(d) - end).days <= test_days]
+              if (dt.date.fromisoformat(d) - end).days <= test_days
+              and (score_from is None or dt.date.fromisoformat(d) >= score_from)]
     days, _ = spec.twin.hours.day_and_hours(ev.estimates["ts"])
     in_span = pd.to_datetime(days).strftime("%Y-%m-%d").isin(scored)
     # the report's own figures (floor, coverage, their thresholds) over the scored span

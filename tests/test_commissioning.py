@@ -214,12 +214,18 @@ def test_training_days_close_together_are_called_one_stretch_of_weather() -> Non
     together = data_found(df, spec, TRAINING_DAYS[0], TRAINING_DAYS)
     assert together.span_days == 5 and together.level is Level.GOOD
     assert together.verdict().startswith("Enough")
-    assert "within 5 calendar days" in together.verdict() and "weeks apart" in together.verdict()
+    assert "within 5 calendar days" in together.verdict() and "further apart" in together.verdict()
     # the same number of days, a week apart: nothing to add
     apart = [dt.date(2012, 3, 14) + dt.timedelta(days=7 * i) for i in range(5)]
     spread = data_found(df, spec, apart[0], apart)
     assert spread.span_days == 29 and spread.span_advice() == ""
     assert "calendar days" not in spread.verdict()
+    # the edge: 14 calendar days are still one stretch, 15 are not
+    for last, advised in ((13, True), (14, False)):
+        days = [*TRAINING_DAYS[:4], TRAINING_DAYS[0] + dt.timedelta(days=last)]
+        found = data_found(df, spec, days[0], days)
+        assert found.span_days == last + 1
+        assert (found.span_advice() != "") is advised
 
 
 def test_train_help_explains_the_report(capsys: pytest.CaptureFixture[str]) -> None:

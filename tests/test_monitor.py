@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,7 +18,7 @@ from pseudotwin.live.monitor import TwinMonitor
 from pseudotwin.live.twin import Twin
 
 
-def test_a_live_desk_sensor_checks_sigma_too(desk_artifact) -> None:
+def test_a_live_desk_sensor_checks_sigma_too(desk_artifact: Path) -> None:
     mon = TwinMonitor("desk", Twin(Artifact.load(desk_artifact)), "0" * 64, HOURS, {REF})
     now = HOURS.at(DAY, 12.0)
     mon.roll(DAY)
@@ -37,6 +38,18 @@ def test_a_live_desk_sensor_checks_sigma_too(desk_artifact) -> None:
     crps = float(np.mean(metrics.gaussian_crps(truth, est, std)))
     assert target["crps"] == pytest.approx(crps, abs=1e-6)
     assert target["nrmse_pct"] == pytest.approx(metrics.nrmse_pct(truth, est), abs=1e-6)
+    assert target["rmse"] == pytest.approx(metrics.rmse(truth, est), abs=1e-6)
     # the next day starts afresh
     mon.roll(DAY + dt.timedelta(days=1))
     assert "target" not in mon.snapshot(now + dt.timedelta(days=1))
+
+
+def test_estimates_without_sigma_leave_the_sigma_figures_null(desk_artifact: Path) -> None:
+    mon = TwinMonitor("desk", Twin(Artifact.load(desk_artifact)), "0" * 64, HOURS, {REF})
+    mon.roll(DAY)
+    for y, m in ((21.0, 21.5), (22.0, 21.0)):
+        mon.record_truth(y, m, float("nan"))
+    target = json.loads(monitor_payload(mon.snapshot(HOURS.at(DAY, 12.0))))["target"]
+    assert target["n"] == 2 and target["rmse"] == pytest.approx(np.sqrt((0.25 + 1.0) / 2))
+    # no σ, nothing to check: not a coverage of 0 %, not the absolute error as a CRPS
+    assert {target[k] for k in ("mean_std", "cover1_pct", "cover2_pct", "crps")} == {None}

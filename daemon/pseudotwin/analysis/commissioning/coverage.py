@@ -22,9 +22,9 @@ from pseudotwin.analysis.validation import MIN_DAYS
 from pseudotwin.core.spec import TwinSpec
 
 GOOD_COVERAGE = 0.75  # share of operating-hours slots with a reading for a "good" sensor-day
-# Training days within fewer calendar days than this see one stretch of weather: held out in
-# turn, each is estimated from its neighbours, and validation cannot see the offset wander
-# over weeks (docs/pairs.txt measures what that does to σ and to the choice of the primary).
+# Training days within this many calendar days see one stretch of weather: held out in turn,
+# each is estimated from its neighbours, and validation cannot see the offset between the
+# rooms wander over weeks (docs/pairs.txt measures what that does to σ).
 ONE_STRETCH_DAYS = 14
 
 
@@ -116,15 +116,15 @@ class DataFound:
 
     def span_advice(self) -> str:
         """What training days close together cannot show; empty when they are spread."""
-        if len(self.training_days) < 2 or self.span_days >= ONE_STRETCH_DAYS:
+        if len(self.training_days) < 2 or self.span_days > ONE_STRETCH_DAYS:
             return ""
         return (f"The training days lie within {self.span_days} calendar days, one stretch of "
                 "weather: σ is measured on days alike, and the offset between the rooms "
-                "wanders more over the weeks after, so expect σ to be too narrow later (on the "
-                "other room pairs of docs/pairs.txt, five days in a row left ±2σ covering a "
-                "median 83–90 % of the months after, five days six days apart 96–99 %). If "
-                "the desk sensor can come back, train on its days weeks apart (train takes the "
-                "first --train-days days on which every sensor reports).")
+                "wanders more over the following weeks, so σ is likely too narrow months later "
+                "(docs/pairs.txt). Check it when the desk sensor is back for a day (the "
+                "monitor's target figures), and if it can stay longer or come back, more days "
+                "further apart let validation see more of that (train takes the first "
+                "--train-days days on which every sensor reports).")
 
 
 def data_found(df: pd.DataFrame, spec: TwinSpec, first: dt.date,
