@@ -140,10 +140,10 @@ def main() -> None:
     print()
     total = {**summary(rows, "all pairs"), **oracle(rows)}
     ok = [r for r in rows if "error" not in r]
-    for key in ("cover2_early_pct", "cover2_late_pct"):
-        total[f"median_{key}"] = float(np.nanmedian([r[key] for r in ok])) if ok else math.nan
-    total["median_std_over_rmse"] = (float(np.nanmedian([r["std_over_rmse"] for r in ok]))
-                                     if ok else math.nan)
+    for key in ("cover2_early_pct", "cover2_late_pct", "std_over_rmse"):
+        found = [r[key] for r in ok if math.isfinite(r[key])]
+        # --score-from past the early days leaves none of them
+        total[f"median_{key}"] = float(np.median(found)) if found else math.nan
     print(f"{len(rows)} pairs from {a.start}, {a.train_days} training days "
           f"({'consecutive' if a.every == 1 else f'every {a.every} days'}), "
           f"{'every later day' if a.score_from is None else f'days from {a.score_from} on'} "

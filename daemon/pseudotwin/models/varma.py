@@ -11,7 +11,8 @@ slot count since 00:00 of the first training day.
 If VARMAX fails, does not converge within ``maxiter`` iterations / ``max_seconds``, or ends
 non-stationary, the model falls back to VAR(p) estimated by ordinary least squares on the
 same grid and says so in ``model_name_`` ("var-fallback"; "var" when VAR(p) was asked for,
-``force_fallback``, as training does with the order validation chose), ``converged_`` and
+``force_fallback``, as training does with the order validation chose), ``converged_`` (False
+for "var-fallback" only; artifacts saved before this rule say False for "var" too) and
 ``fit_message_``. The fallback is stored as VARMAX(p, 0) parameters, so the live path is
 the same state-space filter either way.
 
