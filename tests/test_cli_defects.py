@@ -173,3 +173,24 @@ def test_train_says_whether_its_training_days_are_enough(sml: Path, tmp_path: Pa
     assert run(*args, "--history", str(thin), "--out", str(tmp_path / "thin.json")) == 0
     out = capsys.readouterr().out
     assert "training data: Usable, but thin" in out and "on 2012-03-18" in out
+
+
+def test_varma_p_pins_the_order_and_skips_its_choice(sml: Path, tmp_path: Path,
+                                                     capsys) -> None:
+    from pseudotwin.live.artifact import Artifact
+    from pseudotwin.models.varma import VarmaModel
+
+    args = ("train", "--history", str(sml), "--references", "dining/temp", "--target",
+            "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
+            "--timezone", "Europe/Madrid", "--models", "ref,triv,varma")
+    assert run(*args, "--varma-p", "1", "--out", str(tmp_path / "p1.json")) == 0
+    art = Artifact.load(tmp_path / "p1.json")
+    model = art.models["varma"]
+    assert isinstance(model, VarmaModel) and model.p == 1 and not model.force_fallback
+    assert model.order_[0] == 1 and "tuned" not in art.validation
+    capsys.readouterr()
+    for bad in ("0", "9", "two"):
+        with pytest.raises(SystemExit) as exc:
+            run(*args, "--varma-p", bad, "--out", str(tmp_path / "bad.json"))
+        assert exc.value.code == 2 and "--varma-p" in capsys.readouterr().err
+    assert not (tmp_path / "bad.json").exists()

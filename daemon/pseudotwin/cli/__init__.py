@@ -124,6 +124,11 @@ def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
     p.add_argument("--ref-mean", choices=("shifted", "profile"), default="shifted",
                    help="corrgp-triv/-multi reference prior mean: training profile shifted to "
                         "today's level in the init phase (default), or the unshifted profile")
+    p.add_argument("--varma-p", type=_varma_order, metavar="P",
+                   help=f"pin VARMA's order (1..{MAX_VARMA_P}): VARMAX(P, P) by maximum "
+                        "likelihood, VAR(P) by least squares if it does not converge (default: "
+                        "VAR(p) by least squares, p chosen from 1, 2 and 4 by validation on the "
+                        "training days)")
 
 
 HOURS_OPTIONS = {"day_start": "--day-start", "day_end": "--day-end",
@@ -171,8 +176,11 @@ def _shown(hours: OperatingHours, key: str) -> str:
 def _options(a: argparse.Namespace) -> dict[str, dict[str, Any]]:
     """Each model's settings from the command line: those of its ``options`` that were given."""
     given = {k: v for k, v in (("kernel", a.kernel), ("ref_mean", a.ref_mean)) if v is not None}
-    return {kind: {k: v for k, v in given.items() if k in cls.options}
-            for kind, cls in MODELS.items()}
+    options = {kind: {k: v for k, v in given.items() if k in cls.options}
+               for kind, cls in MODELS.items()}
+    if a.varma_p is not None:
+        options["varma"]["p"] = a.varma_p  # a p set skips validation's choice of the order
+    return options
 
 
 def _spec(a: argparse.Namespace) -> TwinSpec:
@@ -311,6 +319,19 @@ def _positive_minutes(text: str) -> float:
     if not minutes > 0 or minutes == float("inf"):
         raise argparse.ArgumentTypeError(f"{text} min is not a positive number of minutes")
     return minutes
+
+
+MAX_VARMA_P = 8  # five training days hold ~220 slots: a higher order fits noise
+
+
+def _varma_order(text: str) -> int:
+    try:
+        p = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if not 1 <= p <= MAX_VARMA_P:
+        raise argparse.ArgumentTypeError(f"{p} is not in 1..{MAX_VARMA_P}")
+    return p
 
 
 def _minutes_at_least_zero(text: str) -> float:
