@@ -75,13 +75,13 @@ class TwinMonitor:
             s = metrics.score(truth, est, std)
             # σ is a promise (DESIGN.md §6): a desk sensor put back for a day checks it too,
             # with daily.csv's figures over the estimates that had a σ (the payload writes a
-            # figure without any as null). CRPS without a σ would be the mean absolute error.
-            with_std = bool(np.any(np.isfinite(std) & (std > 0)))
+            # figure without any as null). CRPS without a σ would be the mean absolute error;
+            # mean σ is NaN exactly when no estimate had one.
             out["target"] = {
                 "n": s.n, "nrmse_pct": s.nrmse_pct, "dmax_pct": s.dmax_pct,
                 "pearson_r": _or_none(s.pearson_r), "rmse": s.rmse,
                 "mean_std": s.mean_std, "cover1_pct": s.cover1_pct,
-                "cover2_pct": s.cover2_pct, "crps": s.crps if with_std else None,
+                "cover2_pct": s.cover2_pct, "crps": s.crps if np.isfinite(s.mean_std) else None,
             }
         return out
 
