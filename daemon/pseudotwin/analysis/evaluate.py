@@ -11,7 +11,7 @@ from __future__ import annotations
 import datetime as dt
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -99,12 +99,14 @@ def evaluate(
     primary: str | None = None,
     thinning: Thinning | None = None,
     stale_after: dt.timedelta | None = None,
+    skip_days: Collection[dt.date] = (),
 ) -> Evaluation:
     """Train on ``train_days`` days from ``train_start``, then score every later day.
 
     thinning: the window's policy (default: one point per sensor and minute, the daemon's
     default), for training (core/thinning.thin_history) and the scored days alike;
-    stale_after: the daemon's (replay_estimates)."""
+    stale_after: the daemon's (replay_estimates); skip_days: never trained on (train's
+    --skip-days)."""
     t0 = time.perf_counter()
     target, hours = spec.target, spec.hours
     require_sensors(history, list(spec.sensors))
@@ -114,7 +116,7 @@ def evaluate(
             raise DataError(f"--plot-day {plot_day}: no readings of {target} on that day "
                             f"({hours.timezone}), nothing to plot")
     artifact = train_twin(history, spec, train_start, train_days, models, options, primary,
-                          thinning=thinning)
+                          thinning=thinning, skip_days=skip_days)
     test_start = first_scored_day(artifact)
     if plot_day is not None and plot_day < test_start:
         raise DataError(f"--plot-day {plot_day} is not scored: the evaluated days begin on "

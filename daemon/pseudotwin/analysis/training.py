@@ -5,7 +5,7 @@ from __future__ import annotations
 import datetime as dt
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from typing import Any
 
 import numpy as np
@@ -74,23 +74,29 @@ def pick_training_days(
     start: dt.date,
     n_days: int = 5,
     extra: Sequence[str] = (),
+    skip_days: Collection[dt.date] = (),
 ) -> list[DayReadings]:
-    """The first ``n_days`` days on or after ``start`` on which every sensor reports; the
-    days also carry the ``extra`` sensors' readings (covariates), whether or not they report."""
+    """The first ``n_days`` days on or after ``start`` on which every sensor reports, none of
+    ``skip_days`` (days the engineer leaves out, e.g. of commissioning work); the days also
+    carry the ``extra`` sensors' readings (covariates), whether or not they report."""
     if n_days < 1:
         raise DataError("--train-days must be at least 1")
-    days = [d for d in split_days(df, [*sensors, *extra], hours) if d.day >= start]
+    days = [d for d in split_days(df, [*sensors, *extra], hours)
+            if d.day >= start and d.day not in skip_days]
     usable = [d for d in days if day_is_usable(d, sensors, hours)]
     if len(usable) < n_days:
+        left_out = f" (not counting {len(skip_days)} skipped)" if skip_days else ""
         raise DataError(
-            f"too little training data: {len(usable)} day(s) from {start} on have readings of "
-            f"all of {', '.join(sensors)} in operating hours, {n_days} needed"
+            f"too little training data: {len(usable)} day(s) from {start} on{left_out} have "
+            f"readings of all of {', '.join(sensors)} in operating hours, {n_days} needed"
         )
     chosen = usable[:n_days]
     skipped = [d.day for d in days if d.day <= chosen[-1].day and d not in chosen]
     if skipped:
         log.warning("training skips days without data of every sensor: %s",
                     ", ".join(map(str, skipped)))
+    if left := sorted(d for d in skip_days if start <= d <= chosen[-1].day):
+        log.info("training leaves out %s, as asked", ", ".join(map(str, left)))
     return chosen
 
 
@@ -104,11 +110,12 @@ def train_twin(
     primary: str | None = None,
     validate: bool = True,
     thinning: Thinning | None = None,
+    skip_days: Collection[dt.date] = (),
 ) -> Artifact:
     """Train the requested models of one twin on the chosen days; returns the artifact.
     See :func:`train_validated`."""
     return train_validated(df, spec, train_start, train_days, models, options, primary,
-                           validate, thinning)[0]
+                           validate, thinning, skip_days)[0]
 
 
 def train_validated(
@@ -121,6 +128,7 @@ def train_validated(
     primary: str | None = None,
     validate: bool = True,
     thinning: Thinning | None = None,
+    skip_days: Collection[dt.date] = (),
 ) -> tuple[Artifact, validation.Validation | None]:
     """Train the requested models of one twin on the chosen days; returns the artifact
     and the validation it came from (None when not validated), whose held-out estimates the
@@ -134,7 +142,8 @@ def train_validated(
     reads (:mod:`pseudotwin.analysis.failover`). thinning: the live window's policy (default
     one point per sensor and minute): the models learn from the points it holds
     (:func:`~pseudotwin.core.thinning.thin_history`), and the held-out days are replayed
-    reading by reading through it, as the daemon would.
+    reading by reading through it, as the daemon would. skip_days: days never used for
+    training, even when every sensor reports on them.
     """
     for kind in models:
         model_class(kind)  # an unknown kind fails before any training
@@ -155,7 +164,7 @@ def train_validated(
     # interval), so a chatty sensor's history trains the twin its interval means would.
     points = thin_history(df[df["sensor"].isin([*sensors, *spec.covariates])], policy)
     days = pick_training_days(points, sensors, spec.hours, train_start, train_days,
-                              spec.covariates)
+                              spec.covariates, skip_days)
     # Judged on the training days only: a sensor broken some other week must not stop this.
     local_day, _ = spec.hours.day_and_hours(points["ts"])
     check_plausible(points[np.isin(local_day, [np.datetime64(d.day) for d in days])], spec)
@@ -236,6 +245,8 @@ def train_validated(
     failover = (train_failover(df, spec, days, fitted[primary].references_, options=opts,
                                thinning=policy)
                 if v is not None else {})
+    # what the engineer left out (--skip-days) where it would have been a training day
+    left_out = [str(d) for d in sorted(skip_days) if train_start <= d <= days[-1].day]
     return Artifact(
         spec, fitted, primary, calibration=calibration, validation=checked,
         envelope=envelope, failover=failover,
@@ -243,6 +254,7 @@ def train_validated(
             "start": str(days[0].day),
             "end": str(days[-1].day),
             "days": [str(d.day) for d in days],
+            **({"skipped": left_out} if left_out else {}),
             "sensors": [*sensors, *spec.covariates],
             "thinning": policy.describe(),
         },
@@ -255,8 +267,10 @@ def history_from_store(
     hours: OperatingHours,
     start: dt.date | None = None,
     n_days: int = 5,
+    skip_days: Collection[dt.date] = (),
 ) -> tuple[pd.DataFrame, dt.date]:
-    """The readings needed to train on the first ``n_days`` usable days in the store.
+    """The readings needed to train on the first ``n_days`` usable days in the store, none of
+    ``skip_days``.
 
     Streams the store one day at a time from ``start`` (default: the first stored reading of
     the sensors) and keeps only the usable days and the day before each (its carry-over), so a
@@ -274,8 +288,8 @@ def history_from_store(
     prev: pd.DataFrame | None = None
     for day, frame in store.iter_days(list(sensors), first, last, hours.timezone):
         both = frame if prev is None else pd.concat([prev, frame], ignore_index=True)
-        if not frame.empty and day_is_usable(split_days(both, list(sensors), hours, [day])[0],
-                                             sensors, hours):
+        if day not in skip_days and not frame.empty and day_is_usable(
+                split_days(both, list(sensors), hours, [day])[0], sensors, hours):
             kept.append(both)
             chosen.append(day)
             if len(chosen) == n_days:

@@ -99,6 +99,9 @@ class Validation:
     blend: dict[str, float] = field(default_factory=dict)
     # The nested held-out NRMSE [%] of choosing one candidate, what the blend is measured by.
     selection_nrmse: float = float("nan")
+    # Each training day's mean target − reference offset [unit], whose spread is offset_std:
+    # the commissioning check of one day unlike the others reads it (commissioning/oddday.py).
+    offset_by_day: dict[dt.date, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -107,6 +110,7 @@ class Validation:
             "primary": self.primary,
             "reason": self.reason,
             "offset_std": self.offset_std,
+            "offset_by_day": {d.isoformat(): x for d, x in self.offset_by_day.items()},
             "seconds": round(self.seconds, 1),
             "scores": {k: s.to_dict() for k, s in self.scores.items()},
             "withheld": self.withheld,
@@ -151,17 +155,23 @@ def _num(x: object, digits: int) -> str:
     return f"{x:.{digits}f}" if isinstance(x, int | float) and np.isfinite(x) else "—"
 
 
-def offset_variance(spec: TwinSpec, days: Sequence[DayReadings]) -> float:
-    """Variance across days of the day's mean target − reference offset [unit²] (mean over
-    the references, slot grid, sample-and-hold): the part of the error no reading of a new
-    day can reveal."""
-    means = []
+def day_offsets(spec: TwinSpec, days: Sequence[DayReadings]) -> dict[dt.date, float]:
+    """Each day's mean target − reference offset [unit] (mean over the references, slot
+    grid, sample-and-hold); a day without a pair of values is left out."""
+    means = {}
     for d in days:
         tgt = d.slot_values(spec.target, spec.hours)
         diffs = np.array([tgt - d.slot_values(r, spec.hours) for r in spec.references])
         ok = np.isfinite(diffs)
         if ok.any():
-            means.append(float(np.mean(diffs[ok])))
+            means[d.day] = float(np.mean(diffs[ok]))
+    return means
+
+
+def offset_variance(spec: TwinSpec, days: Sequence[DayReadings]) -> float:
+    """Variance across days of the day's mean target − reference offset [unit²]: the part of
+    the error no reading of a new day can reveal."""
+    means = list(day_offsets(spec, days).values())
     return float(np.var(means, ddof=1)) if len(means) > 1 else 0.0
 
 
@@ -259,7 +269,7 @@ def validate(
     chosen, reason = _choose(scores, primary, selection)
     return Validation(scores, chosen, reason, calibration, float(np.sqrt(offset_var)),
                       time.perf_counter() - t0, _withheld(scores, chosen), held, blend_weights,
-                      selection)
+                      selection, day_offsets(spec, days))
 
 
 @dataclass(frozen=True)

@@ -72,6 +72,10 @@ def _date(text: str) -> dt.date:
         raise argparse.ArgumentTypeError(f"{text!r} is not a date YYYY-MM-DD") from None
 
 
+def _dates(text: str) -> frozenset[dt.date]:
+    return frozenset(_date(t) for t in _csv(text))
+
+
 def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
     if train:
         src = p.add_mutually_exclusive_group(required=True)
@@ -103,6 +107,11 @@ def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
     p.add_argument("--train-days", type=int, default=5,
                    help="training days: the first N days from --train-start on which every "
                         "sensor reports (default 5)")
+    p.add_argument("--skip-days", type=_dates, default=frozenset(), metavar="DAY[,DAY...]",
+                   help="days YYYY-MM-DD (local) never trained on, even when every sensor "
+                        "reports on them: a day of commissioning work, the heating off, a window "
+                        "left open; the next usable days are taken instead. train says when "
+                        "one training day is unlike the others")
     p.add_argument("--primary", choices=ALL_MODELS,
                    help="pin the model published as the twin's estimate (default: the candidate "
                         "that scores best with each training day held out in turn)")
@@ -210,8 +219,7 @@ def _training_history(a: argparse.Namespace,
             raise ConfigError(f"{a.config}: no store configured in [service]")
     with open_store(url, existing=True) as store:
         return history_from_store(store, [*a.references, *a.covariates, a.target], hours,
-                                  a.train_start,
-                                  a.train_days)
+                                  a.train_start, a.train_days, a.skip_days)
 
 
 def _train_thinning(a: argparse.Namespace) -> Thinning:
@@ -236,16 +244,20 @@ def cmd_train(a: argparse.Namespace) -> int:
     df, start = _training_history(a, spec.hours)
     with twin_context(a.out.stem):  # the artifact's name is the twin's id by convention
         art, checked = train_validated(df, spec, start, a.train_days, a.models, _options(a),
-                                       a.primary, thinning=_train_thinning(a))
+                                       a.primary, thinning=_train_thinning(a),
+                                       skip_days=a.skip_days)
     path = art.save(a.out)
     days = ", ".join(art.training["days"])
     print(f"trained {', '.join(art.models)} on {days}; artifact written to {path}")
-    from pseudotwin.analysis.commissioning.coverage import data_found
+    from pseudotwin.analysis.commissioning.coverage import training_data
 
     # The commissioning report's verdict on the data, here too: a thin training day makes
     # every score below rest on less than it seems to.
-    found = data_found(df, spec, start, [dt.date.fromisoformat(d) for d in art.training["days"]])
-    print(f"training data: {found.verdict()}")
+    print(f"training data: {training_data(df, art, start).verdict()}")
+    from pseudotwin.analysis.commissioning.oddday import odd_training_day
+
+    if odd := odd_training_day(art.validation):
+        print(f"training days: {odd.advice(art.unit)}")
     for kind, m in art.models.items():
         if summary := m.fit_summary():
             print(f"  {kind}: {summary}")
@@ -288,7 +300,8 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
                       _options(a), a.plot_day, a.primary,
                       thinning=Thinning(dt.timedelta(seconds=a.min_interval)),
                       stale_after=(dt.timedelta(minutes=a.stale_after)
-                                   if a.stale_after is not None else None))
+                                   if a.stale_after is not None else None),
+                      skip_days=a.skip_days)
     print(f"trained on {', '.join(ev.artifact.training['days'])}; "
           f"scored {ev.daily['day'].nunique()} day(s) in {ev.seconds:.1f} s")
     print(summary_table(ev))

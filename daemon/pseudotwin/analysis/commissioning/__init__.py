@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from pseudotwin.analysis.commissioning.coverage import data_found
+from pseudotwin.analysis.commissioning.coverage import training_data
 from pseudotwin.analysis.commissioning.heldout import figures, held_out
 from pseudotwin.analysis.commissioning.page import Page, render
 from pseudotwin.analysis.commissioning.snippet import config_snippet, twin_id
@@ -33,8 +33,7 @@ def write_report(out_dir: Path, artifact: Artifact, validation: Validation | Non
     validation: what ``train_validated`` returned (None: the page says it was not validated).
     """
     twin = twin_id(artifact_path)
-    days = [dt.date.fromisoformat(d) for d in artifact.training.get("days", [])]
-    data = data_found(history, artifact.spec, min([first_day, *days]), days)
+    data = training_data(history, artifact, first_day)
     ho = held_out(artifact, validation) if validation is not None else None
     page = Page(artifact, twin, artifact_path.resolve(), data, ho,
                 figures(ho, history) if ho is not None else [],

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import datetime as dt
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import Enum
 
 import numpy as np
@@ -20,6 +20,7 @@ import pandas as pd
 from pseudotwin.analysis.training import MIN_READINGS_PER_DAY
 from pseudotwin.analysis.validation import MIN_DAYS
 from pseudotwin.core.spec import TwinSpec
+from pseudotwin.live.artifact import Artifact
 
 GOOD_COVERAGE = 0.75  # share of operating-hours slots with a reading for a "good" sensor-day
 # Training days within this many calendar days see one stretch of weather: held out in turn,
@@ -69,14 +70,17 @@ class SensorDay:
 @dataclass(frozen=True)
 class DataFound:
     """Every sensor-day from the first candidate day to the last training day, with the
-    days training used, and the overall verdict."""
+    days training used, those the engineer left out (--skip-days), and the overall verdict."""
 
     rows: list[SensorDay]
     training_days: list[dt.date]
+    left_out: list[dt.date] = field(default_factory=list)
 
     def day_status(self, day: dt.date) -> str:
         if day in self.training_days:
             return "training day"
+        if day in self.left_out:
+            return "left out (--skip-days)"
         missing = [r.sensor for r in self.rows if r.day == day and r.level is Level.MISSING]
         if missing:
             return f"skipped: no data of {', '.join(missing)}"
@@ -127,8 +131,16 @@ class DataFound:
                 "--train-days days on which every sensor reports).")
 
 
+def training_data(df: pd.DataFrame, artifact: Artifact, first: dt.date) -> DataFound:
+    """:func:`data_found` for the days an artifact was trained on and left out."""
+    days = [dt.date.fromisoformat(d) for d in artifact.training.get("days", [])]
+    left_out = [dt.date.fromisoformat(d) for d in artifact.training.get("skipped", [])]
+    return data_found(df, artifact.spec, min([first, *days]), days, left_out)
+
+
 def data_found(df: pd.DataFrame, spec: TwinSpec, first: dt.date,
-               training_days: Sequence[dt.date]) -> DataFound:
+               training_days: Sequence[dt.date],
+               left_out: Sequence[dt.date] = ()) -> DataFound:
     """Readings per sensor and local day from ``first`` to the last training day."""
     hours = spec.hours
     last = max(training_days)
@@ -148,4 +160,4 @@ def data_found(df: pd.DataFrame, spec: TwinSpec, first: dt.date,
             edges = np.concatenate([[hours.day_start], h, [hours.day_end]])
             rows.append(SensorDay(day, s, len(h), float(covered),
                                   float(np.max(np.diff(edges))) * 60.0))
-    return DataFound(rows, sorted(training_days))
+    return DataFound(rows, sorted(training_days), sorted(left_out))

@@ -16,6 +16,7 @@ import numpy as np
 from pseudotwin import __version__
 from pseudotwin.analysis.commissioning.coverage import DataFound, Level
 from pseudotwin.analysis.commissioning.heldout import HeldOut
+from pseudotwin.analysis.commissioning.oddday import odd_training_day
 from pseudotwin.analysis.replay import REF_PREFIX
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.calibration import Z2
@@ -142,6 +143,8 @@ def validation_section(p: Page) -> str:
         "twin code. CRPS and ±2σ coverage score each held-out day with a σ calibrated on "
         "the other days only (nested), so they check σ on a day it has not seen.</p>"
         + verdict(Level.GOOD, f"Primary: {a.primary}.", str(v.get("reason", "")))
+        + (verdict(Level.THIN, "One training day is unlike the others.", odd.advice(a.unit))
+           if (odd := odd_training_day(v)) else "")
         + table("validation", ["model", "held-out daily NRMSE %", f"CRPS {a.unit}",
                                "±2σ coverage %", "days", "note"], rows, classes,
                 numeric=(1, 2, 3, 4))

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from pseudotwin.analysis.commissioning.oddday import odd_training_day
 from pseudotwin.analysis.criteria import MIN_DAYS, MIN_RATIO, MIN_ROWS
 from pseudotwin.analysis.evaluate import ESTIMATE, REF_PREFIX
 from pseudotwin.analysis.report.runs import BASE, GP, MODEL_ORDER, RunResult
@@ -222,6 +223,12 @@ def validation_md(res: RunResult) -> str:
         extra.append(f"spread (std) of the daily mean reference–target offset over the "
                      f"training days {fmt(v['offset_std'], 3)} {unit}, the floor of every "
                      "model's day-level σ")
+    if odd := odd_training_day(v):
+        extra.append(f"one training day unlike the others (Grubbs' test, 5 %): {odd.day}, "
+                     f"offset {odd.offset:+.3f} {unit} against {min(odd.others):+.3f} to "
+                     f"{max(odd.others):+.3f} {unit} on the other days, the spread "
+                     f"{odd.spread_without:.3f} {unit} without it; train says so and offers "
+                     "--skip-days, the report's protocol keeps every day")
     if "seconds" in v:
         extra.append(f"{fmt(v['seconds'], 1)} s")
     parts = [table, reason + " " + "; ".join(extra) + "."]

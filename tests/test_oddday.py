@@ -1,0 +1,112 @@
+"""One training day unlike the others (analysis/commissioning/oddday.py) and --skip-days:
+Grubbs' test on synthetic offsets, and on SML2010's CO2 days through the real CLI."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from daemon_support import sml_csv
+from pseudotwin.analysis.commissioning.oddday import grubbs_critical, odd_day
+from pseudotwin.cli import main
+
+DAY0 = dt.date(2012, 3, 14)
+
+
+def offsets(values: list[float]) -> dict[dt.date, float]:
+    return {DAY0 + dt.timedelta(days=i): v for i, v in enumerate(values)}
+
+
+def test_a_day_far_from_the_others_is_named_with_the_spread_without_it() -> None:
+    found = odd_day(offsets([0.1, -0.1, 3.0, 0.0, 0.05]))
+    assert found is not None and found.day == DAY0 + dt.timedelta(days=2)
+    assert found.offset == 3.0 and sorted(found.others) == [-0.1, 0.0, 0.05, 0.1]
+    assert found.spread == pytest.approx(np.std([0.1, -0.1, 3.0, 0.0, 0.05], ddof=1))
+    assert found.spread_without == pytest.approx(np.std([0.1, -0.1, 0.0, 0.05], ddof=1))
+    text = found.advice("°C")
+    assert "on 2012-03-16" in text and "--skip-days 2012-03-16" in text and "+3.00 °C" in text
+
+
+def test_ordinary_alike_and_too_few_days_are_not_flagged() -> None:
+    assert odd_day(offsets([0.1, -0.1, 0.3, 0.0, 0.2])) is None
+    assert odd_day(offsets([0.5] * 5)) is None  # no spread at all
+    assert odd_day(offsets([0.0, 5.0])) is None  # two days: nothing to compare
+    assert odd_day(offsets([0.1, -0.1, float("nan"), 0.0, 3.0])) is not None  # NaN ignored
+
+
+@pytest.mark.parametrize("n", [5, 10])
+def test_ordinary_normal_days_are_flagged_one_time_in_twenty(n: int) -> None:
+    rng = np.random.default_rng(7)
+    flagged = sum(odd_day(offsets(list(rng.normal(0.0, 1.0, n)))) is not None
+                  for _ in range(4000))
+    assert 0.04 <= flagged / 4000 <= 0.06
+
+
+def test_for_five_days_the_threshold_is_a_third_of_the_spread() -> None:
+    # max|x − mean| / s = G ⇔ s_without / s = sqrt(((n − 1) − n G² / (n − 1)) / (n − 2))
+    g = grubbs_critical(5)
+    assert np.sqrt((4 - 5 * g * g / 4) / 3) == pytest.approx(0.33, abs=0.005)
+
+
+def co2_csv(folder: Path) -> Path:
+    """SML2010's CO2 readings of its first training days, as a canonical CSV."""
+    import pandas as pd
+
+    path = sml_csv(folder, DAY0 + dt.timedelta(days=6))
+    df = pd.read_csv(path)
+    df[df["sensor"].isin(["dining/co2", "room/co2"])].to_csv(path, index=False)
+    return path
+
+
+def test_train_names_the_odd_co2_day_and_skip_days_leaves_it_out(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    history = co2_csv(tmp_path)
+    args = ["--log-level", "WARNING", "train", "--history", str(history),
+            "--references", "dining/co2", "--target", "room/co2", "--quantity", "co2",
+            "--train-start", str(DAY0), "--timezone", "Europe/Madrid", "--models", "ref,triv"]
+    assert main([*args, "--out", str(tmp_path / "all.json"),
+                 "--report", str(tmp_path / "r")]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    # SML2010's first day: the desk ~18 ppm above the reference, the others within 2 ppm
+    assert "One training day is unlike the others: on 2012-03-14" in out
+    assert "--skip-days 2012-03-14" in out
+    page = (tmp_path / "r" / "all.html").read_text(encoding="utf-8")
+    assert "One training day is unlike the others." in page
+    saved = json.loads((tmp_path / "all.json").read_text())
+    assert saved["validation"]["offset_by_day"]["2012-03-14"] > 10.0
+    assert "skipped" not in saved["training"]
+
+    assert main([*args, "--skip-days", "2012-03-14", "--out", str(tmp_path / "skip.json"),
+                 "--report", str(tmp_path / "r")]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    saved = json.loads((tmp_path / "skip.json").read_text())
+    assert saved["training"]["days"][0] == "2012-03-15" and len(saved["training"]["days"]) == 5
+    assert saved["training"]["skipped"] == ["2012-03-14"]
+    assert "2012-03-14" not in saved["validation"]["offset_by_day"]
+    assert "unlike the others: on 2012-03-14" not in out
+    assert "left out (--skip-days)" in (tmp_path / "r" / "skip.html").read_text(encoding="utf-8")
+
+
+def test_skip_days_that_leave_too_few_days_say_so(tmp_path: Path,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    history = co2_csv(tmp_path)
+    skip = ",".join(str(DAY0 + dt.timedelta(days=i)) for i in range(3))
+    rc = main(["--log-level", "WARNING", "train", "--history", str(history),
+               "--references", "dining/co2", "--target", "room/co2", "--quantity", "co2",
+               "--train-start", str(DAY0), "--timezone", "Europe/Madrid", "--models", "ref,triv",
+               "--skip-days", skip, "--out", str(tmp_path / "x.json")])
+    assert rc != 0
+    err = capsys.readouterr().err
+    assert "not counting 3 skipped" in err and "5 needed" in err
+
+
+def test_a_bad_skip_day_is_argparse_s_error(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["train", "--history", "x.csv", "--references", "a", "--target", "b",
+              "--quantity", "co2", "--skip-days", "2012-03-32", "--out", "x.json"])
+    assert exc.value.code == 2
+    assert "'2012-03-32' is not a date YYYY-MM-DD" in capsys.readouterr().err
