@@ -122,6 +122,16 @@ def test_train_from_the_store_picks_full_days_itself(sml_store: Path, tmp_path: 
     assert "2012-03-14, 2012-03-15, 2012-03-16, 2012-03-17, 2012-03-18" in printed
     art = json.loads(out.read_text())
     assert art["training"]["days"][0] == "2012-03-14"
+    # a day left out is passed over while streaming the store, and the next one taken
+    rc = main(["--log-level", "WARNING", "train", "--store", str(sml_store), "--references",
+               REF, "--target", TARGET, "--quantity", "temperature", "--timezone",
+               "Europe/Madrid", "--models", "triv", "--skip-days", "2012-03-16",
+               "--out", str(out)])
+    assert rc == 0
+    art = json.loads(out.read_text())
+    assert art["training"]["days"] == ["2012-03-14", "2012-03-15", "2012-03-17", "2012-03-18",
+                                       "2012-03-19"]
+    assert art["training"]["skipped"] == ["2012-03-16"]
 
 
 def test_daemon_warm_starts_from_the_store_without_a_checkpoint(
