@@ -1,16 +1,21 @@
 #!/usr/bin/env python3
-"""Unseen pairs: every other room pair of the Appliances house, trained once, scored for months.
+"""Unseen pairs: every other sensor pair of a shared dataset, trained once, scored after.
 
-docs/results.md evaluates one pair per dataset, and every choice in the code was made while
-looking at those runs. The Appliances house's eight indoor rooms (its ninth sensor, T6
-``outside``, hangs outside the building) make 56 ordered pairs; the 55 other than the report's
-ironing → parents are twins no choice in the code was made on. They are not independent of
-the report: the same house, weather and weeks, and a pair and its mirror (kitchen → office,
-office → kitchen) share one offset up to its sign, so they behave much alike: read the shares
-as coming from about 28 room pairs of one house. Each pair is trained as the report's
-long-term run is (the quick candidates by default, the first ``--train-days`` days from
-``--start`` on, validation picks the primary and calibrates σ on those days only) and scored
-on every later day. ``--every N`` keeps the desk sensor's readings only on every N-th day of
+docs/results.md evaluates one twin per dataset, and every choice in the code was made while
+looking at those runs. ``--house appliances`` (default): the Appliances house's eight indoor
+rooms (its ninth sensor, T6 ``outside``, hangs outside the building) make 56 ordered pairs;
+the 55 other than the report's ironing → parents are twins no choice in the code was made on,
+scored for months. ``--house room-climate-a`` / ``room-climate-b``: the nodes of one FAU
+office (4 and 3, at different heights and walls of the same room) make 12 and 6 ordered
+pairs; those whose target is the report's target and whose reference is one of its
+references are left out (10 and 4 remain), scored for the one to two weeks of scripted
+episodes the data holds. The pairs are not independent of the report: the same building,
+weather and weeks, and a pair and its mirror (kitchen → office, office → kitchen) share one
+offset up to its sign, so they behave much alike: read the Appliances shares as coming from
+about 28 room pairs of one house. Each pair is trained as the report's runs are (the quick
+candidates by default, the first ``--train-days`` days from ``--start`` on, validation picks
+the primary and calibrates σ on those days only) and scored on every later day.
+``--every N`` keeps the desk sensor's readings only on every N-th day of
 the training span: the same number of training days, spread over weeks (the days between are
 not scored either); ``--score-from DAY`` scores no earlier day, so that twins trained on
 different days are compared on the same test days.
@@ -21,8 +26,8 @@ against the days after: whether σ holds up as the training days age. Then the s
 that meets each figure, as scripts/origins.py does for the rolling origins (its summary and
 oracle). Prints the pairs' table, the summary and, last, one JSON line.
 
-    .venv/bin/python scripts/pairs.py [--start 2016-02-01] [--train-days 5] [--every 1]
-                                      [--score-from DAY] [--early-days 14]
+    .venv/bin/python scripts/pairs.py [--house appliances] [--start DAY] [--train-days 5]
+                                      [--every 1] [--score-from DAY] [--early-days 14]
                                       [--models MODEL,...] [--jobs 2]
 """
 
@@ -36,6 +41,7 @@ import math
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -48,17 +54,47 @@ from pseudotwin.analysis.validation import MIN_DAYS
 from pseudotwin.history.convert import load
 from tables import print_markdown, print_table
 
+
+@dataclass(frozen=True)
+class House:
+    """A shared dataset whose sensors pair up: the report's run on it (its pairs are not
+    unseen), the temperature sensors that pair up, the default first candidate day."""
+
+    report: RunSpec
+    sensors: tuple[str, ...]
+    start: dt.date
+
+    def pairs(self) -> list[tuple[str, str]]:
+        """Every ordered (reference, target) pair no choice in the code was made on."""
+        seen = {(r, self.report.target) for r in self.report.references}
+        return [p for p in itertools.permutations(self.sensors, 2) if p not in seen]
+
+
+def _report(name: str) -> RunSpec:
+    return next(r for r in RUNS if r.name == name)
+
+
 ROOMS = ("kitchen", "living", "laundry", "office", "bathroom", "ironing", "teen", "parents")
-ALL_DAYS = 400  # the house's history is 138 days: every day after training is scored
-REPORT = next(r for r in RUNS if r.dataset == "appliances")
+HOUSES = {
+    "appliances": House(_report("appliances"), tuple(f"{r}/temp" for r in ROOMS),
+                        dt.date(2016, 2, 1)),
+    "room-climate-a": House(_report("room-climate-a"), ("A1/temp", "A2/temp", "A3/temp",
+                                                        "A4/temp"),
+                            _report("room-climate-a").train_start),
+    "room-climate-b": House(_report("room-climate-b"), ("B1/temp", "B2/temp", "B3/temp"),
+                            _report("room-climate-b").train_start),
+}
+ALL_DAYS = 400  # the longest history, Appliances', is 138 days: every day after training
 
 
-def pair_spec(reference: str, target: str, start: dt.date, train_days: int) -> RunSpec:
-    """The twin that pseudo-measures room ``target`` from room ``reference`` alone."""
-    return RunSpec(f"{reference} → {target}", f"{reference} → {target}", "appliances",
-                   (f"{reference}/temp",), f"{target}/temp", "temperature", REPORT.timezone,
-                   start, "an unseen pair of the Appliances house", train_days=train_days,
-                   long_term=True)
+def pair_spec(house: str, reference: str, target: str, start: dt.date,
+              train_days: int) -> RunSpec:
+    """The twin that pseudo-measures ``target`` from ``reference`` alone."""
+    report = HOUSES[house].report
+    name = f"{reference.removesuffix('/temp')} → {target.removesuffix('/temp')}"
+    return RunSpec(name, name, report.dataset, (reference,), target, "temperature",
+                   report.timezone, start, f"an unseen pair of {report.title}",
+                   train_days=train_days, long_term=report.long_term)
 
 
 def spread(history: pd.DataFrame, spec: RunSpec, every: int) -> pd.DataFrame:
@@ -72,13 +108,13 @@ def spread(history: pd.DataFrame, spec: RunSpec, every: int) -> pd.DataFrame:
     return history.drop(history.index[target][drop])
 
 
-def one(pair: tuple[str, str], start: dt.date, train_days: int, early: int,
+def one(house: str, pair: tuple[str, str], start: dt.date, train_days: int, early: int,
         models: tuple[str, ...], every: int = 1,
         score_from: dt.date | None = None) -> dict[str, Any]:
-    """The (reference room, target room) twin's row: the report's figures over every day
-    after its training days (from ``score_from`` on), and ±2σ coverage in the ``early`` days
-    after the last training day and in the days after them."""
-    spec = pair_spec(*pair, start, train_days)
+    """The (reference, target) twin's row: the report's figures over every day after its
+    training days (from ``score_from`` on), and ±2σ coverage in the ``early`` days after the
+    last training day and in the days after them."""
+    spec = pair_spec(house, *pair, start, train_days)
     history = load(spec.dataset)
     if every > 1:
         history = spread(history, spec, every)
@@ -95,8 +131,11 @@ def one(pair: tuple[str, str], start: dt.date, train_days: int, early: int,
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--start", type=dt.date.fromisoformat, default=dt.date(2016, 2, 1),
-                    help="first candidate training day (%(default)s)")
+    ap.add_argument("--house", choices=tuple(HOUSES), default="appliances",
+                    help="the dataset whose sensors pair up (%(default)s)")
+    ap.add_argument("--start", type=dt.date.fromisoformat, default=None,
+                    help="first candidate training day (default: appliances 2016-02-01, "
+                         "Room Climate the report's first day)")
     ap.add_argument("--train-days", type=int, default=5, help="training days (%(default)s)")
     ap.add_argument("--every", type=int, default=1,
                     help="the desk sensor's training days are every N-th day from --start "
@@ -117,12 +156,13 @@ def main() -> None:
     models = tuple(m.strip() for m in a.models.split(",") if m.strip())
     if "triv" not in models:
         ap.error("--models must include triv (the floor and the ratios are against it)")
-    report = (REPORT.references[0].split("/")[0], REPORT.target.split("/")[0])
-    pairs = [p for p in itertools.permutations(ROOMS, 2) if p != report]
+    house = HOUSES[a.house]
+    start = a.start or house.start
+    pairs = house.pairs()
     t0 = time.perf_counter()
     n = len(pairs)
     with ProcessPoolExecutor(a.jobs) as pool:
-        rows = list(pool.map(one, pairs, [a.start] * n, [a.train_days] * n,
+        rows = list(pool.map(one, [a.house] * n, pairs, [start] * n, [a.train_days] * n,
                              [a.early_days] * n, [models] * n, [a.every] * n,
                              [a.score_from] * n))
     print_markdown([r for r in rows if "error" not in r], [
@@ -144,7 +184,7 @@ def main() -> None:
         found = [r[key] for r in ok if math.isfinite(r[key])]
         # --score-from past the early days leaves none of them
         total[f"median_{key}"] = float(np.median(found)) if found else math.nan
-    print(f"{len(rows)} pairs from {a.start}, {a.train_days} training days "
+    print(f"{len(rows)} pairs of {a.house} from {start}, {a.train_days} training days "
           f"({'consecutive' if a.every == 1 else f'every {a.every} days'}), "
           f"{'every later day' if a.score_from is None else f'days from {a.score_from} on'} "
           f"scored, {len(models)} "
