@@ -40,6 +40,7 @@ import numpy as np
 import pandas as pd
 
 import pseudotwin  # noqa: F401  (one BLAS thread, before numpy does any work)
+from pseudotwin.analysis.commissioning.oddday import odd_training_day
 from pseudotwin.analysis.evaluate import ESTIMATE, evaluate
 from pseudotwin.analysis.report.runs import RUNS, RunResult, RunSpec
 from pseudotwin.analysis.report.verdicts import COVER2_RANGE, figures
@@ -114,6 +115,8 @@ def score_span(spec: RunSpec, start: dt.date, test_days: int, models: tuple[str,
         "varma_ratio": f.varma_ratio, "varma_live": "no" if f.varma_withheld else "yes",
         "varma_met": f.varma_met if math.isfinite(f.varma) else math.nan,
         "varma_p": getattr(ev.artifact.models.get("varma"), "p", math.nan),
+        # the training day train calls unlike the others (commissioning/oddday.py), or ""
+        "odd_day": str(odd.day) if (odd := odd_training_day(v)) else "",
         "seconds": round(time.perf_counter() - t0, 1),
         # for the oracle (dropped before printing): |error| and σ of each scored estimate,
         # and its day's age: calendar days after the last training day

@@ -24,7 +24,9 @@ Per pair: the report's figures (the estimate against TRIV and the floor, ±2σ c
 σ / RMSE, CRPS / RMSE) and the coverage in the first ``--early-days`` days after training
 against the days after: whether σ holds up as the training days age. Then the share of pairs
 that meets each figure, as scripts/origins.py does for the rolling origins (its summary and
-oracle). Prints the pairs' table, the summary and, last, one JSON line.
+oracle), and how often ``train`` calls one training day unlike the others
+(analysis/commissioning/oddday.py) with the median coverage of those pairs and of the rest.
+Prints the pairs' table, the summary and, last, one JSON line.
 
     .venv/bin/python scripts/pairs.py [--house appliances] [--start DAY] [--train-days 5]
                                       [--every 1] [--score-from DAY] [--early-days 14]
@@ -173,7 +175,8 @@ def main() -> None:
         (f"cover, days 1–{a.early_days} %", "cover2_early_pct", 1),
         ("cover, later %", "cover2_late_pct", 1),
         ("nested cover % (training)", "nested_cover2_pct", 1),
-        ("mean σ / RMSE", "std_over_rmse", 2), ("CRPS / RMSE", "crps_over_rmse", 3)])
+        ("mean σ / RMSE", "std_over_rmse", 2), ("CRPS / RMSE", "crps_over_rmse", 3),
+        ("odd training day", "odd_day", None)])
     for r in rows:
         if "error" in r:
             print(f"{r['run']}: failed: {r['error']}")
@@ -184,6 +187,13 @@ def main() -> None:
         found = [r[key] for r in ok if math.isfinite(r[key])]
         # --score-from past the early days leaves none of them
         total[f"median_{key}"] = float(np.median(found)) if found else math.nan
+    # train's advice of one training day unlike the others: how often it fires, and the
+    # coverage of the pairs it fires on (the day kept, as training keeps it) and of the rest
+    odd = [r for r in ok if r["odd_day"]]
+    total["odd_day_pct"] = 100.0 * len(odd) / len(ok) if ok else math.nan
+    for name, group in (("odd", odd), ("even", [r for r in ok if not r["odd_day"]])):
+        found = [r["cover2_pct"] for r in group if math.isfinite(r["cover2_pct"])]
+        total[f"median_cover2_{name}_pct"] = float(np.median(found)) if found else math.nan
     print(f"{len(rows)} pairs of {a.house} from {start}, {a.train_days} training days "
           f"({'consecutive' if a.every == 1 else f'every {a.every} days'}), "
           f"{'every later day' if a.score_from is None else f'days from {a.score_from} on'} "
@@ -202,7 +212,10 @@ def main() -> None:
         ("median nested cover %", "median_nested_pct", 1),
         ("median σ / RMSE", "median_std_over_rmse", 2),
         ("mean CRPS / RMSE", "mean_crps_over_rmse", 3),
-        ("oracle σ factor", "oracle_factor", 2), ("oracle cover 90–98 %", "oracle_in_pct", 0)])
+        ("oracle σ factor", "oracle_factor", 2), ("oracle cover 90–98 %", "oracle_in_pct", 0),
+        ("odd training day %", "odd_day_pct", 0),
+        ("median cover, odd day %", "median_cover2_odd_pct", 1),
+        ("median cover, no odd day %", "median_cover2_even_pct", 1)])
 
 
 if __name__ == "__main__":

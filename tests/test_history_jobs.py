@@ -132,6 +132,18 @@ def test_train_from_the_store_picks_full_days_itself(sml_store: Path, tmp_path: 
     assert art["training"]["days"] == ["2012-03-14", "2012-03-15", "2012-03-17", "2012-03-18",
                                        "2012-03-19"]
     assert art["training"]["skipped"] == ["2012-03-16"]
+    # the first usable day left out too (a commissioning day): still recorded, still shown
+    rc = main(["--log-level", "WARNING", "train", "--store", str(sml_store), "--references",
+               REF, "--target", TARGET, "--quantity", "temperature", "--timezone",
+               "Europe/Madrid", "--models", "ref,triv", "--skip-days", "2012-03-14,2012-03-16",
+               "--out", str(out), "--report", str(tmp_path / "r")])
+    assert rc == 0
+    art = json.loads(out.read_text())
+    assert art["training"]["days"] == ["2012-03-15", "2012-03-17", "2012-03-18", "2012-03-19",
+                                       "2012-03-20"]
+    assert art["training"]["skipped"] == ["2012-03-14", "2012-03-16"]
+    page = (tmp_path / "r" / "a.html").read_text(encoding="utf-8")
+    assert page.count("left out (--skip-days)") == 2 * 2  # two days, a row per sensor
 
 
 def test_daemon_warm_starts_from_the_store_without_a_checkpoint(

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from daemon_support import sml_csv
-from pseudotwin.analysis.commissioning.oddday import grubbs_critical, odd_day
+from pseudotwin.analysis.commissioning.oddday import odd_day, odd_training_day
 from pseudotwin.cli import main
 
 DAY0 = dt.date(2012, 3, 14)
@@ -46,10 +46,30 @@ def test_ordinary_normal_days_are_flagged_one_time_in_twenty(n: int) -> None:
     assert 0.04 <= flagged / 4000 <= 0.06
 
 
-def test_for_five_days_the_threshold_is_a_third_of_the_spread() -> None:
-    # max|x − mean| / s = G ⇔ s_without / s = sqrt(((n − 1) − n G² / (n − 1)) / (n − 2))
-    g = grubbs_critical(5)
-    assert np.sqrt((4 - 5 * g * g / 4) / 3) == pytest.approx(0.33, abs=0.005)
+def test_for_five_days_a_day_is_flagged_exactly_below_0_328_of_the_spread() -> None:
+    # four ordinary days and a fifth moved ever further away: flagged once the spread without
+    # it falls below 0.328 of the spread with it (the docstring's figure), not before
+    others = [0.1, -0.1, 0.05, -0.02]
+    seen = set()
+    for x in np.linspace(0.0, 3.0, 600):
+        ratio = np.std(others, ddof=1) / np.std([*others, x], ddof=1)
+        if abs(ratio - 0.3283) < 0.001:
+            continue  # the edge itself, to three figures
+        flagged = odd_day(offsets([*others, float(x)])) is not None
+        assert flagged == (ratio < 0.3283), (x, ratio)
+        seen.add(flagged)
+    assert seen == {True, False}
+
+
+def test_an_artifact_without_daily_offsets_has_no_odd_day() -> None:
+    assert odd_training_day({}) is None  # saved before validation recorded them
+    assert odd_training_day({"offset_by_day": {}}) is None
+    saved = {"2012-03-14": 3.0, "2012-03-15": 0.1, "2012-03-16": -0.1, "2012-03-17": 0.0,
+             "2012-03-18": 0.05}
+    found = odd_training_day({"offset_by_day": saved})
+    assert found is not None and found.day == DAY0
+    # JSON writes NaN as null: a day without an offset is not a day
+    assert odd_training_day({"offset_by_day": {**saved, "2012-03-14": None}}) is None
 
 
 def co2_csv(folder: Path) -> Path:
@@ -87,7 +107,7 @@ def test_train_names_the_odd_co2_day_and_skip_days_leaves_it_out(
     assert saved["training"]["days"][0] == "2012-03-15" and len(saved["training"]["days"]) == 5
     assert saved["training"]["skipped"] == ["2012-03-14"]
     assert "2012-03-14" not in saved["validation"]["offset_by_day"]
-    assert "unlike the others: on 2012-03-14" not in out
+    assert "unlike the others" not in out  # the other days' offsets: +0.48 … +1.91 ppm
     assert "left out (--skip-days)" in (tmp_path / "r" / "skip.html").read_text(encoding="utf-8")
 
 
@@ -101,7 +121,7 @@ def test_skip_days_that_leave_too_few_days_say_so(tmp_path: Path,
                "--skip-days", skip, "--out", str(tmp_path / "x.json")])
     assert rc != 0
     err = capsys.readouterr().err
-    assert "not counting 3 skipped" in err and "5 needed" in err
+    assert "not counting 3 left out by --skip-days, 5 needed" in err
 
 
 def test_a_bad_skip_day_is_argparse_s_error(capsys: pytest.CaptureFixture[str]) -> None:
@@ -110,3 +130,20 @@ def test_a_bad_skip_day_is_argparse_s_error(capsys: pytest.CaptureFixture[str]) 
               "--quantity", "co2", "--skip-days", "2012-03-32", "--out", "x.json"])
     assert exc.value.code == 2
     assert "'2012-03-32' is not a date YYYY-MM-DD" in capsys.readouterr().err
+
+
+def test_a_skip_day_that_would_not_have_been_trained_on_is_named(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    history = co2_csv(tmp_path)
+    rc = main(["--log-level", "WARNING", "train", "--history", str(history),
+               "--references", "dining/co2", "--target", "room/co2", "--quantity", "co2",
+               "--train-start", str(DAY0), "--timezone", "Europe/Madrid", "--models", "ref,triv",
+               "--skip-days", "2012-03-16,2012-04-30", "--out", str(tmp_path / "x.json")])
+    assert rc == 0
+    warned = [r.getMessage() for r in caplog.records if "--skip-days" in r.getMessage()]
+    assert len(warned) == 1  # the twin's name first (core/twinlog.py)
+    assert "twin x: --skip-days 2012-04-30: would not have been a training day" in warned[0]
+    saved = json.loads((tmp_path / "x.json").read_text())
+    assert saved["training"]["skipped"] == ["2012-03-16"]
+    assert saved["training"]["days"] == ["2012-03-14", "2012-03-15", "2012-03-17",
+                                         "2012-03-18", "2012-03-19"]

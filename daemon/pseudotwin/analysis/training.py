@@ -74,30 +74,55 @@ def pick_training_days(
     start: dt.date,
     n_days: int = 5,
     extra: Sequence[str] = (),
-    skip_days: Collection[dt.date] = (),
 ) -> list[DayReadings]:
-    """The first ``n_days`` days on or after ``start`` on which every sensor reports, none of
-    ``skip_days`` (days the engineer leaves out, e.g. of commissioning work); the days also
-    carry the ``extra`` sensors' readings (covariates), whether or not they report."""
+    """The first ``n_days`` days on or after ``start`` on which every sensor reports; the
+    days also carry the ``extra`` sensors' readings (covariates), whether or not they report."""
+    return choose_training_days(df, sensors, hours, start, n_days, extra)[0]
+
+
+def choose_training_days(
+    df: pd.DataFrame,
+    sensors: Sequence[str],
+    hours: OperatingHours,
+    start: dt.date,
+    n_days: int = 5,
+    extra: Sequence[str] = (),
+    skip_days: Collection[dt.date] = (),
+) -> tuple[list[DayReadings], list[dt.date]]:
+    """:func:`pick_training_days`, none of ``skip_days`` (days the engineer leaves out, e.g.
+    of commissioning work). Returns the days and those of ``skip_days`` left out that would
+    have been training days (every sensor reports on them, and they come before the last
+    one chosen)."""
     if n_days < 1:
         raise DataError("--train-days must be at least 1")
-    days = [d for d in split_days(df, [*sensors, *extra], hours)
-            if d.day >= start and d.day not in skip_days]
+    days = [d for d in split_days(df, [*sensors, *extra], hours) if d.day >= start]
     usable = [d for d in days if day_is_usable(d, sensors, hours)]
+    left_out = [d.day for d in usable if d.day in skip_days]
+    usable = [d for d in usable if d.day not in skip_days]
     if len(usable) < n_days:
-        left_out = f" (not counting {len(skip_days)} skipped)" if skip_days else ""
         raise DataError(
-            f"too little training data: {len(usable)} day(s) from {start} on{left_out} have "
-            f"readings of all of {', '.join(sensors)} in operating hours, {n_days} needed"
+            f"too little training data: {len(usable)} day(s) from {start} on have readings of "
+            f"all of {', '.join(sensors)} in operating hours{_not_counting(left_out)}, "
+            f"{n_days} needed"
         )
     chosen = usable[:n_days]
-    skipped = [d.day for d in days if d.day <= chosen[-1].day and d not in chosen]
+    skipped = [d.day for d in days if d.day <= chosen[-1].day and d not in chosen
+               and d.day not in skip_days]
     if skipped:
         log.warning("training skips days without data of every sensor: %s",
                     ", ".join(map(str, skipped)))
-    if left := sorted(d for d in skip_days if start <= d <= chosen[-1].day):
-        log.info("training leaves out %s, as asked", ", ".join(map(str, left)))
-    return chosen
+    left_out = [d for d in left_out if d <= chosen[-1].day]
+    if left_out:
+        log.info("training leaves out %s, as asked", ", ".join(map(str, left_out)))
+    if unused := sorted(set(skip_days) - set(left_out)):
+        log.warning("--skip-days %s: would not have been a training day (before %s, after %s, "
+                    "or without data of every sensor): nothing left out",
+                    ", ".join(map(str, unused)), start, chosen[-1].day)
+    return chosen, left_out
+
+
+def _not_counting(left_out: Sequence[dt.date]) -> str:
+    return f", not counting {len(left_out)} left out by --skip-days" if left_out else ""
 
 
 def train_twin(
@@ -163,8 +188,8 @@ def train_validated(
     # The models learn from the points the live window will hold (one per sensor and
     # interval), so a chatty sensor's history trains the twin its interval means would.
     points = thin_history(df[df["sensor"].isin([*sensors, *spec.covariates])], policy)
-    days = pick_training_days(points, sensors, spec.hours, train_start, train_days,
-                              spec.covariates, skip_days)
+    days, left_out = choose_training_days(points, sensors, spec.hours, train_start,
+                                          train_days, spec.covariates, skip_days)
     # Judged on the training days only: a sensor broken some other week must not stop this.
     local_day, _ = spec.hours.day_and_hours(points["ts"])
     check_plausible(points[np.isin(local_day, [np.datetime64(d.day) for d in days])], spec)
@@ -245,8 +270,6 @@ def train_validated(
     failover = (train_failover(df, spec, days, fitted[primary].references_, options=opts,
                                thinning=policy)
                 if v is not None else {})
-    # what the engineer left out (--skip-days) where it would have been a training day
-    left_out = [str(d) for d in sorted(skip_days) if train_start <= d <= days[-1].day]
     return Artifact(
         spec, fitted, primary, calibration=calibration, validation=checked,
         envelope=envelope, failover=failover,
@@ -254,7 +277,8 @@ def train_validated(
             "start": str(days[0].day),
             "end": str(days[-1].day),
             "days": [str(d.day) for d in days],
-            **({"skipped": left_out} if left_out else {}),
+            # what the engineer left out (--skip-days) where it would have been a training day
+            **({"skipped": [str(d) for d in left_out]} if left_out else {}),
             "sensors": [*sensors, *spec.covariates],
             "thinning": policy.describe(),
         },
@@ -274,7 +298,9 @@ def history_from_store(
 
     Streams the store one day at a time from ``start`` (default: the first stored reading of
     the sensors) and keeps only the usable days and the day before each (its carry-over), so a
-    year of history is never loaded. Returns the frame and the first usable day.
+    year of history is never loaded. A usable day of ``skip_days`` is kept too, so that
+    training can say it left it out. Returns the frame and the first usable day, a left-out
+    one included.
     """
     span = store.reading_range(list(sensors))
     if span is None:
@@ -285,20 +311,22 @@ def history_from_store(
     last = hours.day_of(span[1])
     kept: list[pd.DataFrame] = []
     chosen: list[dt.date] = []
+    left_out: list[dt.date] = []
     prev: pd.DataFrame | None = None
     for day, frame in store.iter_days(list(sensors), first, last, hours.timezone):
         both = frame if prev is None else pd.concat([prev, frame], ignore_index=True)
-        if day not in skip_days and not frame.empty and day_is_usable(
-                split_days(both, list(sensors), hours, [day])[0], sensors, hours):
+        if not frame.empty and day_is_usable(split_days(both, list(sensors), hours, [day])[0],
+                                             sensors, hours):
             kept.append(both)
-            chosen.append(day)
+            (left_out if day in skip_days else chosen).append(day)
             if len(chosen) == n_days:
                 break
         prev = frame
     if len(chosen) < n_days:
         raise DataError(
             f"too little training data in the store: {len(chosen)} day(s) from {first} on "
-            f"have readings of all of {', '.join(sensors)} in operating hours, {n_days} needed"
+            f"have readings of all of {', '.join(sensors)} in operating hours"
+            f"{_not_counting(left_out)}, {n_days} needed"
         )
     df = pd.concat(kept, ignore_index=True).drop_duplicates(["sensor", "ts"])
-    return df.sort_values("ts", kind="stable").reset_index(drop=True), chosen[0]
+    return df.sort_values("ts", kind="stable").reset_index(drop=True), min([*chosen, *left_out])

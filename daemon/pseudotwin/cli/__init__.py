@@ -110,8 +110,9 @@ def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
     p.add_argument("--skip-days", type=_dates, default=frozenset(), metavar="DAY[,DAY...]",
                    help="days YYYY-MM-DD (local) never trained on, even when every sensor "
                         "reports on them: a day of commissioning work, the heating off, a window "
-                        "left open; the next usable days are taken instead. train says when "
-                        "one training day is unlike the others")
+                        "left open; the next usable days are taken instead (evaluate still "
+                        "scores such a day when it falls after the training days). train says "
+                        "when one training day is unlike the others")
     p.add_argument("--primary", choices=ALL_MODELS,
                    help="pin the model published as the twin's estimate (default: the candidate "
                         "that scores best with each training day held out in turn)")

@@ -7,9 +7,9 @@ such a day will come back is what no statistic of the training days can say and 
 may know, so the check only advises; training keeps the day, and σ stays as wide as it says.
 
 The test is Grubbs' (two-sided, α = 5 %) on the daily offsets: is the day farthest from the
-mean an outlier of a normal sample of that size? Under that null, ordinary days are flagged
-one time in twenty. For five days it flags a day exactly when the spread without it is below
-0.33 of the spread with it.
+mean an outlier of a normal sample of that size? Training days that are all ordinary (a normal
+sample) are flagged one time in twenty. For five days it flags a day exactly when the spread
+without it is below 0.328 of the spread with it.
 """
 
 from __future__ import annotations
