@@ -44,6 +44,21 @@ def test_a_live_desk_sensor_checks_sigma_too(desk_artifact: Path) -> None:
     assert "target" not in mon.snapshot(now + dt.timedelta(days=1))
 
 
+def test_the_monitor_says_how_old_the_training_days_are(desk_artifact: Path) -> None:
+    art = Artifact.load(desk_artifact)
+    end = dt.date.fromisoformat(art.training["end"])
+    mon = TwinMonitor("desk", Twin(art), "0" * 64, HOURS, {REF})
+    # a local day, not a UTC one: 00:30 in Madrid is still the evening before in UTC
+    late = HOURS.at(end + dt.timedelta(days=40), 0.5)
+    assert late.astimezone(dt.UTC).date() == end + dt.timedelta(days=39)
+    got = json.loads(monitor_payload(mon.snapshot(late)))["training"]
+    assert got == {"end": str(end), "age_days": 40}
+    # an artifact that does not say when it was trained: nothing made up
+    bare = Artifact(art.spec, art.models, art.primary)
+    assert TwinMonitor("desk", Twin(bare), "0" * 64, HOURS, {REF}).snapshot(late)["training"] \
+        is None
+
+
 def test_estimates_without_sigma_leave_the_sigma_figures_null(desk_artifact: Path) -> None:
     mon = TwinMonitor("desk", Twin(Artifact.load(desk_artifact)), "0" * 64, HOURS, {REF})
     mon.roll(DAY)

@@ -154,6 +154,12 @@ class DaemonMetrics(_Metrics):
         self.journal_bytes = Gauge(
             "pseudotwin_journal_size_bytes", "Size of the journal files in state_dir",
             registry=r)
+        self.training_end = Gauge(
+            "pseudotwin_training_end_timestamp_seconds",
+            "End (unix seconds, local midnight) of the last day the twin's artifact was "
+            "trained on: σ was measured before it, and months later it has measured too narrow; "
+            "alert on time() minus this to plan a check with the desk sensor", ["twin"],
+            registry=r)
         self.journal_healthy = Gauge(
             "pseudotwin_journal_healthy",
             "1 while the journal can be written (status online), 0 while degraded",

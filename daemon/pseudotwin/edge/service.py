@@ -179,6 +179,10 @@ class Service:
                            fallbacks=lambda: {t: rt.twin.fallbacks
                                               for t, rt in self.twins.items()})
         self.rejections.on_reject = self.metrics.rejected_one
+        for tid, rt in self.twins.items():
+            if (end := rt.twin.artifact.training_end) is not None:
+                self.metrics.training_end.labels(tid).set(
+                    self.hours.at(end + dt.timedelta(days=1), 0.0).timestamp())
         # Readings the journal could not take, in order, not acknowledged: retried every
         # JOURNAL_RETRY_SECONDS (bounded by the broker's in-flight window; see _hold).
         self._held: list[tuple[Reading, tuple[int, int, int]]] = []

@@ -73,6 +73,12 @@ class Artifact(OfTwin):
         return dict(self.validation.get("withheld", {}))
 
     @property
+    def training_end(self) -> dt.date | None:
+        """The last local day the models were trained on (None: not recorded)."""
+        end = self.training.get("end")
+        return dt.date.fromisoformat(end) if end else None
+
+    @property
     def published(self) -> list[str]:
         """The models the daemon runs and publishes: the primary and the baselines that
         validation did not withhold."""

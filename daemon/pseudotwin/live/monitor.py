@@ -68,6 +68,10 @@ class TwinMonitor:
             # Reference failover (live/failover.py): which references the estimate does without.
             "failover": ({"since": tw.failover_since, "lost": list(tw.failover_lost)}
                          if tw.failover_since is not None else None),
+            # σ was measured on the training days, and over months after them it has measured
+            # too narrow (README, Unseen pairs): how old they are, for whoever plans the check.
+            "training": ({"end": str(end), "age_days": (self.hours.day_of(now) - end).days}
+                         if (end := tw.artifact.training_end) is not None else None),
         }
         out.update(tw.numerics())
         if self.pairs:
