@@ -24,6 +24,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import textwrap
 import threading
 import time
 from pathlib import Path
@@ -36,6 +37,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 import pseudotwin  # noqa: F401
 from brokerutil import free_port, start_broker
+from pseudotwin.analysis.commissioning.oddday import odd_training_day
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.config import load_config
 from pseudotwin.core.horizon import OperatingHours
@@ -131,7 +133,11 @@ def main() -> int:
         with twin_context(tid):
             art = train_twin(df, spec, dt.date(2012, 3, 14), 5)
         art.save(out / "artifacts" / f"{tid}.json")
-        print(f"    {tid}: {', '.join(art.models)} in {time.perf_counter() - t0:.0f} s")
+        print(f"    {tid}: {', '.join(art.models)} in {time.perf_counter() - t0:.0f} s; "
+              f"validation chose {art.primary}")
+        if odd := odd_training_day(art.validation):  # what train says too: why σ is wide
+            print(textwrap.fill(odd.advice(art.unit), width=96, initial_indent="      ",
+                                subsequent_indent="      "))
 
     port = free_port()
     sensors = "".join(
