@@ -111,6 +111,17 @@ def test_train_names_the_odd_co2_day_and_skip_days_leaves_it_out(
     assert "left out (--skip-days)" in (tmp_path / "r" / "skip.html").read_text(encoding="utf-8")
 
 
+def test_evaluate_says_it_too(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    history = co2_csv(tmp_path)
+    rc = main(["--log-level", "WARNING", "evaluate", "--history", str(history),
+               "--references", "dining/co2", "--target", "room/co2", "--quantity", "co2",
+               "--train-start", str(DAY0), "--timezone", "Europe/Madrid", "--models", "ref,triv",
+               "--out", str(tmp_path / "ev")])
+    assert rc == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "training days: One training day is unlike the others: on 2012-03-14" in out
+
+
 def test_skip_days_that_leave_too_few_days_say_so(tmp_path: Path,
                                                   capsys: pytest.CaptureFixture[str]) -> None:
     history = co2_csv(tmp_path)

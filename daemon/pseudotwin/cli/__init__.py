@@ -305,6 +305,10 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
                       skip_days=a.skip_days)
     print(f"trained on {', '.join(ev.artifact.training['days'])}; "
           f"scored {ev.daily['day'].nunique()} day(s) in {ev.seconds:.1f} s")
+    from pseudotwin.analysis.commissioning.oddday import odd_training_day
+
+    if odd := odd_training_day(ev.artifact.validation):  # as train says it
+        print(f"training days: {odd.advice(ev.artifact.unit)}")
     print(summary_table(ev))
     print(f"written: {a.out}/daily.csv, monthly.csv, estimates.csv, artifact.json, plots")
     return 0
