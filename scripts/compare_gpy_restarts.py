@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 import pseudotwin  # noqa: F401
-from pseudotwin.analysis.training import pick_training_days
+from pseudotwin.analysis.training import choose_training_days
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.series import read_history
 from pseudotwin.core.spec import Quantity, TwinSpec
@@ -63,7 +63,7 @@ def main() -> int:
         convert("room-climate-a", None, Path(tmp) / "a.csv")
         df = read_history(Path(tmp) / "a.csv")
     hours = OperatingHours(timezone="Europe/Berlin")
-    days = pick_training_days(df, [*REFS, TARGET], hours, dt.date(2016, 3, 15), 5)
+    days, _ = choose_training_days(df, [*REFS, TARGET], hours, dt.date(2016, 3, 15), 5)
     ts = TrainingSet(TwinSpec(tuple(REFS), TARGET, Quantity.TEMPERATURE, hours), tuple(days))
 
     t0 = time.perf_counter()

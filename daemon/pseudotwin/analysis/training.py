@@ -67,19 +67,6 @@ def check_plausible(df: pd.DataFrame, spec: TwinSpec) -> None:
             )
 
 
-def pick_training_days(
-    df: pd.DataFrame,
-    sensors: Sequence[str],
-    hours: OperatingHours,
-    start: dt.date,
-    n_days: int = 5,
-    extra: Sequence[str] = (),
-) -> list[DayReadings]:
-    """The first ``n_days`` days on or after ``start`` on which every sensor reports; the
-    days also carry the ``extra`` sensors' readings (covariates), whether or not they report."""
-    return choose_training_days(df, sensors, hours, start, n_days, extra)[0]
-
-
 def choose_training_days(
     df: pd.DataFrame,
     sensors: Sequence[str],
@@ -89,10 +76,11 @@ def choose_training_days(
     extra: Sequence[str] = (),
     skip_days: Collection[dt.date] = (),
 ) -> tuple[list[DayReadings], list[dt.date]]:
-    """:func:`pick_training_days`, none of ``skip_days`` (days the engineer leaves out, e.g.
-    of commissioning work). Returns the days and those of ``skip_days`` left out that would
-    have been training days (every sensor reports on them, and they come before the last
-    one chosen)."""
+    """The first ``n_days`` days on or after ``start`` on which every sensor reports, none of
+    ``skip_days`` (days the engineer leaves out, e.g. of commissioning work); the days also
+    carry the ``extra`` sensors' readings (covariates), whether or not they report. Returns
+    the days and those of ``skip_days`` left out that would have been training days (every
+    sensor reports on them, and they come before the last one chosen)."""
     if n_days < 1:
         raise DataError("--train-days must be at least 1")
     days = [d for d in split_days(df, [*sensors, *extra], hours) if d.day >= start]
