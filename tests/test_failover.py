@@ -275,7 +275,10 @@ def test_daemon_fails_over_on_a_silenced_reference_like_evaluate(
     silent_from = HOURS.at(TEST_DAY, 10.0)
     day = history[(history["ts"] >= start) & (history["ts"] < end)]
     day = day[~((day["sensor"] == R2) & (day["ts"] > silent_from))]
-    speed = 3000.0
+    # stale_after (30 min) is 1.8 s of real time here: a pause of the whole test process (the
+    # replay and the daemon share it) must not make R2 look stale before it is silenced. At
+    # 3000× (0.6 s) the full suite once saw R2 stale at 08:00; alone it never did.
+    speed = 1000.0
     viewer = Viewer(mosquitto.port)
     monitor = Viewer(mosquitto.port, "pt/desk/monitor")
     svc = Service(cfg, clock=ReplayClock(start, speed))
