@@ -30,7 +30,7 @@ import numpy as np
 import pandas as pd
 
 import pseudotwin  # noqa: F401  (one BLAS thread, before numpy is used)
-from pseudotwin.analysis.evaluate import daily_scores
+from pseudotwin.analysis.evaluate import daily_scores, first_scored_day
 from pseudotwin.analysis.replay import replay_estimates
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.core.horizon import OperatingHours
@@ -117,7 +117,7 @@ def main() -> int:
         est_ms.append((time.perf_counter_ns() - c0) / 1e6)
     nums = twin.numerics()
 
-    start = dt.date.fromisoformat(art.training["end"]) + dt.timedelta(days=1)
+    start = first_scored_day(art)
     # Alternating repeats, medians: this machine's CPU times vary by tens of percent from
     # run to run, and a single pair made the raw/1-minute ratio a draw.
     cpu: dict[str, list[float]] = {"minute": [], "raw": []}

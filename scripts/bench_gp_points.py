@@ -17,7 +17,6 @@ Usage: .venv/bin/python scripts/bench_gp_points.py [--intervals 0,5] [--runs roo
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import sys
 import tempfile
@@ -25,7 +24,7 @@ import time
 from pathlib import Path
 
 import pseudotwin  # noqa: F401  (one BLAS thread, before numpy does any work)
-from pseudotwin.analysis.evaluate import daily_scores
+from pseudotwin.analysis.evaluate import daily_scores, first_scored_day
 from pseudotwin.analysis.replay import replay_estimates
 from pseudotwin.analysis.report.runs import RUNS
 from pseudotwin.analysis.training import train_twin
@@ -56,7 +55,7 @@ def main() -> int:
             path = Path(tmp) / f"{name}.json"
             art.save(path)
             art = Artifact.load(path)
-            start = dt.date.fromisoformat(art.training["end"]) + dt.timedelta(days=1)
+            start = first_scored_day(art)
             feeds = [("1-min", hist)]
             if a.raw and run.dataset == "room-climate-a":
                 feeds.append(("raw", load(run.dataset, raw=True)))

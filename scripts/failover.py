@@ -31,7 +31,7 @@ import numpy as np
 import pandas as pd
 
 import pseudotwin  # noqa: F401  (one BLAS thread, before numpy does any work)
-from pseudotwin.analysis.evaluate import ESTIMATE, daily_scores, replay_estimates
+from pseudotwin.analysis.evaluate import ESTIMATE, daily_scores, first_scored_day, replay_estimates
 from pseudotwin.analysis.report.runs import RUNS
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.history.convert import load
@@ -64,7 +64,7 @@ def _mean_nrmse(rows: pd.DataFrame, art: Artifact) -> float:
 def run(spec: Any, models: tuple[str, ...], history: pd.DataFrame) -> list[dict[str, Any]]:
     t0 = time.perf_counter()
     art = train_twin(history, spec.twin, spec.train_start, spec.train_days, models)
-    start = dt.date.fromisoformat(art.training["end"]) + dt.timedelta(days=1)
+    start = first_scored_day(art)
     days, _ = art.hours.day_and_hours(history["ts"])
     full, total = _published(art, history, start, STALE_AFTER)
     full_nrmse = _mean_nrmse(full, art)

@@ -55,7 +55,9 @@ class Evaluation:
 
 def first_scored_day(artifact: Artifact) -> dt.date:
     """The first day after ``artifact``'s training days, where scoring begins."""
-    return dt.date.fromisoformat(artifact.training["end"]) + dt.timedelta(days=1)
+    if (end := artifact.training_end) is None:
+        raise DataError("the artifact does not say when its training days end")
+    return end + dt.timedelta(days=1)
 
 
 DAILY_COLUMNS = ("day", "model", "nrmse_pct", "dmax_pct", "pearson_r", "n",

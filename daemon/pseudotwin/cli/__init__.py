@@ -29,6 +29,7 @@ if TYPE_CHECKING:
     from pseudotwin.core.thinning import Thinning
     from pseudotwin.edge.recorder import Recorder
     from pseudotwin.edge.service import Service
+    from pseudotwin.live.artifact import Artifact
 
 log = logging.getLogger("pseudotwin")
 
@@ -237,6 +238,14 @@ def _train_thinning(a: argparse.Namespace) -> Thinning:
     return Thinning()
 
 
+def _say_odd_day(art: Artifact) -> None:
+    """train's and evaluate's line on a training day unlike the others, if there is one."""
+    from pseudotwin.analysis.commissioning.oddday import odd_training_day
+
+    if odd := odd_training_day(art.validation):
+        print(f"training days: {odd.advice(art.unit)}")
+
+
 def cmd_train(a: argparse.Namespace) -> int:
     from pseudotwin.analysis.training import train_validated
     from pseudotwin.core.twinlog import twin_context
@@ -255,10 +264,7 @@ def cmd_train(a: argparse.Namespace) -> int:
     # The commissioning report's verdict on the data, here too: a thin training day makes
     # every score below rest on less than it seems to.
     print(f"training data: {training_data(df, art, start).verdict()}")
-    from pseudotwin.analysis.commissioning.oddday import odd_training_day
-
-    if odd := odd_training_day(art.validation):
-        print(f"training days: {odd.advice(art.unit)}")
+    _say_odd_day(art)
     for kind, m in art.models.items():
         if summary := m.fit_summary():
             print(f"  {kind}: {summary}")
@@ -305,10 +311,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
                       skip_days=a.skip_days)
     print(f"trained on {', '.join(ev.artifact.training['days'])}; "
           f"scored {ev.daily['day'].nunique()} day(s) in {ev.seconds:.1f} s")
-    from pseudotwin.analysis.commissioning.oddday import odd_training_day
-
-    if odd := odd_training_day(ev.artifact.validation):  # as train says it
-        print(f"training days: {odd.advice(ev.artifact.unit)}")
+    _say_odd_day(ev.artifact)
     print(summary_table(ev))
     print(f"written: {a.out}/daily.csv, monthly.csv, estimates.csv, artifact.json, plots")
     return 0
