@@ -74,6 +74,7 @@ ORIGINAL = {
 
 
 Converted = dict[str, tuple[cv.ConvertSummary, pd.DataFrame]]
+SHARED = [name for name, spec in cv.DATASETS.items() if spec.shared]
 
 
 def utc(text: str) -> pd.Timestamp:
@@ -93,7 +94,7 @@ def converted(tmp_path_factory: pytest.TempPathFactory) -> Converted:
         pytest.skip(f"shared data not found at {ROOT}")
     out_dir = tmp_path_factory.mktemp("converted")
     result = {}
-    for name in cv.DATASETS:
+    for name in SHARED:
         summary = cv.convert(name, None, out_dir / f"{name}.csv")
         result[name] = (summary, read_history(summary.out))
     return result
@@ -133,7 +134,7 @@ def test_env_var_overrides_root(monkeypatch: pytest.MonkeyPatch, tmp_path: Path)
 
 
 @needs_data
-@pytest.mark.parametrize("name", list(cv.DATASETS))
+@pytest.mark.parametrize("name", SHARED)
 def test_canonical_shape_and_round_trip(
     converted: Converted, name: str
 ) -> None:
@@ -160,7 +161,7 @@ def test_canonical_shape_and_round_trip(
 
 
 @needs_data
-@pytest.mark.parametrize("name", list(cv.DATASETS))
+@pytest.mark.parametrize("name", SHARED)
 def test_original_sensors_unchanged(name: str) -> None:
     """Keeping more channels adds sensors only: the original ones keep their ids, rows and
     values, and come first in the dataset's listing."""
@@ -175,7 +176,7 @@ def test_original_sensors_unchanged(name: str) -> None:
     assert set(cv.DATASETS[name].sensors[: len(original)]) == set(original)
 
 
-@pytest.mark.parametrize("name", list(cv.DATASETS))
+@pytest.mark.parametrize("name", SHARED)
 def test_every_sensor_has_a_unit(name: str) -> None:
     spec = cv.DATASETS[name]
     assert len(spec.sensors) == len(set(spec.sensors)) > len(ORIGINAL[name])
@@ -711,6 +712,28 @@ def test_room_climate_synthetic_minute(tmp_path: Path) -> None:
     assert at(raw, "B1/light2", "2016-03-15 08:47:04") == 520.0
 
 
+def test_room_climate_location_c(tmp_path: Path) -> None:
+    """Location C (not in the shared data) has five nodes and the same file format; without
+    --source the error says where its files come from."""
+    with pytest.raises(DataError, match=r"room-climate-c is not part of the shared data: give "
+                                        r"--source DIR \(the datasets-location_C folder"):
+        cv.load("room-climate-c")
+    assert not cv.DATASETS["room-climate-c"].shared and cv.DATASETS["room-climate-b"].shared
+    rows = [  # EID, AbsT, RelT, NID, Temp, RelH, L1, L2, Occ, Act, Door, Win; 2017-01-25
+        (k, 1485353109917 + 700 * k, 1, k, 22.0 + k / 10, 40.0, 150.0, 550.0, 0, 0, 0, 0)
+        for k in (1, 2, 3, 4, 5)
+    ]
+    path = tmp_path / "room_climate-location_C-measurement01.csv"
+    path.write_text("".join(", ".join(map(str, r)) + "\n" for r in rows))
+    df = cv.load("room-climate-c", tmp_path)
+    assert {f"C{k}/temp" for k in range(1, 6)} <= set(df["sensor"])
+    assert at(df, "C5/temp", "2017-01-25 14:05") == pytest.approx(22.5)
+    assert set(df["sensor"]) <= set(cv.DATASETS["room-climate-c"].sensors)
+    # Location A's converter on C's files names the node it does not know.
+    with pytest.raises(DataError, match=re.escape("node id(s) 5 are not nodes of location A")):
+        cv.load("room-climate-a", tmp_path)
+
+
 def test_unknown_dataset_api() -> None:
     with pytest.raises(ConfigError, match="unknown dataset 'nope'"):
         cv.load("nope")
@@ -743,6 +766,13 @@ def test_main_converts(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
         "sml2010: 70329 rows, 17 sensors (dining/temp, room/temp, dining/co2, room/co2, "
         "outdoor/temp, dining/humidity")
     assert len(read_history(out)) == 70329
+
+
+def test_main_dataset_outside_shared(tmp_path: Path,
+                                     capsys: pytest.CaptureFixture[str]) -> None:
+    assert cc.main(["room-climate-c", "--out", str(tmp_path / "c.csv")]) == 2
+    assert "give --source DIR" in one_error_line(capsys)
+    assert not (tmp_path / "c.csv").exists()
 
 
 def test_main_missing_source(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

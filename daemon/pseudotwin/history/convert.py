@@ -45,7 +45,8 @@ teen, parents for i = 1..9)
   weather/wind                  Windspeed                               m/s
   weather/visibility            Visibility                              km
   weather/dewpoint              Tdewpoint                               °C
-room-climate-a, -b (X = A or B, k = node 1..4 or 1..3; 1-min means, ground truth: maxima)
+room-climate-a, -b, -c (X = A, B or C, k = node 1..4, 1..3 or 1..5; 1-min means, ground
+truth: maxima; location C is not in the shared data, ``--source`` its folder)
   Xk/temp                       Temp                                    °C
   Xk/humidity                   RelH                                    %
   Xk/light1, Xk/light2          L1, L2                                  a.u.
@@ -149,6 +150,13 @@ class Dataset:
     units: Mapping[str, str]
     read: Callable[[Path], pd.DataFrame]
     read_raw: Callable[[Path], pd.DataFrame] | None = None  # every sample, where read averages
+    # Where the files come from when the shared data does not hold them (``--source`` needed).
+    elsewhere: str = ""
+
+    @property
+    def shared(self) -> bool:
+        """The shared data holds this dataset (``convert`` needs no ``--source``)."""
+        return not self.elsewhere
 
     @property
     def sensors(self) -> tuple[str, ...]:
@@ -404,7 +412,8 @@ def read_appliances(source: Path) -> pd.DataFrame:
 
 _RC_NCOLS = 12
 _RC_ABST, _RC_NID = 1, 3
-_RC_NODES = {"A": (1, 2, 3, 4), "B": (1, 2, 3)}
+# Location C (5 nodes, early 2017) is not in the shared data; its files have the same format.
+_RC_NODES = {"A": (1, 2, 3, 4), "B": (1, 2, 3), "C": (1, 2, 3, 4, 5)}
 # Per node, averaged over the bucket: output name (``A1/humidity``) → (column, its README
 # name, unit). L1/L2 are documented as "Light Sensor (Wavelength) [nm]", but their values
 # rise and fall with the room's light; they are uncalibrated light levels, hence "a.u.".
@@ -537,6 +546,16 @@ DATASETS: dict[str, Dataset] = {
         partial(read_room_climate, location="B"),
         partial(read_room_climate_raw, location="B"),
     ),
+    "room-climate-c": Dataset(
+        "room-climate-c",
+        "room_climate/datasets-location_C",
+        "FAU location C 2017: 5 temp/humidity/light nodes in one room; occupancy, door, "
+        "window (1-min means); not in the shared data: --source DIR",
+        _room_climate_units("C"),
+        partial(read_room_climate, location="C"),
+        partial(read_room_climate_raw, location="C"),
+        elsewhere="the datasets-location_C folder of github.com/IoTsec/Room-Climate-Datasets",
+    ),
     "appliances": Dataset(
         "appliances",
         "appliances",
@@ -566,6 +585,9 @@ def load(dataset: str, source: Path | None = None, raw: bool = False) -> pd.Data
     """Convert ``dataset`` into a canonical frame without writing it; ``raw``: every sample
     where the converter would average."""
     spec = find_dataset(dataset)
+    if source is None and not spec.shared:
+        raise DataError(f"{dataset} is not part of the shared data: give --source DIR "
+                        f"({spec.elsewhere})")
     src = Path(source) if source is not None else shared_data_root() / spec.folder
     if not src.exists():
         raise DataError(f"{src}: no such file or directory")
