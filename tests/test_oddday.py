@@ -29,6 +29,8 @@ def test_a_day_far_from_the_others_is_named_with_the_spread_without_it() -> None
     assert found.spread_without == pytest.approx(np.std([0.1, -0.1, 0.0, 0.05], ddof=1))
     text = found.advice("°C")
     assert "on 2012-03-16" in text and "--skip-days 2012-03-16" in text and "+3.00 °C" in text
+    assert "+3.00 °C from the reference on average" in text
+    assert "+3.00 °C from the mean of the 2 references on average" in found.advice("°C", 2)
 
 
 def test_ordinary_alike_and_too_few_days_are_not_flagged() -> None:

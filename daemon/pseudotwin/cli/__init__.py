@@ -243,7 +243,7 @@ def _say_odd_day(art: Artifact) -> None:
     from pseudotwin.analysis.commissioning.oddday import odd_training_day
 
     if odd := odd_training_day(art.validation):
-        print(f"training days: {odd.advice(art.unit)}")
+        print(f"training days: {odd.advice(art.unit, len(art.references))}")
 
 
 def cmd_train(a: argparse.Namespace) -> int:

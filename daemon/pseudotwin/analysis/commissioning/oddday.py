@@ -46,11 +46,13 @@ class OddDay:
     spread: float
     spread_without: float
 
-    def advice(self, unit: str) -> str:
-        """What the engineer can do about it, in two sentences and a choice."""
+    def advice(self, unit: str, references: int = 1) -> str:
+        """What the engineer can do about it, in two sentences and a choice; ``references``:
+        how many references the twin has (the offset is from their mean)."""
+        base = "the reference" if references == 1 else f"the mean of the {references} references"
         return (
             f"One training day is unlike the others: on {self.day} the desk sensor read "
-            f"{self.offset:+.2f} {unit} from the reference on average, on the other days "
+            f"{self.offset:+.2f} {unit} from {base} on average, on the other days "
             f"{min(self.others):+.2f} to {max(self.others):+.2f} {unit} (Grubbs' test, "
             f"{100 * ALPHA:.0f} %). The spread of the daily offset, the floor of every model's "
             f"day-level σ, is {self.spread:.2f} {unit} with it and {self.spread_without:.2f} "
