@@ -108,13 +108,35 @@ def _frame(values: dict[str, np.ndarray]) -> pd.DataFrame:
 
 def test_plausibility_tolerates_a_few_glitches_but_names_the_bad_sensor() -> None:
     spec = TwinSpec(("a/temp",), "desk/temp", Quantity.TEMPERATURE, OperatingHours())
-    ok = np.full(1000, 21.0)
+    ok = 21.0 + np.sin(np.arange(1000) / 50)
     glitchy = ok.copy()
     glitchy[:5] = 85.0  # a DS18B20's power-on value, 0.5 % of the readings
     check_plausible(_frame({"a/temp": glitchy, "desk/temp": ok}), spec)
     fahrenheit = np.full(1000, 120.0)
     with pytest.raises(DataError, match="sensor desk/temp: .* temperature .*median 120 °C"):
         check_plausible(_frame({"a/temp": ok, "desk/temp": fahrenheit}), spec)
+
+
+def test_train_refuses_a_stuck_sensor(sml: Path, tmp_path: Path, capsys) -> None:
+    """A reference that reads the same on every training day (stuck or disconnected) is
+    refused by name; it moving again on a later day does not hide it."""
+    df = pd.read_csv(sml)
+    stuck = (df["sensor"] == "dining/temp") & (df["ts"] < "2012-03-19")
+    df.loc[stuck, "value"] = 20.0
+    history = tmp_path / "stuck.csv"
+    df.to_csv(history, index=False)
+    out = tmp_path / "a.json"
+    rc = run("train", "--history", str(history), "--references", "dining/temp", "--target",
+             "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
+             "--timezone", "Europe/Madrid", "--models", "triv", "--out", str(out))
+    err = capsys.readouterr().err
+    assert rc == 2 and "Traceback" not in err
+    assert "sensor dining/temp: the same reading (20 °C) throughout the training days" in err
+    assert not out.exists()
+    # the same days with the sensor moving train as before
+    assert run("train", "--history", str(sml), "--references", "dining/temp", "--target",
+               "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
+               "--timezone", "Europe/Madrid", "--models", "triv", "--out", str(out)) == 0
 
 
 @pytest.mark.parametrize(

@@ -51,7 +51,9 @@ MAX_IMPLAUSIBLE_SHARE = 0.01  # a few glitches (a DS18B20's 85 °C) are not a mi
 
 def check_plausible(df: pd.DataFrame, spec: TwinSpec) -> None:
     """DataError naming the sensor and the quantity when a reference's or the target's
-    readings do not look like that quantity (CO2 data trained as temperature writes °C)."""
+    readings do not look like that quantity (CO2 data trained as temperature writes °C), or
+    never change (a stuck sensor: nothing about its coupling to the others can be learnt, and
+    every live reading that moves would lie outside what training saw)."""
     lo, hi = PLAUSIBLE[spec.quantity]
     for s in spec.sensors:
         v = df.loc[df["sensor"] == s, "value"].to_numpy(dtype=float)
@@ -64,6 +66,12 @@ def check_plausible(df: pd.DataFrame, spec: TwinSpec) -> None:
                 f"sensor {s}: readings implausible for the quantity {spec.quantity.value} "
                 f"(median {med:.4g} {spec.unit}, {100 * outside:.0f} % outside {lo:g} … {hi:g} "
                 f"{spec.unit}); is it another quantity's sensor, or the wrong --quantity?"
+            )
+        if len(v) > 1 and v.min() == v.max():
+            raise DataError(
+                f"sensor {s}: the same reading ({v[0]:.6g} {spec.unit}) throughout the "
+                f"training days; is it stuck or disconnected? Nothing can be learnt from it: "
+                f"train on other days (--train-start, --skip-days) or with another sensor"
             )
 
 
