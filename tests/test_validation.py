@@ -208,3 +208,15 @@ def test_train_prints_the_validation_table_and_the_reason(tmp_path, capsys) -> N
     assert f"{primary:<12}" in printed and "primary" in printed
     assert "lowest held-out daily NRMSE" in printed or "simpler" in printed
 
+
+
+def test_a_target_copying_its_reference_withholds_no_baseline_for_rounding_noise() -> None:
+    """TRIV and VARMA both score 0.00 % when the desk reads what the reference reads: VARMA
+    stays published (it was withheld as '0.00 % is more than 1.5× TRIV's 0.00 %')."""
+    rng = np.random.default_rng(3)
+    ref = 21.0 + _smooth(rng, 6, 52, 0.6, 8)
+    art = train_twin(_frame(ref, ref.copy(), 6), SPEC, DAY0, 5, ("ref", "triv", "varma"))
+    withheld = art.validation["withheld"]
+    assert "varma" not in withheld, withheld
+    scores = art.validation["scores"]
+    assert scores["triv"]["nrmse_pct"] < 0.005 and scores["varma"]["nrmse_pct"] < 0.005
