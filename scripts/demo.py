@@ -136,8 +136,8 @@ def main() -> int:
         print(f"    {tid}: {', '.join(art.models)} in {time.perf_counter() - t0:.0f} s; "
               f"validation chose {art.primary}")
         if odd := odd_training_day(art.validation):  # what train says too: why σ is wide
-            print(textwrap.fill(odd.advice(art.unit, len(art.references)), width=96, initial_indent="      ",
-                                subsequent_indent="      "))
+            print(textwrap.fill(odd.advice(art.unit, len(art.references)), width=96,
+                                initial_indent="      ", subsequent_indent="      "))
 
     port = free_port()
     sensors = "".join(

@@ -98,16 +98,21 @@ def test_collapsed_logs_each_repeated_warning_once_with_its_count(
     caplog: pytest.LogCaptureFixture
 ) -> None:
     lg = logging.getLogger("pseudotwin.test.fold")
-    with caplog.at_level(logging.INFO), twin_context("t-1"), collapsed([lg.name], "3 folds"):
-        for cond in (1.5e6, 3.2e6, 4.1e6):
+    with caplog.at_level(logging.DEBUG), twin_context("t-1"), collapsed([lg.name], "3 folds"):
+        for p, cond in enumerate((1.5e6, 3.2e6, 4.1e6), start=1):
             lg.warning("condition number %.2e of a training block approaches 1e6", cond)
-            lg.info("fold done")  # not a warning: passes at once
+            lg.info("VAR(%d) fitted", p)  # a fit message per fold: collapsed too
+            lg.debug("fold done")  # asked for: every line, at once
+            lg.error("fold failed")  # an error passes at once
         lg.warning("another warning")
-    assert [r.getMessage() for r in caplog.records] == [
-        "twin t-1: fold done", "twin t-1: fold done", "twin t-1: fold done",
-        "twin t-1: condition number 1.50e+06 of a training block approaches 1e6 "
-        "(and 2 more like it during 3 folds)",
-        "twin t-1: another warning",
+        lg.warning("VAR(%d) fitted", 1)  # the shape of an info, but a warning: its own line
+    assert [(r.levelno, r.getMessage()) for r in caplog.records] == [
+        *[(logging.DEBUG, "twin t-1: fold done"), (logging.ERROR, "twin t-1: fold failed")] * 3,
+        (logging.WARNING, "twin t-1: condition number 1.50e+06 of a training block approaches "
+                          "1e6 (and 2 more like it during 3 folds)"),
+        (logging.INFO, "twin t-1: VAR(1) fitted (and 2 more like it during 3 folds)"),
+        (logging.WARNING, "twin t-1: another warning"),
+        (logging.WARNING, "twin t-1: VAR(1) fitted"),
     ]
 
 

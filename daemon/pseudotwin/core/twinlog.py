@@ -62,17 +62,18 @@ _NUMBER = re.compile(r"[-+]?\d[\d.]*(?:e[-+]?\d+)?")
 
 
 class _Collector(logging.Filter):
-    """Holds back WARNING records; one per message shape (numbers aside) with its count."""
+    """Holds back INFO and WARNING records; one per level and message shape (numbers aside)
+    with its count. Errors pass at once, and so does DEBUG (asked for, every line)."""
 
     def __init__(self) -> None:
         super().__init__()
-        self.first: dict[tuple[str, str], logging.LogRecord] = {}
-        self.count: dict[tuple[str, str], int] = {}
+        self.first: dict[tuple[str, int, str], logging.LogRecord] = {}
+        self.count: dict[tuple[str, int, str], int] = {}
 
     def filter(self, record: logging.LogRecord) -> bool:
-        if record.levelno != logging.WARNING:
+        if record.levelno not in (logging.INFO, logging.WARNING):
             return True
-        key = (record.name, _NUMBER.sub("#", record.getMessage()))
+        key = (record.name, record.levelno, _NUMBER.sub("#", record.getMessage()))
         self.first.setdefault(key, record)
         self.count[key] = self.count.get(key, 0) + 1
         return False
@@ -80,9 +81,9 @@ class _Collector(logging.Filter):
 
 @contextmanager
 def collapsed(logger_names: Sequence[str], during: str) -> Iterator[None]:
-    """Warnings of ``logger_names`` are held back and logged at the end, once per message
-    shape (numbers aside): the first of each, with ``(and N more like it during <during>)``
-    when it repeated."""
+    """Info and warnings of ``logger_names`` are held back and logged at the end, once per
+    level and message shape (numbers aside): the first of each, with ``(and N more like it
+    during <during>)`` when it repeated (a model's fit message per fold is noise)."""
     collector = _Collector()
     loggers = [logging.getLogger(n) for n in logger_names]
     for lg in loggers:

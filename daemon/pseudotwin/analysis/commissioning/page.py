@@ -143,7 +143,8 @@ def validation_section(p: Page) -> str:
         "twin code. CRPS and ±2σ coverage score each held-out day with a σ calibrated on "
         "the other days only (nested), so they check σ on a day it has not seen.</p>"
         + verdict(Level.GOOD, f"Primary: {a.primary}.", str(v.get("reason", "")))
-        + (verdict(Level.THIN, "One training day is unlike the others.", odd.advice(a.unit, len(a.references)))
+        + (verdict(Level.THIN, "One training day is unlike the others.",
+                   odd.advice(a.unit, len(a.references)))
            if (odd := odd_training_day(v)) else "")
         + table("validation", ["model", "held-out daily NRMSE %", f"CRPS {a.unit}",
                                "±2σ coverage %", "days", "note"], rows, classes,
