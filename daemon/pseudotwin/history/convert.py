@@ -515,6 +515,20 @@ def read_room_climate(source: Path, location: str) -> pd.DataFrame:
 
 # ---------------------------------------------------------------------------- registry
 
+
+def _room_climate_dataset(location: str, about: str, elsewhere: str = "") -> Dataset:
+    """The converter of one Room Climate location (``about``: its nodes and room)."""
+    return Dataset(
+        f"room-climate-{location.lower()}",
+        f"room_climate/datasets-location_{location}",
+        f"{about}; occupancy, door, window (1-min means)"
+        + ("; not in the shared data: --source DIR" if elsewhere else ""),
+        _room_climate_units(location),
+        partial(read_room_climate, location=location),
+        partial(read_room_climate_raw, location=location),
+        elsewhere=elsewhere,
+    )
+
 def _channel_units(channels: Sequence[Channel]) -> dict[str, str]:
     return {ch.sensor: ch.unit for ch in channels}
 
@@ -528,34 +542,13 @@ DATASETS: dict[str, Dataset] = {
         _channel_units(_SML_CHANNELS),
         read_sml2010,
     ),
-    "room-climate-a": Dataset(
-        "room-climate-a",
-        "room_climate/datasets-location_A",
-        "FAU office A 2016: 4 temp/humidity/light nodes in one room, A4 above the desk; "
-        "occupancy, door, window (1-min means)",
-        _room_climate_units("A"),
-        partial(read_room_climate, location="A"),
-        partial(read_room_climate_raw, location="A"),
-    ),
-    "room-climate-b": Dataset(
-        "room-climate-b",
-        "room_climate/datasets-location_B",
-        "FAU office B 2016: 3 temp/humidity/light nodes in one room, B2 between the desks; "
-        "occupancy, door, window (1-min means)",
-        _room_climate_units("B"),
-        partial(read_room_climate, location="B"),
-        partial(read_room_climate_raw, location="B"),
-    ),
-    "room-climate-c": Dataset(
-        "room-climate-c",
-        "room_climate/datasets-location_C",
-        "FAU location C 2017: 5 temp/humidity/light nodes in one room; occupancy, door, "
-        "window (1-min means); not in the shared data: --source DIR",
-        _room_climate_units("C"),
-        partial(read_room_climate, location="C"),
-        partial(read_room_climate_raw, location="C"),
-        elsewhere="the datasets-location_C folder of github.com/IoTsec/Room-Climate-Datasets",
-    ),
+    "room-climate-a": _room_climate_dataset(
+        "A", "FAU office A 2016: 4 temp/humidity/light nodes in one room, A4 above the desk"),
+    "room-climate-b": _room_climate_dataset(
+        "B", "FAU office B 2016: 3 temp/humidity/light nodes in one room, B2 between the desks"),
+    "room-climate-c": _room_climate_dataset(
+        "C", "FAU location C 2017: 5 temp/humidity/light nodes in one room",
+        elsewhere="the datasets-location_C folder of github.com/IoTsec/Room-Climate-Datasets"),
     "appliances": Dataset(
         "appliances",
         "appliances",
