@@ -46,6 +46,7 @@ def day_is_usable(day: DayReadings, sensors: Sequence[str], hours: OperatingHour
 
 PLAUSIBLE = {Quantity.TEMPERATURE: (-40.0, 80.0), Quantity.CO2: (0.0, 10000.0)}
 MIN_MEDIAN = {Quantity.CO2: 100.0}  # no air holds less CO2 (outdoors ≈ 420 ppm)
+STUCK_TOLERANCE = 1e-9  # relative: one value, up to float rounding
 MAX_IMPLAUSIBLE_SHARE = 0.01  # a few glitches (a DS18B20's 85 °C) are not a mislabelled series
 
 
@@ -67,11 +68,17 @@ def check_plausible(df: pd.DataFrame, spec: TwinSpec) -> None:
                 f"(median {med:.4g} {spec.unit}, {100 * outside:.0f} % outside {lo:g} … {hi:g} "
                 f"{spec.unit}); is it another quantity's sensor, or the wrong --quantity?"
             )
-        if len(v) > 1 and v.min() == v.max():
+        # Judged on the 1st–99th percentiles, as the range above tolerates 1 % of glitches;
+        # with a tolerance because points are minute means, whose sums of one repeated value
+        # differ in the last bits.
+        q_lo, q_hi = np.quantile(v, [MAX_IMPLAUSIBLE_SHARE, 1 - MAX_IMPLAUSIBLE_SHARE])
+        if len(v) > 1 and q_hi - q_lo <= STUCK_TOLERANCE * max(1.0, abs(med)):
+            share = float(np.mean(np.abs(v - med) <= STUCK_TOLERANCE * max(1.0, abs(med))))
             raise DataError(
-                f"sensor {s}: the same reading ({v[0]:.6g} {spec.unit}) throughout the "
-                f"training days; is it stuck or disconnected? Nothing can be learnt from it: "
-                f"train on other days (--train-start, --skip-days) or with another sensor"
+                f"sensor {s}: reads {med:.6g} {spec.unit} throughout the training days "
+                f"({100 * share:.1f} % of its readings); is it stuck or disconnected? Nothing "
+                f"can be learnt from it: train on other days (--train-start, --skip-days) or "
+                f"with another sensor"
             )
 
 
