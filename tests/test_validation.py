@@ -209,7 +209,6 @@ def test_train_prints_the_validation_table_and_the_reason(tmp_path, capsys) -> N
     assert "lowest held-out daily NRMSE" in printed or "simpler" in printed
 
 
-
 def test_a_target_copying_its_reference_withholds_no_baseline_for_rounding_noise() -> None:
     """TRIV and VARMA both score 0.00 % when the desk reads what the reference reads: VARMA
     stays published (it was withheld as '0.00 % is more than 1.5× TRIV's 0.00 %')."""

@@ -7,8 +7,8 @@ prefix ``twin <id>: `` in its message. A context variable rather than a logger a
 the modules doing the work need not know which twin they serve, and a record factory rather
 than a logger filter, so records of child loggers and pytest's ``caplog`` see it too.
 
-:func:`collapsed` folds warnings that repeat once per validation fold into one record with
-a count.
+:func:`collapsed` folds info lines and warnings that repeat once per validation fold into
+one record with a count.
 """
 
 from __future__ import annotations

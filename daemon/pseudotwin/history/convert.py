@@ -529,6 +529,7 @@ def _room_climate_dataset(location: str, about: str, elsewhere: str = "") -> Dat
         elsewhere=elsewhere,
     )
 
+
 def _channel_units(channels: Sequence[Channel]) -> dict[str, str]:
     return {ch.sensor: ch.unit for ch in channels}
 
