@@ -48,6 +48,9 @@ from pseudotwin.models.base import Estimate, TrainingSet, TwinModel
 from pseudotwin.models.registry import MODELS, build
 
 log = logging.getLogger(__name__)
+# A child logger: the folds' collapsing filters sit on the loggers above, so its lines (one per
+# held-out day: with several references a fold takes minutes) come out as they happen.
+progress = logging.getLogger(f"{__name__}.progress")
 _FOLD_LOGGERS = ("pseudotwin.gp.train", "pseudotwin.models.varma", "pseudotwin.live.twin", __name__)
 
 TIE_RELATIVE = 0.03
@@ -231,10 +234,13 @@ def validate(
     refs: dict[str, tuple[str, ...]] = {}  # kind → the references its fitted models read
     # Each fold refits every model: the same fit warning would otherwise appear per fold.
     with collapsed(_FOLD_LOGGERS, f"validation's {len(days)} folds"):
-        for d in days:
+        for i, d in enumerate(days, start=1):
+            fold_start = time.perf_counter()
             rest = [x for x in days if x.day != d.day]
             frames.append(_fold(df, spec, rest, d.day, trained, opts, failures, thinning,
                                 refs))
+            progress.info("validation: %s held out (%d of %d) in %.1f s", d.day, i, len(days),
+                          time.perf_counter() - fold_start)
     frames = [f for f in frames if not f.empty]
     if not frames:
         raise DataError("no model could be validated on the training days: "
