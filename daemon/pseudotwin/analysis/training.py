@@ -72,8 +72,9 @@ def check_plausible(df: pd.DataFrame, spec: TwinSpec) -> None:
         # with a tolerance because points are minute means, whose sums of one repeated value
         # differ in the last bits.
         q_lo, q_hi = np.quantile(v, [MAX_IMPLAUSIBLE_SHARE, 1 - MAX_IMPLAUSIBLE_SHARE])
-        if len(v) > 1 and q_hi - q_lo <= STUCK_TOLERANCE * max(1.0, abs(med)):
-            share = float(np.mean(np.abs(v - med) <= STUCK_TOLERANCE * max(1.0, abs(med))))
+        tol = STUCK_TOLERANCE * max(1.0, abs(med))
+        if len(v) > 1 and q_hi - q_lo <= tol:
+            share = float(np.mean(np.abs(v - med) <= tol))
             raise DataError(
                 f"sensor {s}: reads {med:.6g} {spec.unit} throughout the training days "
                 f"({100 * share:.1f} % of its readings); is it stuck or disconnected? Nothing "
