@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -137,6 +138,31 @@ def test_train_refuses_a_stuck_sensor(sml: Path, tmp_path: Path, capsys) -> None
     assert run("train", "--history", str(sml), "--references", "dining/temp", "--target",
                "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
                "--timezone", "Europe/Madrid", "--models", "triv", "--out", str(out)) == 0
+
+
+def test_train_warns_of_training_days_on_which_a_sensor_was_stuck(
+        sml: Path, tmp_path: Path, caplog) -> None:
+    """Stuck on two of the five training days only: trained, with a warning that names the
+    days and how to leave them out."""
+    df = pd.read_csv(sml)
+    local = pd.to_datetime(df["ts"], utc=True).dt.tz_convert("Europe/Madrid").dt.date.astype(str)
+    stuck = (df["sensor"] == "dining/temp") & local.isin(["2012-03-15", "2012-03-17"])
+    df.loc[stuck, "value"] = 20.0
+    history = tmp_path / "stuck-two-days.csv"
+    df.to_csv(history, index=False)
+    out = tmp_path / "a.json"
+    with caplog.at_level(logging.WARNING, logger="pseudotwin.analysis.training"):
+        assert run("train", "--history", str(history), "--references", "dining/temp",
+                   "--target", "room/temp", "--quantity", "temperature", "--train-start",
+                   "2012-03-14", "--timezone", "Europe/Madrid", "--models", "triv",
+                   "--out", str(out)) == 0
+    warned = [m for r in caplog.records if "reads one value all day" in (m := r.getMessage())]
+    assert warned == [
+        "twin a: sensor dining/temp reads one value all day on 2012-03-15, 2012-03-17 (2 of 5 "
+        "training days): stuck or disconnected then? Those days show nothing of how it moves "
+        "with the others; --skip-days 2012-03-15,2012-03-17 leaves them out (a sensor that "
+        "reports only on change may just have had a quiet day)"]
+    assert out.exists()
 
 
 def test_a_stuck_sensor_is_named_through_minute_means_and_glitches() -> None:
