@@ -721,6 +721,8 @@ def test_room_climate_location_c(tmp_path: Path) -> None:
     with pytest.raises(DataError, match=r"room-climate-c is not part of the shared data: give "
                                         r"--source DIR \(the datasets-location_C folder"):
         cv.load("room-climate-c")
+    with pytest.raises(DataError, match="room-climate-c is not part of the shared data"):
+        cv.default_source("room-climate-c")
     assert not cv.DATASETS["room-climate-c"].shared and cv.DATASETS["room-climate-b"].shared
     rows = [  # EID, AbsT, RelT, NID, Temp, RelH, L1, L2, Occ, Act, Door, Win; 2017-01-25
         (k, 1485353109917 + 700 * k, 1, k, 22.0 + k / 10, 40.0, 150.0, 550.0, 0, 0, 0, 0)

@@ -572,17 +572,19 @@ def find_dataset(name: str) -> Dataset:
 
 
 def default_source(dataset: str) -> Path:
-    return shared_data_root() / find_dataset(dataset).folder
+    """Where ``dataset`` lies in the shared data; DataError for one that is not there."""
+    spec = find_dataset(dataset)
+    if not spec.shared:
+        raise DataError(f"{dataset} is not part of the shared data: give --source DIR "
+                        f"({spec.elsewhere})")
+    return shared_data_root() / spec.folder
 
 
 def load(dataset: str, source: Path | None = None, raw: bool = False) -> pd.DataFrame:
     """Convert ``dataset`` into a canonical frame without writing it; ``raw``: every sample
     where the converter would average."""
     spec = find_dataset(dataset)
-    if source is None and not spec.shared:
-        raise DataError(f"{dataset} is not part of the shared data: give --source DIR "
-                        f"({spec.elsewhere})")
-    src = Path(source) if source is not None else shared_data_root() / spec.folder
+    src = Path(source) if source is not None else default_source(dataset)
     if not src.exists():
         raise DataError(f"{src}: no such file or directory")
     read = spec.read_raw if raw and spec.read_raw is not None else spec.read
