@@ -2,24 +2,19 @@
 
 from __future__ import annotations
 
-import importlib
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
 
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
+from daemon_support import script_module
 
 
 @pytest.fixture(scope="module")
 def bench_daemon() -> Iterator[ModuleType]:
-    sys.path.insert(0, str(ROOT / "scripts"))
-    try:
-        yield importlib.import_module("bench_daemon")
-    finally:
-        sys.path.remove(str(ROOT / "scripts"))
+    with script_module("bench_daemon") as module:
+        yield module
 
 
 def test_profile_table_splits_each_threads_cpu_by_function(bench_daemon: ModuleType,

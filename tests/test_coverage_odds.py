@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import importlib
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
@@ -11,16 +9,13 @@ from types import ModuleType
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
+from daemon_support import script_module
 
 
 @pytest.fixture(scope="module")
 def coverage_odds() -> Iterator[ModuleType]:
-    sys.path.insert(0, str(ROOT / "scripts"))
-    try:
-        yield importlib.import_module("coverage_odds")
-    finally:
-        sys.path.remove(str(ROOT / "scripts"))
+    with script_module("coverage_odds") as module:
+        yield module
 
 
 def test_sigma_from_five_days_covers_95_percent_on_average_but_spreads_widely(
