@@ -1,19 +1,15 @@
 """Shared pieces of the daemon tests: a trained artifact, configs, waiting on conditions, a
-subscriber that keeps what the daemon publishes; and the scripts under scripts/ as modules."""
+subscriber that keeps what the daemon publishes."""
 
 from __future__ import annotations
 
 import datetime as dt
-import importlib
 import json
 import math
-import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -29,18 +25,6 @@ TZ = "Europe/Madrid"
 HOURS = OperatingHours(timezone=TZ)
 REF, TARGET = "dining/temp", "room/temp"
 DAY = dt.date(2012, 3, 20)
-SCRIPTS = Path(__file__).resolve().parent.parent / "scripts"
-
-
-@contextmanager
-def script_module(name: str) -> Iterator[ModuleType]:
-    """``scripts/<name>.py`` imported as a module (with scripts/ on the path for its own
-    imports, as when it runs)."""
-    sys.path.insert(0, str(SCRIPTS))
-    try:
-        yield importlib.import_module(name)
-    finally:
-        sys.path.remove(str(SCRIPTS))
 
 
 def sml() -> pd.DataFrame:

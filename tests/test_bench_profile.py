@@ -8,7 +8,7 @@ from types import ModuleType
 
 import pytest
 
-from daemon_support import script_module
+from scripts_support import script_module
 
 
 @pytest.fixture(scope="module")
