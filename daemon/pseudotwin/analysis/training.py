@@ -85,26 +85,30 @@ def check_plausible(df: pd.DataFrame, spec: TwinSpec) -> None:
 
 
 def _warn_stuck_days(readings: pd.DataFrame, sensor: str, spec: TwinSpec, tol: float) -> None:
-    """Warn of training days on which ``sensor`` reads one value (up to 1 % of glitches):
-    stuck for a while, or a change-of-value sensor's quiet day; either way those days show
-    nothing of its coupling. Not refused: the other days may carry enough."""
-    ok = np.isfinite(readings["value"].to_numpy(dtype=float))
-    day, _ = spec.hours.day_and_hours(readings.loc[ok, "ts"])
-    values = readings.loc[ok, "value"].to_numpy(dtype=float)
+    """Warn of training days on which ``sensor`` reads one value throughout the operating
+    hours, up to 1 % of glitches (at least one, as a day has few readings): stuck for a
+    while, or a change-of-value sensor's quiet day; either way those days show nothing of its
+    coupling. Not refused: the other days may carry enough."""
+    values = readings["value"].to_numpy(dtype=float)
+    ok = np.isfinite(values)
+    day, hours = spec.hours.day_and_hours(readings.loc[ok, "ts"])
+    inside = spec.hours.in_operating_hours(hours)
+    day, values = day[inside], values[ok][inside]
     days = sorted(set(day))
     flat = []
     for d in days:
         v = values[day == d]
-        q_lo, q_hi = np.quantile(v, [MAX_IMPLAUSIBLE_SHARE, 1 - MAX_IMPLAUSIBLE_SHARE])
-        if len(v) > 1 and q_hi - q_lo <= tol:
+        glitches = int(np.sum(np.abs(v - np.median(v)) > tol))
+        allowed = max(1, int(MAX_IMPLAUSIBLE_SHARE * len(v)))
+        if len(v) >= MIN_READINGS_PER_DAY and glitches <= allowed:
             flat.append(str(d))
     if flat:
         log.warning(
-            "sensor %s reads one value all day on %s (%d of %d training days): stuck or "
-            "disconnected then? Those days show nothing of how it moves with the others; "
-            "--skip-days %s leaves them out (a sensor that reports only on change may just "
-            "have had a quiet day)", sensor, ", ".join(flat), len(flat), len(days),
-            ",".join(flat))
+            "sensor %s reads one value throughout the operating hours of %s (%d of %d "
+            "training days): stuck or disconnected then? Those days show nothing of how it "
+            "moves with the others; --skip-days %s leaves them out (a sensor that reports "
+            "only on change may just have had a quiet day)", sensor, ", ".join(flat),
+            len(flat), len(days), ",".join(flat))
 
 
 def choose_training_days(
