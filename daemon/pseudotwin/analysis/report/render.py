@@ -230,6 +230,13 @@ PERFORMANCE = (
      "day with two references, side by side with rebuilding a GPy model per reading; "
      "training times of corrgp-triv and corrgp-lcm (two references, default 15-min grid) on "
      "five days."),
+    ("bench_gp_references.txt", ".venv/bin/python scripts/bench_gp_references.py",
+     "Training the Corr-GPs over all references as references are added",
+     "One fit of corrgp-lcm and of corrgp-multi (training defaults: one LCM term per "
+     "reference, 3 restarts; no validation) on five days of the Appliances house, target "
+     "`parents/temp`, with 2 to 5 of its rooms as references. Validation adds one refit "
+     "per training day (1 restart each). One fit each: a rerun differs by tens of percent, "
+     "as the restarts stop once two agree."),
     ("bench_daemon.txt", ".venv/bin/python scripts/bench_daemon.py",
      "The daemon with 100 twins",
      "100 twins fed 5-minute COV readings at 60× replay speed through a real Mosquitto: "
