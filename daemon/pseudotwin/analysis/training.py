@@ -57,7 +57,8 @@ def check_plausible(df: pd.DataFrame, spec: TwinSpec) -> None:
     every live reading that moves would lie outside what training saw)."""
     lo, hi = PLAUSIBLE[spec.quantity]
     for s in spec.sensors:
-        v = df.loc[df["sensor"] == s, "value"].to_numpy(dtype=float)
+        rows = df[df["sensor"] == s]
+        v = rows["value"].to_numpy(dtype=float)
         v = v[np.isfinite(v)]
         if not len(v):
             continue
@@ -81,7 +82,7 @@ def check_plausible(df: pd.DataFrame, spec: TwinSpec) -> None:
                 f"can be learnt from it: train on other days (--train-start, --skip-days) or "
                 f"with another sensor"
             )
-        _warn_stuck_days(df[df["sensor"] == s], s, spec, tol)
+        _warn_stuck_days(rows, s, spec, tol)
 
 
 def _warn_stuck_days(readings: pd.DataFrame, sensor: str, spec: TwinSpec, tol: float) -> None:
