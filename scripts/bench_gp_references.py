@@ -14,7 +14,7 @@ Prints a table and, last, one JSON line.
 
     .venv/bin/python scripts/bench_gp_references.py [--references 2,3,4,5]
                                                     [--models corrgp-lcm,corrgp-multi]
-                                                    [--n-terms N]
+                                                    [--lcm-terms N]
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ def main() -> None:
                          "(default 2,3,4,5)")
     ap.add_argument("--models", default="corrgp-lcm,corrgp-multi",
                     help="models to fit (default corrgp-lcm,corrgp-multi)")
-    ap.add_argument("--n-terms", type=int, default=None,
+    ap.add_argument("--lcm-terms", type=int, default=None,
                     help="LCM terms (default: the models' own, one per reference)")
     args = ap.parse_args()
     counts = [int(x) for x in args.references.split(",")]
@@ -56,8 +56,8 @@ def main() -> None:
     if unknown := [m for m in models if m not in GP_MODELS]:
         ap.error(f"--models: not a Corr-GP: {', '.join(unknown)}; choose from "
                  f"{', '.join(GP_MODELS)}")
-    if args.n_terms is not None and args.n_terms < 1:
-        ap.error("--n-terms must be at least 1")
+    if args.lcm_terms is not None and args.lcm_terms < 1:
+        ap.error("--lcm-terms must be at least 1")
     history = load("appliances")
     first = pd.Timestamp(START, tz="UTC") - pd.Timedelta(days=1)
     history = history[(history["ts"] >= first) & (history["ts"] < first + pd.Timedelta(days=16))]
@@ -66,7 +66,7 @@ def main() -> None:
         for n in counts:
             spec = TwinSpec(REFS[:n], TARGET, Quantity.TEMPERATURE,
                             OperatingHours(timezone="Europe/Brussels"))
-            options = None if args.n_terms is None else {model: {"n_terms": args.n_terms}}
+            options = None if args.lcm_terms is None else {model: {"n_terms": args.lcm_terms}}
             t0 = time.perf_counter()
             art = train_twin(history, spec, START, models=[model], options=options,
                              validate=False)

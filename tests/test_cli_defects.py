@@ -264,3 +264,23 @@ def test_varma_p_pins_the_order_and_skips_its_choice(sml: Path, tmp_path: Path,
             run(*args, "--varma-p", bad, "--out", str(tmp_path / "bad.json"))
         assert exc.value.code == 2 and "--varma-p" in capsys.readouterr().err
     assert not (tmp_path / "bad.json").exists()
+
+
+def test_lcm_terms_sets_the_corrgp_lcm_terms(sml: Path, tmp_path: Path, capsys) -> None:
+    from pseudotwin.live.artifact import Artifact
+    from pseudotwin.models.corrgp import CorrGpLcm
+
+    args = ("train", "--history", str(sml), "--references", "dining/temp", "--target",
+            "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
+            "--timezone", "Europe/Madrid", "--models", "ref,corrgp-lcm")
+    # One reference: one term by default, so two can only come from the option.
+    assert run(*args, "--lcm-terms", "2", "--out", str(tmp_path / "t2.json")) == 0
+    model = Artifact.load(tmp_path / "t2.json").models["corrgp-lcm"]
+    assert isinstance(model, CorrGpLcm)
+    assert len(model.params_.terms) == 2 and model.n_terms == 2
+    capsys.readouterr()
+    for bad in ("0", "-1", "two"):
+        with pytest.raises(SystemExit) as exc:
+            run(*args, "--lcm-terms", bad, "--out", str(tmp_path / "bad.json"))
+        assert exc.value.code == 2 and "--lcm-terms" in capsys.readouterr().err
+    assert not (tmp_path / "bad.json").exists()

@@ -135,6 +135,12 @@ def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
     p.add_argument("--ref-mean", choices=("shifted", "profile"), default="shifted",
                    help="corrgp-triv/-multi reference prior mean: training profile shifted to "
                         "today's level in the init phase (default), or the unshifted profile")
+    p.add_argument("--lcm-terms", type=_lcm_terms, metavar="N",
+                   help="LCM terms of corrgp-multi and corrgp-lcm (default: one per reference). "
+                        "Their training time grows fast with the terms: with five references "
+                        "one fit took ~440 s with five terms, ~55 s with two "
+                        "(docs/bench_gp_references.txt); validation refits each model once "
+                        "per training day")
     p.add_argument("--varma-p", type=_varma_order, metavar="P",
                    help=f"pin VARMA's order (1..{MAX_VARMA_P}): VARMAX(P, P) by maximum "
                         "likelihood, VAR(P) by least squares if it does not converge (default: "
@@ -186,7 +192,8 @@ def _shown(hours: OperatingHours, key: str) -> str:
 
 def _options(a: argparse.Namespace) -> dict[str, dict[str, Any]]:
     """Each model's settings from the command line: those of its ``options`` that were given."""
-    given = {k: v for k, v in (("kernel", a.kernel), ("ref_mean", a.ref_mean)) if v is not None}
+    given = {k: v for k, v in (("kernel", a.kernel), ("ref_mean", a.ref_mean),
+                               ("n_terms", a.lcm_terms)) if v is not None}
     options = {kind: {k: v for k, v in given.items() if k in cls.options}
                for kind, cls in MODELS.items()}
     if a.varma_p is not None:
@@ -353,6 +360,16 @@ def _varma_order(text: str) -> int:
     if not 1 <= p <= MAX_VARMA_P:
         raise argparse.ArgumentTypeError(f"{p} is not in 1..{MAX_VARMA_P}")
     return p
+
+
+def _lcm_terms(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"{n}: an LCM needs at least one term")
+    return n
 
 
 def _minutes_at_least_zero(text: str) -> float:

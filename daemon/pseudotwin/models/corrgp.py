@@ -160,6 +160,8 @@ class CorrGpLcm(_GpModel):
         self.references_ = tuple(training.references)
         self.target_ = training.target
         grids = [slot_matrix(training, s) for s in training.sensors]
+        if self.n_terms is not None and self.n_terms < 1:
+            raise DataError(f"corrgp-lcm n_terms must be at least 1, not {self.n_terms}")
         fd = _fit_data(grids, training.hours)
         n_terms = self.n_terms or len(self.references_)
         self._train(fd, _kernel_for(self.kernel, training.quantity), n_terms)
@@ -177,6 +179,7 @@ class CorrGpLcm(_GpModel):
         m._load_common(d, spec.hours)
         m.references_ = tuple(d["references"])
         m.target_ = spec.target
+        m.n_terms = len(m.params_.terms)
         if m.params_.n_outputs != len(m.references_) + 1:
             raise ValueError("LCM outputs do not match its references")
         return m
