@@ -139,7 +139,7 @@ def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
                    help="LCM terms of corrgp-multi and corrgp-lcm (default: one per reference). "
                         "Their training time grows fast with the terms: with five references "
                         "one fit took ~440 s with five terms, ~55 s with two "
-                        "(docs/bench_gp_references.txt); validation refits each model once "
+                        "(scripts/bench_gp_references.py); validation refits each model once "
                         "per training day")
     p.add_argument("--varma-p", type=_varma_order, metavar="P",
                    help=f"pin VARMA's order (1..{MAX_VARMA_P}): VARMAX(P, P) by maximum "
