@@ -107,6 +107,55 @@ def wait_for(pred: Callable[[], object], timeout: float = 30.0, what: str = "con
     raise AssertionError(f"timed out waiting for {what() if callable(what) else what}")
 
 
+class StepClock:
+    """A daemon clock (edge/clock.py's protocol) that moves only when stepped: its grid
+    ticks at an instant once the feed has stepped past it, however much wall time a pause
+    of the test process or a slow delivery takes."""
+
+    def __init__(self, start: dt.datetime) -> None:
+        self._now = start.astimezone(dt.UTC)
+        self._cond = threading.Condition()
+
+    def now(self) -> dt.datetime:
+        with self._cond:
+            return self._now
+
+    def step_to(self, instant: dt.datetime) -> None:
+        with self._cond:
+            if instant > self._now:
+                self._now = instant
+                self._cond.notify_all()
+
+    def wait_until(self, instant: dt.datetime, stop: threading.Event) -> bool:
+        with self._cond:
+            while not stop.is_set():
+                if self._now >= instant:
+                    return True
+                self._cond.wait(0.05)  # ``stop`` is an Event of its own: poll it
+        return False
+
+
+class Lockstep:
+    """The clock ``replay`` publishes by: before each reading, wait until the daemon has
+    accepted every reading published so far (``taken``: its count), then step ``clock`` to
+    the reading's time. The worker handles items in queue order, so a grid tick, queued
+    only once the clock passes its instant, comes after every earlier reading."""
+
+    def __init__(self, clock: StepClock, taken: Callable[[], int]) -> None:
+        self.clock, self.taken, self.sent = clock, taken, 0
+
+    def now(self) -> dt.datetime:
+        return self.clock.now()
+
+    def wait_until(self, instant: dt.datetime, stop: threading.Event) -> bool:
+        wait_for(lambda: self.taken() >= self.sent,
+                 what=lambda: f"the daemon to take reading {self.sent} "
+                              f"(it took {self.taken()})")
+        self.clock.step_to(instant)
+        self.sent += 1  # replay publishes it next
+        return not stop.is_set()
+
+
 def uninterrupted_estimates(artifact: Path, readings: pd.DataFrame, kind: str = "corrgp-triv"
                             ) -> dict[str, Any]:
     """What a daemon that never stopped publishes for ``readings`` of REF (in order): one
@@ -132,8 +181,8 @@ class Viewer:
         self.lock = threading.Lock()
         ready = threading.Event()
         self.c = mqtt.Client(CallbackAPIVersion.VERSION2)
-        self.c.on_connect = lambda c, u, f, rc, p: (c.subscribe(topic, 1),
-                                                    ready.set())
+        self.c.on_connect = lambda c, u, f, rc, p: c.subscribe(topic, 1)
+        self.c.on_subscribe = lambda c, u, mid, rcs, p: ready.set()  # receiving from now on
         self.c.on_message = self._on
         self.c.connect("127.0.0.1", port)
         self.c.loop_start()

@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from daemon_support import Viewer, wait_for
+from daemon_support import Lockstep, StepClock, Viewer, wait_for
 from pseudotwin.analysis.commissioning.snippet import config_snippet
 from pseudotwin.analysis.evaluate import evaluate
 from pseudotwin.analysis.replay import ESTIMATE, replay_estimates
@@ -25,7 +25,6 @@ from pseudotwin.cli import _artifact_check
 from pseudotwin.config import check_config, load_config
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
-from pseudotwin.edge.clock import ReplayClock
 from pseudotwin.edge.replay import replay
 from pseudotwin.edge.service import Service
 from pseudotwin.errors import ConfigError, DataError
@@ -252,16 +251,16 @@ def test_the_daemon_reads_the_covariates_like_evaluate(
     offline = offline[offline["model"] == ESTIMATE]
     want = {t.isoformat().replace("+00:00", "Z"): (round(v, 6), round(sd, 6))
             for t, v, sd in zip(offline["ts"], offline["value"], offline["std"], strict=True)}
-    speed = 3000.0
+    clock = StepClock(start)  # moves with the replay only: no tick overtakes a reading
     viewer = Viewer(mosquitto.port)
 
     def last_per_instant() -> dict[str, tuple[float, float]]:
         return {e["ts"]: (e["value"], e["std"]) for e in viewer.all()}
 
-    svc = Service(cfg, clock=ReplayClock(start, speed))
+    svc = Service(cfg, clock=clock)
     svc.start(wait_connected=15)
     try:
-        replay(cfg, readings, start, end, speed, clock=svc.clock)
+        replay(cfg, readings, start, end, 1.0, clock=Lockstep(clock, lambda: svc.accepted))
         # Until the last reading's estimate is out: stopping earlier (the first version of
         # this test) left the last instant without its covariates' estimates.
         wait_for(lambda: all(last_per_instant().get(ts) == w for ts, w in want.items()),

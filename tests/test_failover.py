@@ -15,7 +15,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from daemon_support import Viewer, two_reference_days, wait_for
+from daemon_support import Lockstep, StepClock, Viewer, two_reference_days, wait_for
 from pseudotwin.analysis.failover import FAILOVER_KINDS
 from pseudotwin.analysis.replay import ESTIMATE, replay_estimates
 from pseudotwin.analysis.training import train_twin
@@ -24,7 +24,6 @@ from pseudotwin.config import load_config
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.series import write_history
 from pseudotwin.core.spec import Quantity, TwinSpec
-from pseudotwin.edge.clock import ReplayClock
 from pseudotwin.edge.replay import replay
 from pseudotwin.edge.service import Service
 from pseudotwin.errors import ArtifactError
@@ -275,16 +274,19 @@ def test_daemon_fails_over_on_a_silenced_reference_like_evaluate(
     silent_from = HOURS.at(TEST_DAY, 10.0)
     day = history[(history["ts"] >= start) & (history["ts"] < end)]
     day = day[~((day["sensor"] == R2) & (day["ts"] > silent_from))]
-    # stale_after (30 min) is 1.8 s of real time here: a pause of the whole test process (the
-    # replay and the daemon share it) must not make R2 look stale before it is silenced. At
-    # 3000× (0.6 s) the full suite once saw R2 stale at 08:00; alone it never did.
-    speed = 1000.0
+    # The daemon's clock moves only with the replay, a reading at a time once the daemon
+    # has taken the ones before (Lockstep): on a wall-time clock a grid tick could overtake
+    # readings still on their way (a pause of the test process longer than stale_after at
+    # the replay's speed made the references look stale), and ticks went on after the
+    # replay until svc.stop().
+    clock = StepClock(start)
     viewer = Viewer(mosquitto.port)
     monitor = Viewer(mosquitto.port, "pt/desk/monitor")
-    svc = Service(cfg, clock=ReplayClock(start, speed))
+    svc = Service(cfg, clock=clock)
     svc.start(wait_connected=15)
     try:
-        replay(cfg, day, start, end, speed, clock=svc.clock)
+        replay(cfg, day, start, end, 1.0,
+               clock=Lockstep(clock, lambda: svc.accepted))
         refs = day[(day["sensor"] != TARGET) & (day["ts"] >= HOURS.at(TEST_DAY, 8.0))]
         wanted = set(refs["ts"])
         stamp = {t: t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z") for t in wanted}
