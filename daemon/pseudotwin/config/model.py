@@ -70,6 +70,10 @@ _UNIT_BOUNDS: dict[str, dict[str, tuple[float, float]]] = {
     "co2": {"ppm": (0.0, 100_000.0)},
 }
 _QUANTITY_OF_UNIT = {u: q for q, units in _UNIT_BOUNDS.items() for u in units}
+# The units a twin's references and target may have: its artifact, σ and estimates are in
+# the quantity's unit (°C, ppm) and nothing converts, so a °F sensor would be estimated as
+# °C and published labelled °C. Other sensors (recorded only, covariates) may be in any.
+_TWIN_UNITS = {"temperature": ("°C", "degC", "C"), "co2": ("ppm",)}
 
 _ENV_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 # Twin ids become one MQTT topic level, a file name stem and a DB key: keep them boring.
@@ -504,24 +508,23 @@ def cross_problems(
         roles = [("references", r) for r in t.references]
         if t.target is not None:
             roles.append(("target", t.target))
-        accepted = _UNIT_BOUNDS[t.quantity]
-        units: dict[str, str] = {}
+        accepted = _TWIN_UNITS[t.quantity]
         for field, sid in roles:
             sensor = by_id.get(sid)
             if sensor is None:
                 if unchecked_ids is not None and sid not in unchecked_ids:
                     out.append(f"{loc}.{field}: unknown sensor {sid!r}{suggest(sid, by_id)}")
-                continue
-            if sensor.unit not in accepted:
+            elif sensor.unit in _UNIT_BOUNDS[t.quantity] and sensor.unit not in accepted:
+                out.append(f"{loc}.{field}: sensor {sid!r} has unit {sensor.unit!r}: a "
+                           f"{t.quantity} twin works in {accepted[0]} (its models, σ and "
+                           f"estimates; nothing is converted), so its sensors must report "
+                           f"{accepted[0]}")
+            elif sensor.unit not in accepted:
                 out.append(f"{loc}.{field}: sensor {sid!r} has unit {sensor.unit!r}, not a "
                            f"{t.quantity} unit ({', '.join(accepted)})")
-            units[sid] = sensor.unit
         for sid in t.covariates:  # any unit: a covariate is not the estimated quantity
             if sid not in by_id and unchecked_ids is not None and sid not in unchecked_ids:
                 out.append(f"{loc}.covariates: unknown sensor {sid!r}{suggest(sid, by_id)}")
-        if len(set(units.values())) > 1:
-            listing = ", ".join(f"{sid!r}: {u!r}" for sid, u in units.items())
-            out.append(f"{loc}.references: all sensors of a twin must share one unit ({listing})")
     return out
 
 
