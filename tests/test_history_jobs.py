@@ -158,3 +158,20 @@ def test_daemon_warm_starts_from_the_store_without_a_checkpoint(
     assert window and max(r.ts for r in window) <= now + dt.timedelta(seconds=1)
     assert min(r.hours for r in window) == HOURS.init_start  # the carried value
     svc.journal.close()
+
+
+def test_backfill_refuses_an_artifact_that_does_not_fit_its_twin(
+    desk_artifact, sml_store: Path, tmp_path: Path, capsys
+) -> None:
+    """Other operating hours than the artifact's: `run` refuses the config, and so does
+    backfill, before it replaces any stored estimate with ones of the wrong hours."""
+    path = write_config(tmp_path, 1883, desk_artifact, store=str(sml_store), day_start="07:00")
+    with open_store(str(sml_store)) as store:
+        before = len(store.read_estimates("desk"))
+    code = main(["backfill", "--config", str(path), "--twin", "desk", "--from", "2012-03-23",
+                 "--to", "2012-03-23", "--jobs", "1", "--quiet"])
+    err = capsys.readouterr().err
+    assert code != 0 and "twins.desk.artifact: operating hours" in err
+    assert "Traceback" not in err
+    with open_store(str(sml_store)) as store:
+        assert len(store.read_estimates("desk")) == before

@@ -434,7 +434,7 @@ def _aware(text: str) -> dt.datetime:
 
 
 def _artifact_check(twin: TwinConfig, hours: OperatingHours | None) -> list[str]:
-    from pseudotwin.edge.service import check_artifact
+    from pseudotwin.live.artifact import check_artifact
 
     return check_artifact(twin, hours=hours)
 

@@ -32,7 +32,6 @@ import paho.mqtt.client as mqtt
 from paho.mqtt.enums import MQTTErrorCode
 
 from pseudotwin.config import SensorConfig, ServiceConfig, TwinConfig
-from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.twinlog import twin_context
 from pseudotwin.edge import homeassistant as ha
 from pseudotwin.edge.clock import Clock, SystemClock
@@ -45,7 +44,7 @@ from pseudotwin.edge.prometheus import DaemonMetrics
 from pseudotwin.edge.sdnotify import notify, watchdog_interval
 from pseudotwin.edge.wakeup import WakeCoalescer
 from pseudotwin.errors import ConfigError
-from pseudotwin.live.artifact import Artifact, artifact_hash
+from pseudotwin.live.artifact import Artifact, artifact_hash, check_artifact
 from pseudotwin.live.monitor import TwinMonitor
 from pseudotwin.live.readings import (
     UNPROCESSABLE,
@@ -96,16 +95,6 @@ LONG_BATCH_S = 0.5
 #: The log line of one (scripts/bench_daemon.py counts the daemon's warnings by kind).
 LONG_BATCH_PATTERN = (r"a worker batch took (\d+) ms \((\d+) ms of it the worker's CPU; "
                       r"journal (\d+) ms")
-
-
-def check_artifact(
-    twin: TwinConfig, art: Artifact | None = None, hours: OperatingHours | None = None
-) -> list[str]:
-    """Problems between a twin's configuration and its artifact (empty when they fit);
-    without ``hours`` the artifact's are taken, and a config without a target takes the
-    artifact's."""
-    art = art or Artifact.load(twin.artifact)
-    return twin.spec(hours or art.hours, art.target).differences(art.spec, "the artifact's")
 
 
 @dataclass

@@ -42,7 +42,7 @@ from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.twinlog import twin_context
 from pseudotwin.errors import ConfigError, PseudotwinError
 from pseudotwin.history.store import EstimateRow, Store
-from pseudotwin.live.artifact import Artifact, artifact_hash
+from pseudotwin.live.artifact import Artifact, artifact_hash, check_artifact
 from pseudotwin.live.twin import Twin, TwinEstimate
 
 log = logging.getLogger(__name__)
@@ -180,7 +180,12 @@ def plan(cfg: ServiceConfig, twin_ids: list[str], start: dt.date, end: dt.date,
     jobs = []
     for twin_id in dict.fromkeys(twin_ids):
         path = cfg.twins[twin_id].artifact
-        hours = Artifact.load(path).hours  # a broken artifact fails here, before any work
+        art = Artifact.load(path)  # a broken artifact fails here, before any work
+        # An artifact that does not fit its twin (another twin's, other hours) would replace
+        # the stored estimates with wrong ones: refused as `run` refuses it.
+        if problems := check_artifact(cfg.twins[twin_id], art, cfg.hours):
+            raise ConfigError("\n".join(f"twins.{twin_id}.artifact: {p}" for p in problems))
+        hours = art.hours
         digest = artifact_hash(path)
         job = TwinJob(twin_id, str(path), digest, (), ())
         done = store.done_days(job.progress_key)

@@ -12,7 +12,7 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pseudotwin import __version__
 from pseudotwin.core.horizon import OperatingHours
@@ -23,6 +23,9 @@ from pseudotwin.live.envelope import Envelope
 from pseudotwin.live.failover import Failover
 from pseudotwin.models.base import TwinModel
 from pseudotwin.models.registry import MODELS
+
+if TYPE_CHECKING:
+    from pseudotwin.config.model import TwinConfig
 
 FORMAT = "pseudotwin-artifact"
 # 2: σ calibration, validation, the ref model, VARMA re-levelling; version 1 still loads.
@@ -166,6 +169,16 @@ class Artifact(OfTwin):
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise ArtifactError(f"{p}: cannot read artifact ({exc})") from None
         return cls.from_dict(d, str(p))
+
+
+def check_artifact(
+    twin: TwinConfig, art: Artifact | None = None, hours: OperatingHours | None = None
+) -> list[str]:
+    """Problems between a twin's configuration and its artifact (empty when they fit):
+    what ``check-config``, ``run`` and ``backfill`` refuse. Without ``hours`` the artifact's
+    are taken, and a config without a target takes the artifact's."""
+    art = art or Artifact.load(twin.artifact)
+    return twin.spec(hours or art.hours, art.target).differences(art.spec, "the artifact's")
 
 
 def artifact_hash(path: str | Path) -> str:
