@@ -284,3 +284,39 @@ def test_lcm_terms_sets_the_corrgp_lcm_terms(sml: Path, tmp_path: Path, capsys) 
             run(*args, "--lcm-terms", bad, "--out", str(tmp_path / "bad.json"))
         assert exc.value.code == 2 and "--lcm-terms" in capsys.readouterr().err
     assert not (tmp_path / "bad.json").exists()
+
+
+@pytest.mark.parametrize("command, out", [("train", "/proc/pseudotwin-test/a.json"),
+                                          ("evaluate", "/proc/pseudotwin-test")])
+def test_an_output_that_cannot_be_written_is_refused_before_training(
+        sml: Path, command: str, out: str, capsys) -> None:
+    """Root passes permission checks, yet /proc takes no file: the probe says so at once
+    (before, training ran to its end and died in a traceback writing the result)."""
+    args = (command, "--history", str(sml), "--references", "dining/temp", "--target",
+            "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
+            "--timezone", "Europe/Madrid", "--models", "ref,triv", "--out", out)
+    with pytest.raises(SystemExit) as exc:
+        run(*args)
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and f"{out}: cannot write in /proc" in err
+
+
+def test_a_write_that_fails_after_the_checks_is_one_line(sml: Path, tmp_path: Path,
+                                                         capsys) -> None:
+    """The folder takes a file when checked, but the artifact does not fit (a file-size
+    limit, as a full disk): one line naming the file, status 1, no half artifact left."""
+    import resource
+
+    out = tmp_path / "a.json"
+    limit = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (4096, limit[1]))  # Python ignores SIGXFSZ
+    try:
+        code = run("train", "--history", str(sml), "--references", "dining/temp", "--target",
+                   "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
+                   "--timezone", "Europe/Madrid", "--models", "ref,triv", "--out", str(out))
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, limit)
+    err = capsys.readouterr().err
+    assert code == 1
+    assert err.strip().endswith(f"{out}: File too large")
+    assert list(tmp_path.iterdir()) == []

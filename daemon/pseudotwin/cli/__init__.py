@@ -387,12 +387,25 @@ def _speed(text: str) -> float:
 
 
 def _output(text: str) -> Path:
+    """A path to write, checked before any work: its nearest existing folder takes a file."""
     if not text.strip():
         raise argparse.ArgumentTypeError("an empty path")
     path = Path(text)
     parent = next((p for p in path.absolute().parents if p.exists()), None)
     if parent is not None and not parent.is_dir():
         raise argparse.ArgumentTypeError(f"{text}: {parent} is not a directory")
+    folder = path if path.is_dir() else parent
+    if folder is not None:
+        import tempfile
+
+        # A file created and dropped, not os.access: root passes permission checks that an
+        # immutable folder, a read-only mount or /proc still refuse at the end of training.
+        try:
+            with tempfile.TemporaryFile(dir=folder):
+                pass
+        except OSError as exc:
+            raise argparse.ArgumentTypeError(
+                f"{text}: cannot write in {folder} ({exc.strerror or exc})") from None
     return path
 
 
@@ -756,6 +769,14 @@ def _main(argv: Sequence[str] | None) -> int:
     except PseudotwinError as exc:
         print(f"pseudotwin {a.command}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        if exc.filename is None:
+            raise
+        # A file that could not be read or written after the checks (a disk filled up, a
+        # folder made read-only meanwhile): its name and the OS's reason, not a traceback.
+        print(f"pseudotwin {a.command}: error: {exc.filename}: {exc.strerror or exc}",
+              file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f"pseudotwin {a.command}: interrupted", file=sys.stderr)
         return 130

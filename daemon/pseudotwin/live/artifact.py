@@ -6,6 +6,7 @@ profile and the fit diagnostics with ``less``); arrays are JSON lists.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import hashlib
 import json
@@ -110,8 +111,15 @@ class Artifact(OfTwin):
         p.parent.mkdir(parents=True, exist_ok=True)
         text = json.dumps(self.to_dict(), indent=1, ensure_ascii=False)
         tmp = p.with_suffix(p.suffix + ".tmp")
-        tmp.write_text(text + "\n", encoding="utf-8")
-        tmp.replace(p)  # atomic: a daemon never loads half an artifact
+        try:
+            tmp.write_text(text + "\n", encoding="utf-8")
+            tmp.replace(p)  # atomic: a daemon never loads half an artifact
+        except OSError as exc:
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)  # no half artifact beside the old one
+            if exc.filename is None:  # a failed write (a full disk) names no file
+                raise OSError(exc.errno, exc.strerror, str(p)) from exc
+            raise
         return p
 
     @classmethod
