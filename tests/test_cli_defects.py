@@ -320,3 +320,31 @@ def test_a_write_that_fails_after_the_checks_is_one_line(sml: Path, tmp_path: Pa
     assert code == 1
     assert err.strip().endswith(f"{out}: File too large")
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("command", ["train", "evaluate"])
+def test_fewer_days_than_validation_needs_are_refused_unless_allowed(
+        sml: Path, tmp_path: Path, command: str, capsys) -> None:
+    out = tmp_path / ("a.json" if command == "train" else "ev")
+    args = (command, "--history", str(sml), "--references", "dining/temp", "--target",
+            "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
+            "--timezone", "Europe/Madrid", "--models", "ref,triv", "--train-days", "2",
+            "--out", str(out))
+    with pytest.raises(SystemExit) as exc:
+        run(*args)
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "--train-days 2" in err and "--allow-unvalidated" in err
+    assert not out.exists()
+    if command == "train":
+        from pseudotwin.live.artifact import Artifact
+
+        assert run(*args, "--allow-unvalidated") == 0
+        assert Artifact.load(out).calibration == {}
+        # check-config passes it, and says what it is
+        from daemon_support import write_config
+
+        capsys.readouterr()
+        cfg = write_config(tmp_path, 1883, out)
+        assert run("check-config", str(cfg)) == 0
+        assert "note: twins.desk: its artifact was trained without validation" in (
+            capsys.readouterr().out)

@@ -240,7 +240,7 @@ def test_too_few_days_to_validate_say_so(tmp_path: Path) -> None:
     rc = main(["--log-level", "WARNING", "train", "--history", str(history),
                "--references", REF, "--target", TARGET, "--quantity", "temperature",
                "--train-start", str(TRAINING_DAYS[0]), "--train-days", "2",
-               "--timezone", "Europe/Madrid", "--models", "triv",
+               "--allow-unvalidated", "--timezone", "Europe/Madrid", "--models", "triv",
                "--out", str(tmp_path / "desk.json"), "--report", str(tmp_path / "r")])
     assert rc == 0
     text = (tmp_path / "r" / "desk.html").read_text(encoding="utf-8")

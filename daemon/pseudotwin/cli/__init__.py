@@ -107,7 +107,12 @@ def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
                         + ("; default: the first day of the data" if train else ""))
     p.add_argument("--train-days", type=int, default=5,
                    help="training days: the first N days from --train-start on which every "
-                        "sensor reports (default 5)")
+                        "sensor reports (default 5; at least 3, unless --allow-unvalidated)")
+    p.add_argument("--allow-unvalidated", action="store_true",
+                   help="allow fewer than three training days: no day can be held out, so "
+                        "nothing chooses the primary (--primary or the first model) and σ is "
+                        "each model's own spread, not calibrated on days it did not see: an "
+                        "MPC that trusts it is misled. For a first look, not for service")
     p.add_argument("--skip-days", type=_dates, default=frozenset(), metavar="DAY[,DAY...]",
                    help="days YYYY-MM-DD (local) never trained on, even when every sensor "
                         "reports on them: a day of commissioning work, the heating off, a window "
@@ -426,6 +431,15 @@ def _folder_out(text: str) -> Path:
     return path
 
 
+def _check_training(p: argparse.ArgumentParser, a: argparse.Namespace) -> None:
+    from pseudotwin.analysis.validation import MIN_DAYS
+
+    if 0 < a.train_days < MIN_DAYS and not a.allow_unvalidated:
+        p.error(f"--train-days {a.train_days}: validation holds out each training day in turn "
+                f"and needs at least {MIN_DAYS}; with fewer, σ is not calibrated and nothing "
+                f"chooses the primary (--allow-unvalidated trains anyway)")
+
+
 def _check_run(p: argparse.ArgumentParser, a: argparse.Namespace) -> None:
     if a.speed is not None and a.replay_from is None:
         p.error("--speed needs --replay-from (the live clock runs at real time)")
@@ -643,10 +657,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "score, the primary's typical and worst held-out days with the ±2σ "
                         "band, and the TOML configuration for the twin. Uses what training "
                         "computed; nothing is refit")
-    t.set_defaults(func=cmd_train)
+    t.set_defaults(func=cmd_train, check=functools.partial(_check_training, t))
 
     e = sub.add_parser("evaluate", help="train, then score the models causally on later days",
-                       description="The thesis protocol: train on five days, then estimate the "
+                       description="The thesis protocol: train on five days (--train-days), "
+                                   "then estimate the "
                                    "target at every true reading of the following days using "
                                    "only earlier data, and score per day and month.")
     _add_twin_args(e)
@@ -662,7 +677,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "answers without it (default: a silent reference's last value is held; "
                         "only a reference that never reported makes the estimate stale)")
     e.add_argument("--plot-day", type=_date, help="day to plot in detail (default: median day)")
-    e.set_defaults(func=cmd_evaluate)
+    e.set_defaults(func=cmd_evaluate, check=functools.partial(_check_training, e))
 
     r = sub.add_parser("run", help="run the live daemon (MQTT in, pseudo-measurements out)",
                        description="Run the twins of a configuration against the MQTT broker "

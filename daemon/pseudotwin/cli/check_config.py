@@ -35,4 +35,10 @@ def main(argv: list[str] | None = None, *, artifact_check: ArtifactCheck | None 
         print(str(exc), file=sys.stderr)
         return 2
     print(f"{args.file}: OK ({len(config.sensors)} sensors, {len(config.twins)} twins)")
+    if artifact_check is not None:
+        from pseudotwin.live.artifact import UNVALIDATED, Artifact
+
+        for tid, twin in config.twins.items():
+            if not Artifact.load(twin.artifact).calibration:
+                print(f"{args.file}: note: twins.{tid}: {UNVALIDATED}")
     return 0

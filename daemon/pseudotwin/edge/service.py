@@ -44,7 +44,7 @@ from pseudotwin.edge.prometheus import DaemonMetrics
 from pseudotwin.edge.sdnotify import notify, watchdog_interval
 from pseudotwin.edge.wakeup import WakeCoalescer
 from pseudotwin.errors import ConfigError
-from pseudotwin.live.artifact import Artifact, artifact_hash, check_artifact
+from pseudotwin.live.artifact import UNVALIDATED, Artifact, artifact_hash, check_artifact
 from pseudotwin.live.monitor import TwinMonitor
 from pseudotwin.live.readings import (
     UNPROCESSABLE,
@@ -145,6 +145,8 @@ class Service:
                         stale_after=cfg.stale_after, thinning=cfg.thinning)
             for kind, why in art.withheld.items():
                 log.info("twin %s: %s is not published (%s)", tid, kind, why)
+            if not art.calibration:
+                log.warning("twin %s: %s", tid, UNVALIDATED)
             monitor = TwinMonitor(tid, twin, artifact_hash(tc.artifact), cfg.hours, tc.sensors)
             rt = TwinRuntime(
                 tc, twin, monitor, cfg.per_reading_kinds(art.primary),

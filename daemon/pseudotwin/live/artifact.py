@@ -179,6 +179,12 @@ class Artifact(OfTwin):
         return cls.from_dict(d, str(p))
 
 
+#: What the daemon and check-config say of an artifact without σ calibration.
+UNVALIDATED = ("its artifact was trained without validation (fewer than three training days, "
+               "or an old artifact): σ is each model's own spread, not calibrated on days "
+               "it did not see, and the primary was not chosen by held-out scores")
+
+
 def check_artifact(
     twin: TwinConfig, art: Artifact | None = None, hours: OperatingHours | None = None
 ) -> list[str]:
