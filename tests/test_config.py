@@ -259,6 +259,8 @@ BAD: list[tuple[str, Mutation, str, str]] = [
     ("state-dir-missing", del_("service", "state_dir"), "service.state_dir", "missing required"),
     ("state-dir-empty", set_("service", "state_dir", ""), "service.state_dir", "empty"),
     ("state-dir-int", set_("service", "state_dir", 5), "service.state_dir", "path string"),
+    ("store-in-memory", set_("service", "store", ":memory:"), "service.store", "keeps nothing"),
+    ("store-no-path", set_("service", "store", "sqlite:///"), "service.store", "keeps nothing"),
     ("service-missing", del_("service"), "service", "missing table"),
     ("day-start-format", set_("service", "day_start", "8am"), "service.day_start", "HH:MM"),
     ("day-start-25h", set_("service", "day_start", "25:00"), "service.day_start", "HH:MM"),

@@ -114,3 +114,14 @@ def test_cli_usage_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
     assert "does not exist" in capsys.readouterr().err
     assert main(["--help"]) == 0
     assert "idempotent" in capsys.readouterr().out.lower()
+
+
+@pytest.mark.parametrize("url", ["sqlite:///", ":memory:", "sqlite://"])
+def test_cli_import_refuses_a_store_that_keeps_nothing(sml_csv: Path, url: str,
+                                                       capsys: pytest.CaptureFixture[str]
+                                                       ) -> None:
+    """`--store sqlite:///$DB` with DB unset imported into memory and reported success."""
+    assert main([str(sml_csv), "--store", url]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("pseudotwin import: error: ") and "Traceback" not in err
+    assert ("no file path" if url == "sqlite:///" else "in memory") in err

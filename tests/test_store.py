@@ -373,9 +373,13 @@ def test_open_store_urls(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Non
     assert (tmp_path / "abs.db").exists()
     with open_store(tmp_path / "plain.db") as s:
         assert s.url == f"sqlite:///{tmp_path}/plain.db"
-    for memory in (":memory:", "sqlite://"):
+    for memory in (":memory:", "sqlite://", "sqlite:///:memory:"):
         with open_store(memory) as s:
             assert s.count_readings() == 0
+        with pytest.raises(ConfigError, match="holds nothing to read"):
+            open_store(memory, existing=True)
+    with pytest.raises(ConfigError, match="no file path"):  # sqlite:///$DB with DB unset
+        open_store("sqlite:///")
     with pytest.raises(StoreError, match="does not exist"):
         open_store(tmp_path / "missing" / "h.db")
     (tmp_path / "junk.db").write_bytes(b"this is not a database file, just some bytes" * 50)

@@ -11,8 +11,9 @@ from pathlib import Path
 
 from pseudotwin.cli.util import Parser, run_reporting
 from pseudotwin.core.series import read_history
+from pseudotwin.errors import ConfigError
 from pseudotwin.history.importer import import_frame
-from pseudotwin.history.store import open_store
+from pseudotwin.history.store import is_memory_url, open_store
 
 PROG = "pseudotwin import"
 
@@ -38,6 +39,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``pseudotwin import``; returns the exit status (0 ok, 2 error)."""
     def body() -> int:
         args = _parser().parse_args(list(sys.argv[1:] if argv is None else argv))
+        if is_memory_url(args.store):
+            raise ConfigError(f"--store {args.store!r} is a store in memory: the imported "
+                              "readings would be gone when import ends")
         t0 = time.perf_counter()
         # Validate the file first: a bad file must not create or touch the store.
         df = read_history(args.file)

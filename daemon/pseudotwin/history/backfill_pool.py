@@ -39,7 +39,7 @@ from pseudotwin.history.backfill import (
     plan,
     run_chunk,
 )
-from pseudotwin.history.store import Store, open_store
+from pseudotwin.history.store import Store, is_memory_url, open_store
 from pseudotwin.live.artifact import Artifact
 
 if TYPE_CHECKING:
@@ -145,7 +145,7 @@ def backfill_twins(
     if run.workers == 1:
         _run_here(cfg, work, store, run, bar)
     else:
-        if store.url in (":memory:", "sqlite://"):
+        if is_memory_url(store.url):
             raise ConfigError("an in-memory store cannot be shared with worker processes; "
                               "use --jobs 1")
         _run_pool(cfg, work, store.url, run, bar)

@@ -832,6 +832,11 @@ def _bulk_count(results: list[dict] | None, sent: int, table: str, url: str) -> 
 # ------------------------------------------------------------------------------ factory
 
 
+def is_memory_url(url: str) -> bool:
+    """Whether ``url`` names a SQLite store in memory, which keeps nothing once closed."""
+    return url.strip() in (":memory:", "sqlite://", "sqlite:///:memory:")
+
+
 def open_store(url: str | os.PathLike[str], existing: bool = False) -> Store:
     """Open (creating tables on first use) the store at ``url``; see the module docstring.
 
@@ -849,10 +854,16 @@ def open_store(url: str | os.PathLike[str], existing: bool = False) -> Store:
         from pseudotwin.history.postgres import open_postgres  # psycopg only when used
 
         return open_postgres(text)
+    if is_memory_url(text):
+        if existing:
+            raise ConfigError(f"{text!r} is a store in memory: it holds nothing to read "
+                              "(give the history database's file path or URL)")
+        return SQLiteStore(":memory:")
     if scheme == "sqlite":
         rest = text[len("sqlite://"):]
-        if rest in ("", "/", "/:memory:"):
-            return SQLiteStore(":memory:")
+        if rest == "/":  # sqlite:///$DB with $DB unset: not a wish for a store in memory
+            raise ConfigError(f"{text!r}: no file path after sqlite:/// (a store in memory "
+                              "is sqlite:// or :memory:)")
         if not rest.startswith("/"):
             raise ConfigError(f"{text!r}: expected sqlite:///relative.db or "
                               "sqlite:////absolute/path.db")
