@@ -841,3 +841,22 @@ def test_room_climate_raw_keeps_every_sample_and_its_minute_means_are_the_defaul
     assert set(values(raw, "A/door").unique()) == {0.0, 1.0}
     # datasets without averaging give the same rows either way
     pd.testing.assert_frame_equal(cv.load("sml2010", raw=True), cv.load("sml2010"))
+
+
+def test_convert_to_parquet_reads_back_as_the_csv(tmp_path: Path) -> None:
+    """--out x.parquet wrote CSV text into a .parquet file that read_history then refused."""
+    src = tmp_path / "NEW-DATA-9.T15.txt"
+    src.write_text("\n".join([SML_HEADER, *(sml_row("13/03/2012", f"{h:02d}:00")
+                                             for h in range(6))]) + "\n")
+    for out in ("h.csv", "h.parquet"):
+        assert cc.main(["sml2010", "--source", str(tmp_path), "--out", str(tmp_path / out)]) == 0
+    csv, parquet = read_history(tmp_path / "h.csv"), read_history(tmp_path / "h.parquet")
+    assert len(parquet) == len(csv) > 0
+    pd.testing.assert_frame_equal(parquet[["sensor", "ts"]], csv[["sensor", "ts"]])
+    np.testing.assert_allclose(parquet["value"], csv["value"], rtol=1e-5)
+
+
+def test_raw_is_refused_where_nothing_is_averaged(tmp_path: Path, capsys) -> None:
+    assert cc.main(["sml2010", "--raw", "--out", str(tmp_path / "h.csv")]) == 2
+    assert "--raw: sml2010 has no samples to keep" in capsys.readouterr().err
+    assert not (tmp_path / "h.csv").exists()

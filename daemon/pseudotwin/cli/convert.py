@@ -17,11 +17,13 @@ PROG = "pseudotwin convert"
 def _parser() -> argparse.ArgumentParser:
     p = Parser(
         prog=PROG,
-        description="Convert a shared dataset into canonical history CSV (sensor,ts,value).",
+        description="Convert a shared dataset into canonical history CSV (sensor,ts,value) "
+                    "or Parquet.",
     )
     p.add_argument("dataset", nargs="?", help="dataset name (see --list)")
     p.add_argument("--source", type=Path, help="dataset folder or file (default: shared data)")
-    p.add_argument("--out", type=Path, help="output CSV file")
+    p.add_argument("--out", type=Path,
+                   help="output file: canonical CSV, or Parquet when it ends in .parquet")
     p.add_argument("--raw", action="store_true",
                    help="keep every sample where the converter would average (room-climate-*: "
                         "one reading every ~4 s per node instead of 1-minute means)")
@@ -40,7 +42,10 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if args.dataset is None:
             raise UsageError("a dataset name is required (see --list)")
-        find_dataset(args.dataset)
+        spec = find_dataset(args.dataset)
+        if args.raw and spec.read_raw is None:
+            raise UsageError(f"--raw: {args.dataset} has no samples to keep beyond what it "
+                             "converts (only room-climate-* average)")
         if args.out is None:
             raise UsageError("--out FILE.csv is required")
         t0 = time.perf_counter()

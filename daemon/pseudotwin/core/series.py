@@ -171,7 +171,14 @@ def read_history(path: str | Path) -> pd.DataFrame:
 
 
 def write_history(df: pd.DataFrame, path: str | Path) -> None:
-    """Write a long frame as canonical CSV (ISO 8601 UTC timestamps)."""
+    """Write a long frame as canonical CSV (ISO 8601 UTC timestamps), or as Parquet (aware
+    UTC timestamps) when ``path`` ends in .parquet or .pq, as :func:`read_history` reads."""
+    if Path(path).suffix.lower() in (".parquet", ".pq"):
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        frame = df.loc[:, list(COLUMNS)].reset_index(drop=True)
+        frame["ts"] = pd.DatetimeIndex(frame["ts"]).tz_convert("UTC")
+        frame.to_parquet(path, index=False)
+        return
     out = df.loc[:, list(COLUMNS)].copy()
     out["ts"] = pd.DatetimeIndex(out["ts"]).tz_convert("UTC").strftime("%Y-%m-%dT%H:%M:%S.%f")
     out["ts"] = out["ts"].str.replace(r"\.?0+$", "", regex=True).str.rstrip(".") + "+00:00"
