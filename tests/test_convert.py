@@ -734,9 +734,22 @@ def test_room_climate_location_c(tmp_path: Path) -> None:
     assert {f"C{k}/temp" for k in range(1, 6)} <= set(df["sensor"])
     assert at(df, "C5/temp", "2017-01-25 14:05") == pytest.approx(22.5)
     assert set(df["sensor"]) <= set(cv.DATASETS["room-climate-c"].sensors)
-    # Location A's converter on C's files names the node it does not know.
-    with pytest.raises(DataError, match=re.escape("node id(s) 5 are not nodes of location A")):
+    # Location A's converter on C's files: their names say whose they are.
+    with pytest.raises(DataError, match="a file of location C, not A"):
         cv.load("room-climate-a", tmp_path)
+    # A's files, whose node ids 1–4 are also C's, are not taken for C's either.
+    a_files = tmp_path / "a"
+    a_files.mkdir()
+    (a_files / "room_climate-location_A-measurement01.csv").write_text(
+        "".join(", ".join(map(str, r)) + "\n" for r in rows[:4]))
+    with pytest.raises(DataError, match=r"a file of location A, not C \(convert room-climate-a"):
+        cv.load("room-climate-c", a_files)
+    # A file whose name does not say: the node it does not know.
+    unnamed = tmp_path / "unnamed"
+    unnamed.mkdir()
+    (unnamed / "measurement01.csv").write_text(path.read_text())
+    with pytest.raises(DataError, match=re.escape("node id(s) 5 are not nodes of location A")):
+        cv.load("room-climate-a", unnamed)
 
 
 def test_unknown_dataset_api() -> None:
