@@ -348,3 +348,19 @@ def test_fewer_days_than_validation_needs_are_refused_unless_allowed(
         assert run("check-config", str(cfg)) == 0
         assert "note: twins.desk: its artifact was trained without validation" in (
             capsys.readouterr().out)
+
+
+def test_covariates_without_a_model_that_reads_them_are_refused(sml: Path, tmp_path: Path,
+                                                                capsys) -> None:
+    """They went into the artifact, and the twin's configuration then had to feed sensors
+    no model read."""
+    args = ("train", "--history", str(sml), "--references", "dining/temp", "--target",
+            "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
+            "--timezone", "Europe/Madrid", "--covariates", "dining/co2",
+            "--out", str(tmp_path / "a.json"))
+    with pytest.raises(SystemExit) as exc:
+        run(*args, "--models", "ref,triv")
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "none of the models asked for reads covariates" in err
+    assert "only triv-cov does" in err and not (tmp_path / "a.json").exists()
+    assert run(*args, "--models", "ref,triv,triv-cov") == 0

@@ -434,6 +434,11 @@ def _folder_out(text: str) -> Path:
 def _check_training(p: argparse.ArgumentParser, a: argparse.Namespace) -> None:
     from pseudotwin.analysis.validation import MIN_DAYS
 
+    readers = [k for k, cls in MODELS.items() if cls.reads_covariates]
+    if a.covariates and not any(k in readers for k in a.models):
+        p.error(f"--covariates {','.join(a.covariates)}: none of the models asked for reads "
+                f"covariates (only {', '.join(readers)} does): add it to --models, or leave "
+                "--covariates out (the twin would have to be fed sensors nothing reads)")
     if 0 < a.train_days < MIN_DAYS and not a.allow_unvalidated:
         p.error(f"--train-days {a.train_days}: validation holds out each training day in turn "
                 f"and needs at least {MIN_DAYS}; with fewer, σ is not calibrated and nothing "

@@ -114,6 +114,8 @@ class TwinModel(ABC):
     # Made from other fitted models and validation's held-out scores (models/blend.py) rather
     # than fit on days: training builds it after validation, validation's folds skip it.
     stacked: ClassVar[bool] = False
+    # Reads the twin's covariates (TwinSpec.covariates); the others ignore them.
+    reads_covariates: ClassVar[bool] = False
     references_: tuple[str, ...]
 
     @classmethod

@@ -150,6 +150,7 @@ class TrivCovModel(TwinModel):
 
     kind = "triv-cov"
     live_baseline = False
+    reads_covariates = True
     options = ("references",)
 
     def __init__(self, references: tuple[str, ...] | None = None) -> None:
