@@ -146,6 +146,27 @@ def test_train_from_the_store_picks_full_days_itself(sml_store: Path, tmp_path: 
     assert page.count("left out (--skip-days)") == 2 * 2  # two days, a row per sensor
 
 
+def test_train_from_the_store_names_the_sensor_it_lacks(desk_artifact, sml_store: Path,
+                                                         tmp_path: Path, capsys) -> None:
+    """A mistyped reference: named, against the store and against the configuration, not
+    counted as too few usable days."""
+    base = ("--log-level", "WARNING", "train", "--target", TARGET, "--quantity", "temperature",
+            "--timezone", "Europe/Madrid", "--models", "ref,triv",
+            "--out", str(tmp_path / "a.json"))
+    assert main([*base, "--store", str(sml_store), "--references", "dinning/temp"]) == 2
+    assert "the history store has no readings of dinning/temp" in capsys.readouterr().err
+    cfg = write_config(tmp_path, 1883, desk_artifact, store=str(sml_store))
+    assert main([*base, "--config", str(cfg), "--references", "dinning/temp"]) == 2
+    err = capsys.readouterr().err
+    assert f"--references: dinning/temp not a sensor of {cfg}" in err
+    assert "(did you mean 'dining/temp'?)" in err
+    # a covariate the store has, but the configuration does not feed
+    assert main([*base, "--config", str(cfg), "--references", REF, "--models",
+                 "ref,triv,triv-cov", "--covariates", "dining/co2"]) == 2
+    assert "--covariates: dining/co2 not a sensor of" in capsys.readouterr().err
+    assert not (tmp_path / "a.json").exists()
+
+
 def test_daemon_warm_starts_from_the_store_without_a_checkpoint(
     mosquitto, desk_artifact, sml_store: Path, tmp_path: Path
 ) -> None:

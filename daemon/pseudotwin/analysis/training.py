@@ -335,9 +335,12 @@ def history_from_store(
     training can say it left it out. Returns the frame and the first usable day, a left-out
     one included.
     """
+    # One sensor without any reading (a typo, a sensor never recorded) is named, rather than
+    # counted as too few usable days.
+    if silent := [s for s in sensors if store.reading_range([s]) is None]:
+        raise DataError(f"the history store has no readings of {', '.join(silent)}")
     span = store.reading_range(list(sensors))
-    if span is None:
-        raise DataError(f"the history store has no readings of {', '.join(sensors)}")
+    assert span is not None  # every sensor has readings
     first = start or hours.day_of(span[0])
     if start is None and hours.hours_of(span[0]) > hours.init_start:
         first += dt.timedelta(days=1)  # the data begins mid-day: that day is not a full one

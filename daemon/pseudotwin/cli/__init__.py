@@ -227,8 +227,17 @@ def _training_history(a: argparse.Namespace,
     url = a.store
     if url is None:
         from pseudotwin.config import load_config
+        from pseudotwin.config.validate import suggest
 
-        url = load_config(a.config).store
+        cfg = load_config(a.config)
+        # What the twin reads live must be a sensor of the configuration the artifact is
+        # for; the desk sensor need not be (it is often imported, never fed live).
+        for option, names in (("--references", a.references), ("--covariates", a.covariates)):
+            if unknown := [s for s in names if s not in cfg.sensors]:
+                raise ConfigError(
+                    f"{option}: {', '.join(unknown)} not a sensor of {a.config}"
+                    f"{suggest(unknown[0], cfg.sensors)}; the twin could not be fed live")
+        url = cfg.store
         if url is None:
             raise ConfigError(f"{a.config}: no store configured in [service]")
     with open_store(url, existing=True) as store:
