@@ -364,3 +364,30 @@ def test_covariates_without_a_model_that_reads_them_are_refused(sml: Path, tmp_p
     assert exc.value.code == 2 and "none of the models asked for reads covariates" in err
     assert "only triv-cov does" in err and not (tmp_path / "a.json").exists()
     assert run(*args, "--models", "ref,triv,triv-cov") == 0
+
+
+@pytest.mark.parametrize("command", [
+    ("train", "--references", "dining/temp", "--target", "room/temp", "--quantity",
+     "temperature", "--models", "ref,triv"),
+    ("backfill", "--twin", "desk", "--from", "2012-03-20", "--to", "2012-03-20"),
+])
+def test_a_broken_configuration_is_named(tmp_path: Path, command: tuple[str, ...],
+                                         capsys) -> None:
+    """train --config and backfill --config said "service.timezone: …" without the file."""
+    from daemon_support import write_config
+
+    cfg = write_config(tmp_path, 1883, tmp_path / "desk.json", store="history.db")
+    cfg.write_text(cfg.read_text().replace('timezone = "Europe/Madrid"',
+                                           'timezone = "Europe/Madird"'))
+    out = ("--out", str(tmp_path / "a.json")) if command[0] == "train" else ()
+    assert run(*command, "--config", str(cfg), *out) == 2
+    err = capsys.readouterr().err
+    assert f"configuration error in {cfg}: service.timezone" in err
+
+
+@pytest.mark.parametrize("port", ["0", "65536", "http"])
+def test_a_bad_metrics_port_is_a_usage_error(tmp_path: Path, port: str, capsys) -> None:
+    """It was read as the configuration's port and reported as a configuration error (78)."""
+    with pytest.raises(SystemExit) as exc:
+        run("run", "--config", str(tmp_path / "any.toml"), "--metrics-port", port)
+    assert exc.value.code == 2 and "--metrics-port" in capsys.readouterr().err

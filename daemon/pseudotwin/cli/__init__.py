@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from pseudotwin import __version__
-from pseudotwin.cli.util import EX_CONFIG
+from pseudotwin.cli.util import EX_CONFIG, load_named_config
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.errors import ConfigError, PseudotwinError
 from pseudotwin.gp.kernels import KERNEL_REGISTRY
@@ -174,9 +174,7 @@ def _hours(a: argparse.Namespace) -> OperatingHours:
     given = {k: v for k, v in given.items() if v is not None}
     if getattr(a, "config", None) is None:
         return dataclasses.replace(OperatingHours(), **given)
-    from pseudotwin.config import load_config
-
-    hours = load_config(a.config).hours
+    hours = load_named_config(a.config).hours
     for key, value in given.items():
         if value != getattr(hours, key):
             shown = getattr(a, key)
@@ -226,10 +224,9 @@ def _training_history(a: argparse.Namespace,
 
     url = a.store
     if url is None:
-        from pseudotwin.config import load_config
         from pseudotwin.config.validate import suggest
 
-        cfg = load_config(a.config)
+        cfg = load_named_config(a.config)
         # What the twin reads live must be a sensor of the configuration the artifact is
         # for; the desk sensor need not be (it is often imported, never fed live).
         for option, names in (("--references", a.references), ("--covariates", a.covariates)):
@@ -253,9 +250,7 @@ def _train_thinning(a: argparse.Namespace) -> Thinning:
     if a.min_interval is not None:
         return Thinning(dt.timedelta(seconds=a.min_interval))
     if a.config is not None:
-        from pseudotwin.config import load_config
-
-        return load_config(a.config).thinning
+        return load_named_config(a.config).thinning
     return Thinning()
 
 
@@ -374,6 +369,16 @@ def _varma_order(text: str) -> int:
     if not 1 <= p <= MAX_VARMA_P:
         raise argparse.ArgumentTypeError(f"{p} is not in 1..{MAX_VARMA_P}")
     return p
+
+
+def _tcp_port(text: str) -> int:
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
+    if not 1 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{port}: a TCP port is 1..65535")
+    return port
 
 
 def _lcm_terms(text: str) -> int:
@@ -570,11 +575,10 @@ def cmd_run(a: argparse.Namespace) -> int:
 
 
 def cmd_replay(a: argparse.Namespace) -> int:
-    from pseudotwin.config import load_config
     from pseudotwin.core.series import read_history
     from pseudotwin.edge.replay import replay
 
-    cfg = load_config(a.config)
+    cfg = load_named_config(a.config)
     df = read_history(a.history)
     n = replay(cfg, df, a.start, a.end, a.speed)
     print(f"published {n} readings")
@@ -713,7 +717,7 @@ def build_parser() -> argparse.ArgumentParser:
     fleet.add_argument("--twins", type=_csv, metavar="ID,ID",
                        help="fleet: run only these twins of the configuration (as --shard, "
                             "the instance is named after the set)")
-    r.add_argument("--metrics-port", type=int, metavar="PORT",
+    r.add_argument("--metrics-port", type=_tcp_port, metavar="PORT",
                    help="serve Prometheus metrics on this port instead of [metrics] port "
                         "(one per instance when several run on one host)")
     r.set_defaults(func=cmd_run, check=functools.partial(_check_run, r))

@@ -61,13 +61,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(a: argparse.Namespace) -> int:
     """Backfill; 0 when every day finished, 1 when some failed (each named on stderr),
     130 when interrupted (finished days stay written; the same command resumes)."""
-    from pseudotwin.config import load_config
+    from pseudotwin.cli.util import load_named_config
     from pseudotwin.core.heap import freeze_long_lived
     from pseudotwin.errors import ConfigError
     from pseudotwin.history.backfill_pool import backfill_twins
     from pseudotwin.history.store import open_store
 
-    cfg = load_config(a.config)
+    cfg = load_named_config(a.config)
     if cfg.store is None:
         raise ConfigError(f"{a.config}: no store configured in [service] (store = ...)")
     if a.all_twins:

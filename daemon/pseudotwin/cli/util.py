@@ -5,11 +5,27 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Callable
-from typing import NoReturn
+from pathlib import Path
+from typing import TYPE_CHECKING, NoReturn
 
-from pseudotwin.errors import PseudotwinError
+from pseudotwin.errors import ConfigError, PseudotwinError
+
+if TYPE_CHECKING:
+    from pseudotwin.config import ServiceConfig
 
 EX_CONFIG = 78  # sysexits: systemd's RestartPreventExitStatus keys on it
+
+
+def load_named_config(path: Path) -> ServiceConfig:
+    """The configuration at ``path`` for a command that only reads it (train, backfill): its
+    problems name the file, as those of ``run`` do."""
+    from pseudotwin.config import ConfigProblems, load_config
+
+    try:
+        return load_config(path)
+    except ConfigProblems as exc:
+        sep = "\n" if len(exc.problems) > 1 else " "
+        raise ConfigError(f"configuration error in {path}:{sep}{exc}") from None
 
 
 class UsageError(Exception):
