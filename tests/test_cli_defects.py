@@ -391,3 +391,30 @@ def test_a_bad_metrics_port_is_a_usage_error(tmp_path: Path, port: str, capsys) 
     with pytest.raises(SystemExit) as exc:
         run("run", "--config", str(tmp_path / "any.toml"), "--metrics-port", port)
     assert exc.value.code == 2 and "--metrics-port" in capsys.readouterr().err
+
+
+def test_a_window_unlike_trainings_is_refused(sml: Path, tmp_path: Path, capsys) -> None:
+    """The artifact records each live sensor's min_interval; a configuration that thins
+    otherwise (its σ was measured on another window) fails check-config, and train --config
+    refuses a --min-interval that contradicts the configuration."""
+    from daemon_support import write_config
+
+    out = tmp_path / "desk.json"
+    assert run("train", "--history", str(sml), "--references", "dining/temp", "--target",
+               "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
+               "--timezone", "Europe/Madrid", "--models", "ref,triv", "--out", str(out)) == 0
+    cfg = write_config(tmp_path, 1883, out, store=str(tmp_path / "none.db"))
+    assert run("check-config", str(cfg)) == 0
+    capsys.readouterr()
+    text = cfg.read_text()
+    cfg.write_text(text.replace('topic = "house/dining/temp"\n',
+                                'topic = "house/dining/temp"\nmin_interval_seconds = 300\n'))
+    assert run("check-config", str(cfg)) == 1
+    assert ("min_interval_seconds of dining/temp is 300, but the twin learnt from one point "
+            "per 60 s") in capsys.readouterr().err
+    cfg.write_text(text)
+    assert run("train", "--config", str(cfg), "--references", "dining/temp", "--target",
+               "room/temp", "--quantity", "temperature", "--models", "ref,triv",
+               "--min-interval", "900", "--out", str(tmp_path / "b.json")) == 2
+    assert ("--min-interval 900 contradicts" in capsys.readouterr().err
+            and not (tmp_path / "b.json").exists())

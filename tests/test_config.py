@@ -622,7 +622,8 @@ def test_artifact_check_hook_gets_each_existing_twin(tmp_path: Path) -> None:
     (tmp_path / "artifacts" / "t.json").write_text("{}")
     seen: list[str] = []
 
-    def artifact_check(twin: TwinConfig, hours: OperatingHours | None) -> list[str]:
+    def artifact_check(twin: TwinConfig, hours: OperatingHours | None,
+                       thinning: object) -> list[str]:
         seen.append(twin.id)
         if twin.quantity == "temperature":
             return ["trained for sensors ('x', 'y'), configured ('r/hmi/temp', 'r/ceiling/temp')"]
@@ -647,7 +648,8 @@ def test_artifact_check_exceptions_become_problems(tmp_path: Path) -> None:
     for name in ("t.json", "c.json"):
         (tmp_path / "artifacts" / name).write_text("{}")
 
-    def artifact_check(twin: TwinConfig, hours: OperatingHours | None) -> list[str]:
+    def artifact_check(twin: TwinConfig, hours: OperatingHours | None,
+                       thinning: object) -> list[str]:
         raise ArtifactError(f"{twin.artifact.name}: format version 9 is newer than supported")
 
     with pytest.raises(ConfigProblems) as info:

@@ -314,6 +314,9 @@ def train_validated(
             **({"skipped": [str(d) for d in left_out]} if left_out else {}),
             "sensors": [*sensors, *spec.covariates],
             "thinning": policy.describe(),
+            # per sensor read live: what check-config compares the configuration's with
+            "min_interval_seconds": {s: policy.interval(s).total_seconds()
+                                     for s in spec.inputs},
         },
     ), v
 

@@ -243,15 +243,24 @@ def _training_history(a: argparse.Namespace,
 
 
 def _train_thinning(a: argparse.Namespace) -> Thinning:
-    """The window's policy training learns for: --min-interval, else the config's sensors'
-    (with --config), else the default."""
+    """The window's policy training learns for: the config's sensors' (with --config; a
+    --min-interval may repeat it, not contradict it), else --min-interval, else the
+    default."""
     from pseudotwin.core.thinning import Thinning
 
-    if a.min_interval is not None:
-        return Thinning(dt.timedelta(seconds=a.min_interval))
-    if a.config is not None:
-        return load_named_config(a.config).thinning
-    return Thinning()
+    given = None if a.min_interval is None else Thinning(dt.timedelta(seconds=a.min_interval))
+    if a.config is None:
+        return given or Thinning()
+    policy = load_named_config(a.config).thinning
+    if given is not None:
+        if other := [s for s in [*a.references, *a.covariates]
+                     if policy.interval(s) != given.default]:
+            raise ConfigError(
+                f"--min-interval {a.min_interval:g} contradicts {a.config}, whose "
+                f"min_interval_seconds of {other[0]} is "
+                f"{policy.interval(other[0]).total_seconds():g}: the artifact would not fit "
+                "it (leave the option out)")
+    return policy
 
 
 def _say_odd_day(art: Artifact) -> None:
@@ -267,11 +276,11 @@ def cmd_train(a: argparse.Namespace) -> int:
     from pseudotwin.core.twinlog import twin_context
 
     spec = _spec(a)
+    thinning = _train_thinning(a)  # a contradiction with --config fails before any reading
     df, start = _training_history(a, spec.hours)
     with twin_context(a.out.stem):  # the artifact's name is the twin's id by convention
         art, checked = train_validated(df, spec, start, a.train_days, a.models, _options(a),
-                                       a.primary, thinning=_train_thinning(a),
-                                       skip_days=a.skip_days)
+                                       a.primary, thinning=thinning, skip_days=a.skip_days)
     path = art.save(a.out)
     days = ", ".join(art.training["days"])
     print(f"trained {', '.join(art.models)} on {days}; artifact written to {path}")
@@ -479,10 +488,11 @@ def _aware(text: str) -> dt.datetime:
     return t
 
 
-def _artifact_check(twin: TwinConfig, hours: OperatingHours | None) -> list[str]:
+def _artifact_check(twin: TwinConfig, hours: OperatingHours | None,
+                    thinning: Thinning | None) -> list[str]:
     from pseudotwin.live.artifact import check_artifact
 
-    return check_artifact(twin, hours=hours)
+    return check_artifact(twin, hours=hours, thinning=thinning)
 
 
 def _load_service_config(path: Path) -> ServiceConfig:

@@ -24,6 +24,7 @@ from pseudotwin.config.model import (
     cross_problems,
     homeassistant_problems,
     service_scalar_problems,
+    thinning_of,
 )
 from pseudotwin.config.validate import (
     ConfigProblems,
@@ -35,14 +36,15 @@ from pseudotwin.config.validate import (
     type_name,
 )
 from pseudotwin.core.horizon import OperatingHours, parse_hhmm
+from pseudotwin.core.thinning import Thinning
 from pseudotwin.errors import ConfigError, PseudotwinError
 
 __all__ = ["SERVICE_DEFAULTS", "ArtifactCheck", "Loader", "load_config", "load_file", "read_toml"]
 
 #: Called per twin by :func:`load_config`/:func:`check_config` when its artifact file exists;
 #: returns problem messages (without location), e.g. "artifact was trained for sensors ...".
-# (twin, the service's operating hours if they are valid) → problems
-ArtifactCheck = Callable[[TwinConfig, OperatingHours | None], list[str]]
+# (twin, the service's operating hours if they are valid, the sensors' thinning) → problems
+ArtifactCheck = Callable[[TwinConfig, OperatingHours | None, Thinning | None], list[str]]
 
 MQTT_TLS_PORT = 8883  # the registered MQTT-over-TLS port: the default with tls = true
 SERVICE_DEFAULTS = field_defaults(ServiceConfig)
@@ -82,6 +84,7 @@ class Loader:
         self.artifact_check = artifact_check
         self.problems: list[str] = []
         self.hours: OperatingHours | None = None
+        self.thinning: Thinning | None = None
 
     def add(self, location: str, message: str) -> None:
         self.problems.append(f"{location}: {message}")
@@ -153,6 +156,7 @@ class Loader:
         if homeassistant is not None:
             self.problems.extend(homeassistant_problems(homeassistant, [t.id for _, t in twins]))
         self.hours = service["hours"] if service is not None else None
+        self.thinning = thinning_of(s for _, s in sensors) if sensors_complete else None
         self.check_sections(broker, service, twins)
         if (self.problems or broker is None or service is None
                 or not sensors_complete or not twins_complete):
@@ -371,7 +375,7 @@ class Loader:
     def run_artifact_check(self, loc: str, twin: TwinConfig) -> None:
         assert self.artifact_check is not None
         try:
-            messages = list(self.artifact_check(twin, self.hours))
+            messages = list(self.artifact_check(twin, self.hours, self.thinning))
         except (PseudotwinError, OSError, ValueError) as exc:
             messages = [str(exc)]
         for msg in messages:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Collection, Mapping, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import timedelta
 from functools import cached_property
@@ -45,6 +45,7 @@ __all__ = [
     "cross_problems",
     "homeassistant_problems",
     "service_scalar_problems",
+    "thinning_of",
 ]
 
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
@@ -528,6 +529,13 @@ def cross_problems(
     return out
 
 
+def thinning_of(sensors: Iterable[SensorConfig]) -> Thinning:
+    """The window's thinning policy from the sensors' ``min_interval_seconds``."""
+    return Thinning(per_sensor={
+        s.id: width for s in sensors
+        if (width := timedelta(seconds=s.min_interval_seconds)) != DEFAULT_MIN_INTERVAL})
+
+
 @dataclass(frozen=True, kw_only=True)
 class ServiceConfig:
     """Everything the daemon needs: broker, operating hours, sensors and twins.
@@ -642,9 +650,7 @@ class ServiceConfig:
         """The window's thinning policy from the sensors' ``min_interval_seconds`` (one
         object shared by every twin: a per-twin copy of a thousand sensors' table would cost
         a thousand twins ~100 MB)."""
-        return Thinning(per_sensor={
-            sid: width for sid, s in self.sensors.items()
-            if (width := timedelta(seconds=s.min_interval_seconds)) != DEFAULT_MIN_INTERVAL})
+        return thinning_of(self.sensors.values())
 
     @cached_property
     def _sensor_by_topic(self) -> dict[str, SensorConfig]:

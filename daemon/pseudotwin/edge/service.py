@@ -139,7 +139,7 @@ class Service:
         problems = []
         for tid, tc in cfg.twins.items():
             art = Artifact.load(tc.artifact)
-            for p in check_artifact(tc, art, cfg.hours):
+            for p in check_artifact(tc, art, cfg.hours, cfg.thinning):
                 problems.append(f"twins.{tid}: {p}")
             twin = Twin(art, models=cfg.running_kinds(art.primary),
                         stale_after=cfg.stale_after, thinning=cfg.thinning)

@@ -183,7 +183,7 @@ def plan(cfg: ServiceConfig, twin_ids: list[str], start: dt.date, end: dt.date,
         art = Artifact.load(path)  # a broken artifact fails here, before any work
         # An artifact that does not fit its twin (another twin's, other hours) would replace
         # the stored estimates with wrong ones: refused as `run` refuses it.
-        if problems := check_artifact(cfg.twins[twin_id], art, cfg.hours):
+        if problems := check_artifact(cfg.twins[twin_id], art, cfg.hours, cfg.thinning):
             raise ConfigError("\n".join(f"twins.{twin_id}.artifact: {p}" for p in problems))
         hours = art.hours
         digest = artifact_hash(path)

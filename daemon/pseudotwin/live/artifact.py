@@ -27,6 +27,7 @@ from pseudotwin.models.registry import MODELS
 
 if TYPE_CHECKING:
     from pseudotwin.config.model import TwinConfig
+    from pseudotwin.core.thinning import Thinning
 
 FORMAT = "pseudotwin-artifact"
 # 2: σ calibration, validation, the ref model, VARMA re-levelling; version 1 still loads.
@@ -186,13 +187,27 @@ UNVALIDATED = ("its artifact was trained without validation (fewer than three tr
 
 
 def check_artifact(
-    twin: TwinConfig, art: Artifact | None = None, hours: OperatingHours | None = None
+    twin: TwinConfig, art: Artifact | None = None, hours: OperatingHours | None = None,
+    thinning: Thinning | None = None,
 ) -> list[str]:
     """Problems between a twin's configuration and its artifact (empty when they fit):
     what ``check-config``, ``run`` and ``backfill`` refuse. Without ``hours`` the artifact's
-    are taken, and a config without a target takes the artifact's."""
+    are taken, and a config without a target takes the artifact's; ``thinning``, the
+    sensors' window policy, is compared with the one training learnt from (artifacts that
+    record it)."""
     art = art or Artifact.load(twin.artifact)
-    return twin.spec(hours or art.hours, art.target).differences(art.spec, "the artifact's")
+    problems = twin.spec(hours or art.hours, art.target).differences(art.spec, "the artifact's")
+    learnt = art.training.get("min_interval_seconds", {})
+    if thinning is None:
+        return problems
+    for sensor, seconds in learnt.items():
+        live = thinning.interval(sensor).total_seconds()
+        if not math.isclose(live, seconds):
+            problems.append(
+                f"min_interval_seconds of {sensor} is {live:g}, but the twin learnt from one "
+                f"point per {seconds:g} s (its σ was measured on that window): set it back or "
+                f"retrain with train --config")
+    return problems
 
 
 def artifact_hash(path: str | Path) -> str:
