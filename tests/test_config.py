@@ -738,3 +738,13 @@ def test_cli_missing_file_and_help(tmp_path: Path, capsys: pytest.CaptureFixture
         check_config_main(["--help"])
     assert info.value.code == 0
     assert "pseudotwin check-config" in capsys.readouterr().out
+
+
+def test_a_duplicate_sensor_id_does_not_shadow_the_first(tmp_path: Path) -> None:
+    """The CO2 sensor given the temperature sensor's id: its own error, and the temperature
+    twin still judged by the first definition (not 'has unit ppm')."""
+    doc = base_doc()
+    doc["sensors"][3]["id"] = "r/hmi/temp"
+    found = problems_of(tmp_path, doc)
+    assert has(found, "sensors[3].id", "duplicate id 'r/hmi/temp' (first used by sensors[0])")
+    assert not any("ppm" in p for p in found), found

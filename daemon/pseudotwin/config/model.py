@@ -493,7 +493,9 @@ def cross_problems(
         ):
             out.append(f"{loc}.topic: {s.topic!r} lies under base_topic {base_topic!r}, "
                        "where the daemon publishes its own outputs")
-    by_id = {s.id: s for _, s in sensors}
+    by_id: dict[str, SensorConfig] = {}
+    for _, s in sensors:  # a duplicate id is its own error: the first definition stands
+        by_id.setdefault(s.id, s)
     first_twin: dict[str, str] = {}
     first_artifact: dict[Path, str] = {}
     for loc, t in twins:
