@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from pseudotwin import __version__
-from pseudotwin.cli.util import EX_CONFIG, load_named_config
+from pseudotwin.cli.util import EX_CONFIG, load_named_config, whole_number
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.errors import ConfigError, PseudotwinError
 from pseudotwin.gp.kernels import KERNEL_REGISTRY
@@ -370,34 +370,9 @@ def _positive_minutes(text: str) -> float:
 MAX_VARMA_P = 8  # five training days hold ~220 slots: a higher order fits noise
 
 
-def _varma_order(text: str) -> int:
-    try:
-        p = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if not 1 <= p <= MAX_VARMA_P:
-        raise argparse.ArgumentTypeError(f"{p} is not in 1..{MAX_VARMA_P}")
-    return p
-
-
-def _tcp_port(text: str) -> int:
-    try:
-        port = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
-    if not 1 <= port <= 65535:
-        raise argparse.ArgumentTypeError(f"{port}: a TCP port is 1..65535")
-    return port
-
-
-def _lcm_terms(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"{n}: an LCM needs at least one term")
-    return n
+_varma_order = whole_number(1, MAX_VARMA_P)
+_tcp_port = whole_number(1, 65535, "a port number")
+_lcm_terms = whole_number(1, what="a number of terms")
 
 
 def _minutes_at_least_zero(text: str) -> float:

@@ -9,6 +9,8 @@ import os
 import sys
 from pathlib import Path
 
+from pseudotwin.cli.util import whole_number
+
 EX_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports for Ctrl-C
 
 
@@ -19,14 +21,7 @@ def _date(text: str) -> dt.date:
         raise argparse.ArgumentTypeError(f"{text!r} is not a date YYYY-MM-DD") from None
 
 
-def _jobs(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of processes") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"--jobs must be at least 1, not {n}")
-    return n
+_jobs = whole_number(1, what="a number of processes")
 
 
 def default_jobs() -> int:

@@ -28,6 +28,22 @@ def load_named_config(path: Path) -> ServiceConfig:
         raise ConfigError(f"configuration error in {path}:{sep}{exc}") from None
 
 
+def whole_number(lo: int, hi: int | None = None, what: str = "a whole number"
+                 ) -> Callable[[str], int]:
+    """An argparse type: an integer in lo..hi (no upper bound when ``hi`` is None)."""
+    def parse(text: str) -> int:
+        try:
+            n = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from None
+        if n < lo or hi is not None and n > hi:
+            raise argparse.ArgumentTypeError(f"{n} is not in {lo}..{hi}" if hi is not None
+                                             else f"must be at least {lo}, not {n}")
+        return n
+
+    return parse
+
+
 class UsageError(Exception):
     """Bad command-line arguments, reported by the subcommand as one error line."""
 
