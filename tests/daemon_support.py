@@ -107,32 +107,29 @@ def wait_for(pred: Callable[[], object], timeout: float = 30.0, what: str = "con
     raise AssertionError(f"timed out waiting for {what() if callable(what) else what}")
 
 
-class StepClock:
-    """A daemon clock (edge/clock.py's protocol) that moves only when stepped: its grid
-    ticks at an instant once the feed has stepped past it, however much wall time a pause
-    of the test process or a slow delivery takes."""
+class HandClock:
+    """A daemon clock (edge/clock.py's protocol) the test moves: the ticker wakes only once
+    the test sets a time past the instant it waits for, so what the daemon was given before
+    a tick is certain, however much wall time a pause of the test process takes."""
 
     def __init__(self, start: dt.datetime) -> None:
-        self._now = start.astimezone(dt.UTC)
-        self._cond = threading.Condition()
+        self._t = start.astimezone(dt.UTC)  # as edge/clock.py's clocks tell it
+        self._moved = threading.Condition()
 
     def now(self) -> dt.datetime:
-        with self._cond:
-            return self._now
+        with self._moved:
+            return self._t
 
-    def step_to(self, instant: dt.datetime) -> None:
-        with self._cond:
-            if instant > self._now:
-                self._now = instant
-                self._cond.notify_all()
+    def set(self, t: dt.datetime) -> None:
+        with self._moved:
+            self._t = t.astimezone(dt.UTC)
+            self._moved.notify_all()
 
     def wait_until(self, instant: dt.datetime, stop: threading.Event) -> bool:
-        with self._cond:
-            while not stop.is_set():
-                if self._now >= instant:
-                    return True
-                self._cond.wait(0.05)  # ``stop`` is an Event of its own: poll it
-        return False
+        with self._moved:
+            while self._t < instant and not stop.is_set():
+                self._moved.wait(0.05)  # ``stop`` is an Event of its own: poll it
+        return not stop.is_set()
 
 
 class Lockstep:
@@ -141,7 +138,7 @@ class Lockstep:
     the reading's time. The worker handles items in queue order, so a grid tick, queued
     only once the clock passes its instant, comes after every earlier reading."""
 
-    def __init__(self, clock: StepClock, taken: Callable[[], int]) -> None:
+    def __init__(self, clock: HandClock, taken: Callable[[], int]) -> None:
         self.clock, self.taken, self.sent = clock, taken, 0
 
     def now(self) -> dt.datetime:
@@ -151,7 +148,8 @@ class Lockstep:
         wait_for(lambda: self.taken() >= self.sent,
                  what=lambda: f"the daemon to take reading {self.sent} "
                               f"(it took {self.taken()})")
-        self.clock.step_to(instant)
+        if instant > self.clock.now():
+            self.clock.set(instant)
         self.sent += 1  # replay publishes it next
         return not stop.is_set()
 

@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from daemon_support import Lockstep, StepClock, Viewer, wait_for
+from daemon_support import HandClock, Lockstep, Viewer, wait_for
 from pseudotwin.analysis.commissioning.snippet import config_snippet
 from pseudotwin.analysis.evaluate import evaluate
 from pseudotwin.analysis.replay import ESTIMATE, replay_estimates
@@ -251,7 +251,7 @@ def test_the_daemon_reads_the_covariates_like_evaluate(
     offline = offline[offline["model"] == ESTIMATE]
     want = {t.isoformat().replace("+00:00", "Z"): (round(v, 6), round(sd, 6))
             for t, v, sd in zip(offline["ts"], offline["value"], offline["std"], strict=True)}
-    clock = StepClock(start)  # moves with the replay only: no tick overtakes a reading
+    clock = HandClock(start)  # moves with the replay only: no tick overtakes a reading
     viewer = Viewer(mosquitto.port)
 
     def last_per_instant() -> dict[str, tuple[float, float]]:

@@ -14,7 +14,17 @@ import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 
 import pseudotwin.edge.service as service_module
-from daemon_support import DAY, HOURS, REF, TARGET, config, day_readings, sml, wait_for
+from daemon_support import (
+    DAY,
+    HOURS,
+    REF,
+    TARGET,
+    HandClock,
+    config,
+    day_readings,
+    sml,
+    wait_for,
+)
 from pseudotwin.analysis.evaluate import replay_estimates
 from pseudotwin.edge.clock import ReplayClock
 from pseudotwin.edge.replay import replay
@@ -176,30 +186,6 @@ def test_a_late_grid_tick_does_not_see_later_readings(mosquitto, desk_artifact,
             checked += 1
     assert checked == len(kinds) * len(grid)
     viewer.close()
-
-
-class HandClock:
-    """A clock the test moves: the ticker wakes only once the test sets a time past the
-    instant it waits for, so what the daemon was given before a tick is certain."""
-
-    def __init__(self, start: dt.datetime) -> None:
-        self._t = start
-        self._moved = threading.Condition()
-
-    def now(self) -> dt.datetime:
-        with self._moved:
-            return self._t
-
-    def set(self, t: dt.datetime) -> None:
-        with self._moved:
-            self._t = t
-            self._moved.notify_all()
-
-    def wait_until(self, instant: dt.datetime, stop: threading.Event) -> bool:
-        with self._moved:
-            while self._t < instant and not stop.is_set():
-                self._moved.wait(0.05)
-        return not stop.is_set()
 
 
 def test_a_reading_stamped_at_a_grid_instant_is_in_its_grid_estimates(

@@ -15,7 +15,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from daemon_support import Lockstep, StepClock, Viewer, two_reference_days, wait_for
+from daemon_support import HandClock, Lockstep, Viewer, two_reference_days, wait_for
 from pseudotwin.analysis.failover import FAILOVER_KINDS
 from pseudotwin.analysis.replay import ESTIMATE, replay_estimates
 from pseudotwin.analysis.training import train_twin
@@ -279,7 +279,7 @@ def test_daemon_fails_over_on_a_silenced_reference_like_evaluate(
     # readings still on their way (a pause of the test process longer than stale_after at
     # the replay's speed made the references look stale), and ticks went on after the
     # replay until svc.stop().
-    clock = StepClock(start)
+    clock = HandClock(start)
     viewer = Viewer(mosquitto.port)
     monitor = Viewer(mosquitto.port, "pt/desk/monitor")
     svc = Service(cfg, clock=clock)
