@@ -35,11 +35,15 @@ def run(*args: str) -> int:
     return main(["--log-level", "WARNING", *args])
 
 
+def desk_twin(command: str, history: Path, *extra: str) -> tuple[str, ...]:
+    """``command``'s (train, evaluate) arguments for SML2010's desk temperature twin."""
+    return (command, "--history", str(history), "--references", "dining/temp", "--target",
+            "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
+            "--timezone", "Europe/Madrid", *extra)
+
+
 def _evaluate(sml: Path, out: Path, *extra: str) -> int:
-    return run("evaluate", "--history", str(sml), "--references", "dining/temp",
-               "--target", "room/temp", "--quantity", "temperature",
-               "--train-start", "2012-03-14", "--timezone", "Europe/Madrid",
-               "--models", "triv", "--out", str(out), *extra)
+    return run(*desk_twin("evaluate", sml, "--models", "triv", "--out", str(out), *extra))
 
 
 def test_plot_day_without_data_is_an_error(sml: Path, tmp_path: Path, capsys) -> None:
@@ -135,9 +139,7 @@ def test_train_refuses_a_stuck_sensor(sml: Path, tmp_path: Path, capsys) -> None
     assert "sensor dining/temp: reads 20 °C throughout the training days (100.0 % of" in err
     assert not out.exists()
     # the same days with the sensor moving train as before
-    assert run("train", "--history", str(sml), "--references", "dining/temp", "--target",
-               "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
-               "--timezone", "Europe/Madrid", "--models", "triv", "--out", str(out)) == 0
+    assert run(*desk_twin("train", sml, "--models", "triv", "--out", str(out))) == 0
 
 
 def test_train_warns_of_training_days_on_which_a_sensor_was_stuck(
@@ -250,9 +252,7 @@ def test_varma_p_pins_the_order_and_skips_its_choice(sml: Path, tmp_path: Path,
     from pseudotwin.live.artifact import Artifact
     from pseudotwin.models.varma import VarmaModel
 
-    args = ("train", "--history", str(sml), "--references", "dining/temp", "--target",
-            "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
-            "--timezone", "Europe/Madrid", "--models", "ref,triv,varma")
+    args = desk_twin("train", sml, "--models", "ref,triv,varma")
     assert run(*args, "--varma-p", "1", "--out", str(tmp_path / "p1.json")) == 0
     art = Artifact.load(tmp_path / "p1.json")
     model = art.models["varma"]
@@ -270,9 +270,7 @@ def test_lcm_terms_sets_the_corrgp_lcm_terms(sml: Path, tmp_path: Path, capsys) 
     from pseudotwin.live.artifact import Artifact
     from pseudotwin.models.corrgp import CorrGpLcm
 
-    args = ("train", "--history", str(sml), "--references", "dining/temp", "--target",
-            "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
-            "--timezone", "Europe/Madrid", "--models", "ref,corrgp-lcm")
+    args = desk_twin("train", sml, "--models", "ref,corrgp-lcm")
     # One reference: one term by default, so two can only come from the option.
     assert run(*args, "--lcm-terms", "2", "--out", str(tmp_path / "t2.json")) == 0
     model = Artifact.load(tmp_path / "t2.json").models["corrgp-lcm"]
@@ -292,9 +290,7 @@ def test_an_output_that_cannot_be_written_is_refused_before_training(
         sml: Path, command: str, out: str, capsys) -> None:
     """Root passes permission checks, yet /proc takes no file: the probe says so at once
     (before, training ran to its end and died in a traceback writing the result)."""
-    args = (command, "--history", str(sml), "--references", "dining/temp", "--target",
-            "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
-            "--timezone", "Europe/Madrid", "--models", "ref,triv", "--out", out)
+    args = desk_twin(command, sml, "--models", "ref,triv", "--out", out)
     with pytest.raises(SystemExit) as exc:
         run(*args)
     err = capsys.readouterr().err
@@ -311,9 +307,7 @@ def test_a_write_that_fails_after_the_checks_is_one_line(sml: Path, tmp_path: Pa
     limit = resource.getrlimit(resource.RLIMIT_FSIZE)
     resource.setrlimit(resource.RLIMIT_FSIZE, (4096, limit[1]))  # Python ignores SIGXFSZ
     try:
-        code = run("train", "--history", str(sml), "--references", "dining/temp", "--target",
-                   "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
-                   "--timezone", "Europe/Madrid", "--models", "ref,triv", "--out", str(out))
+        code = run(*desk_twin("train", sml, "--models", "ref,triv", "--out", str(out)))
     finally:
         resource.setrlimit(resource.RLIMIT_FSIZE, limit)
     err = capsys.readouterr().err
@@ -326,10 +320,8 @@ def test_a_write_that_fails_after_the_checks_is_one_line(sml: Path, tmp_path: Pa
 def test_fewer_days_than_validation_needs_are_refused_unless_allowed(
         sml: Path, tmp_path: Path, command: str, capsys) -> None:
     out = tmp_path / ("a.json" if command == "train" else "ev")
-    args = (command, "--history", str(sml), "--references", "dining/temp", "--target",
-            "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
-            "--timezone", "Europe/Madrid", "--models", "ref,triv", "--train-days", "2",
-            "--out", str(out))
+    args = desk_twin(command, sml, "--models", "ref,triv", "--train-days", "2",
+                     "--out", str(out))
     with pytest.raises(SystemExit) as exc:
         run(*args)
     err = capsys.readouterr().err
@@ -354,10 +346,8 @@ def test_covariates_without_a_model_that_reads_them_are_refused(sml: Path, tmp_p
                                                                 capsys) -> None:
     """They went into the artifact, and the twin's configuration then had to feed sensors
     no model read."""
-    args = ("train", "--history", str(sml), "--references", "dining/temp", "--target",
-            "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
-            "--timezone", "Europe/Madrid", "--covariates", "dining/co2",
-            "--out", str(tmp_path / "a.json"))
+    args = desk_twin("train", sml, "--covariates", "dining/co2",
+                     "--out", str(tmp_path / "a.json"))
     with pytest.raises(SystemExit) as exc:
         run(*args, "--models", "ref,triv")
     err = capsys.readouterr().err
@@ -400,9 +390,7 @@ def test_a_window_unlike_trainings_is_refused(sml: Path, tmp_path: Path, capsys)
     from daemon_support import write_config
 
     out = tmp_path / "desk.json"
-    assert run("train", "--history", str(sml), "--references", "dining/temp", "--target",
-               "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
-               "--timezone", "Europe/Madrid", "--models", "ref,triv", "--out", str(out)) == 0
+    assert run(*desk_twin("train", sml, "--models", "ref,triv", "--out", str(out))) == 0
     cfg = write_config(tmp_path, 1883, out, store=str(tmp_path / "none.db"))
     assert run("check-config", str(cfg)) == 0
     capsys.readouterr()
