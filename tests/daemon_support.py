@@ -19,6 +19,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from pseudotwin.config import ServiceConfig, load_config
 from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.edge.service import Service
 from pseudotwin.history.convert import load
 
 TZ = "Europe/Madrid"
@@ -133,13 +134,14 @@ class HandClock:
 
 
 class Lockstep:
-    """The clock ``replay`` publishes by: before each reading, wait until the daemon has
-    accepted every reading published so far (``taken``: its count), then step ``clock`` to
+    """The clock ``replay`` publishes by: before each reading, wait until the daemon ``svc``
+    has taken every reading published so far (accepted or rejected), then step ``clock`` to
     the reading's time. The worker handles items in queue order, so a grid tick, queued
     only once the clock passes its instant, comes after every earlier reading."""
 
-    def __init__(self, clock: HandClock, taken: Callable[[], int]) -> None:
-        self.clock, self.taken, self.sent = clock, taken, 0
+    def __init__(self, clock: HandClock, svc: Service) -> None:
+        self.clock, self.sent = clock, 0
+        self.taken: Callable[[], int] = lambda: svc.accepted + svc.rejections.total()
 
     def now(self) -> dt.datetime:
         return self.clock.now()

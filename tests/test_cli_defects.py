@@ -275,7 +275,7 @@ def test_lcm_terms_sets_the_corrgp_lcm_terms(sml: Path, tmp_path: Path, capsys) 
     assert run(*args, "--lcm-terms", "2", "--out", str(tmp_path / "t2.json")) == 0
     model = Artifact.load(tmp_path / "t2.json").models["corrgp-lcm"]
     assert isinstance(model, CorrGpLcm)
-    assert len(model.params_.terms) == 2 and model.n_terms == 2
+    assert len(model.params_.terms) == 2
     capsys.readouterr()
     for bad in ("0", "-1", "two"):
         with pytest.raises(SystemExit) as exc:
@@ -300,7 +300,7 @@ def test_an_output_that_cannot_be_written_is_refused_before_training(
 def test_a_write_that_fails_after_the_checks_is_one_line(sml: Path, tmp_path: Path,
                                                          capsys) -> None:
     """The folder takes a file when checked, but the artifact does not fit (a file-size
-    limit, as a full disk): one line naming the file, status 1, no half artifact left."""
+    limit, as a full disk): one line naming the file, status 2, no half artifact left."""
     import resource
 
     out = tmp_path / "a.json"
@@ -311,7 +311,7 @@ def test_a_write_that_fails_after_the_checks_is_one_line(sml: Path, tmp_path: Pa
     finally:
         resource.setrlimit(resource.RLIMIT_FSIZE, limit)
     err = capsys.readouterr().err
-    assert code == 1
+    assert code == 2
     assert err.strip().endswith(f"{out}: File too large")
     assert list(tmp_path.iterdir()) == []
 
@@ -385,8 +385,9 @@ def test_a_bad_metrics_port_is_a_usage_error(tmp_path: Path, port: str, capsys) 
 
 def test_a_window_unlike_trainings_is_refused(sml: Path, tmp_path: Path, capsys) -> None:
     """The artifact records each live sensor's min_interval; a configuration that thins
-    otherwise (its σ was measured on another window) fails check-config, and train --config
-    refuses a --min-interval that contradicts the configuration."""
+    otherwise (its σ was measured on another window) fails check-config; train --config
+    learns the configuration's window, from a history file too, and refuses a --min-interval
+    that contradicts it."""
     from daemon_support import write_config
 
     out = tmp_path / "desk.json"
@@ -394,15 +395,46 @@ def test_a_window_unlike_trainings_is_refused(sml: Path, tmp_path: Path, capsys)
     cfg = write_config(tmp_path, 1883, out, store=str(tmp_path / "none.db"))
     assert run("check-config", str(cfg)) == 0
     capsys.readouterr()
-    text = cfg.read_text()
-    cfg.write_text(text.replace('topic = "house/dining/temp"\n',
-                                'topic = "house/dining/temp"\nmin_interval_seconds = 300\n'))
+    topic = 'topic = "house/dining/temp"\n'
+    cfg.write_text(cfg.read_text().replace(topic, topic + "min_interval_seconds = 300\n"))
     assert run("check-config", str(cfg)) == 1
     assert ("min_interval_seconds of dining/temp is 300, but the twin learnt from one point "
-            "per 60 s") in capsys.readouterr().err
-    cfg.write_text(text)
-    assert run("train", "--config", str(cfg), "--references", "dining/temp", "--target",
-               "room/temp", "--quantity", "temperature", "--models", "ref,triv",
-               "--min-interval", "900", "--out", str(tmp_path / "b.json")) == 2
+            "per 60 s (its σ was measured on that window): set min_interval_seconds = 60 on "
+            "that sensor") in capsys.readouterr().err
+    with_config = desk_twin("train", sml, "--config", str(cfg), "--models", "ref,triv")
+    assert run(*with_config, "--out", str(out)) == 0
+    assert run("check-config", str(cfg)) == 0
+    assert run(*with_config, "--min-interval", "300", "--out", str(tmp_path / "b.json")) == 0
+    capsys.readouterr()
+    assert run(*with_config, "--min-interval", "900", "--out", str(tmp_path / "c.json")) == 2
     assert ("--min-interval 900 contradicts" in capsys.readouterr().err
-            and not (tmp_path / "b.json").exists())
+            and not (tmp_path / "c.json").exists())
+
+
+def test_the_daemon_holds_the_artifact_to_its_window_and_says_when_it_is_unvalidated(
+        sml: Path, tmp_path: Path, caplog) -> None:
+    """run refuses a configuration that thins otherwise than training did; an artifact that
+    records no window (older than the check) passes; an unvalidated one is named in a
+    warning."""
+    import json
+    import logging
+
+    from daemon_support import write_config
+    from pseudotwin.config import load_config
+    from pseudotwin.edge.service import Service
+    from pseudotwin.errors import ConfigError
+
+    out = tmp_path / "desk.json"
+    assert run(*desk_twin("train", sml, "--models", "ref,triv", "--train-days", "2",
+                          "--allow-unvalidated", "--out", str(out))) == 0
+    cfg = write_config(tmp_path, 1883, out)
+    topic = 'topic = "house/dining/temp"\n'
+    cfg.write_text(cfg.read_text().replace(topic, topic + "min_interval_seconds = 300\n"))
+    with pytest.raises(ConfigError, match="min_interval_seconds of dining/temp is 300"):
+        Service(load_config(cfg))
+    doc = json.loads(out.read_text(encoding="utf-8"))
+    del doc["training"]["min_interval_seconds"]
+    out.write_text(json.dumps(doc), encoding="utf-8")
+    with caplog.at_level(logging.WARNING):
+        Service(load_config(cfg))
+    assert "twin desk: its artifact was trained without validation" in caplog.text

@@ -260,7 +260,7 @@ def test_the_daemon_reads_the_covariates_like_evaluate(
     svc = Service(cfg, clock=clock)
     svc.start(wait_connected=15)
     try:
-        replay(cfg, readings, start, end, 1.0, clock=Lockstep(clock, lambda: svc.accepted))
+        replay(cfg, readings, start, end, 1.0, clock=Lockstep(clock, svc))
         # Until the last reading's estimate is out: stopping earlier (the first version of
         # this test) left the last instant without its covariates' estimates.
         wait_for(lambda: all(last_per_instant().get(ts) == w for ts, w in want.items()),

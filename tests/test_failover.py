@@ -286,7 +286,7 @@ def test_daemon_fails_over_on_a_silenced_reference_like_evaluate(
     svc.start(wait_connected=15)
     try:
         replay(cfg, day, start, end, 1.0,
-               clock=Lockstep(clock, lambda: svc.accepted))
+               clock=Lockstep(clock, svc))
         refs = day[(day["sensor"] != TARGET) & (day["ts"] >= HOURS.at(TEST_DAY, 8.0))]
         wanted = set(refs["ts"])
         stamp = {t: t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z") for t in wanted}

@@ -192,7 +192,7 @@ def test_backfill_refuses_an_artifact_that_does_not_fit_its_twin(
     code = main(["backfill", "--config", str(path), "--twin", "desk", "--from", "2012-03-23",
                  "--to", "2012-03-23", "--jobs", "1", "--quiet"])
     err = capsys.readouterr().err
-    assert code != 0 and "twins.desk.artifact: operating hours" in err
+    assert code == 2 and "twins.desk.artifact: operating hours" in err
     assert "Traceback" not in err
     with open_store(str(sml_store)) as store:
         assert len(store.read_estimates("desk")) == before

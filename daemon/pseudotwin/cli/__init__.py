@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from pseudotwin import __version__
-from pseudotwin.cli.util import EX_CONFIG, load_named_config, whole_number
+from pseudotwin.cli.util import EX_CONFIG, config_error_text, load_named_config, whole_number
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.errors import ConfigError, PseudotwinError
 from pseudotwin.gp.kernels import KERNEL_REGISTRY
@@ -79,17 +79,18 @@ def _dates(text: str) -> frozenset[dt.date]:
 
 def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
     if train:
-        src = p.add_mutually_exclusive_group(required=True)
+        src = p.add_mutually_exclusive_group()
         src.add_argument("--history", type=Path,
                          help="canonical history file (CSV or Parquet): sensor,ts,value")
         src.add_argument("--store", metavar="URL",
                          help="history store: SQLite file, postgresql://host/db or "
                               "crate://host:4200")
-        src.add_argument("--config", type=Path,
-                         help="use the store of this daemon config, its sensors' "
-                              "min_interval_seconds, and its time zone and operating hours "
-                              "(an hours option below that contradicts them is an error: the "
-                              "artifact would not fit the configuration)")
+        p.add_argument("--config", type=Path,
+                       help="train for this daemon configuration: its sensors' "
+                            "min_interval_seconds, its time zone and operating hours (an "
+                            "option below that contradicts them is an error: the artifact "
+                            "would not fit it), references and covariates among its sensors; "
+                            "the history from its store unless --history or --store is given")
     else:
         p.add_argument("--history", required=True, type=Path,
                        help="canonical history file (CSV or Parquet): sensor,ts,value")
@@ -110,7 +111,8 @@ def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
                         "sensor reports (default 5; at least 3, unless --allow-unvalidated)")
     p.add_argument("--allow-unvalidated", action="store_true",
                    help="allow fewer than three training days: no day can be held out, so "
-                        "nothing chooses the primary (--primary or the first model) and σ is "
+                        "nothing chooses the primary (--primary, or else the first candidate of "
+                        "--models: with the default, ref, the raw reference) and σ is "
                         "each model's own spread, not calibrated on days it did not see: an "
                         "MPC that trusts it is misled. For a first look, not for service")
     p.add_argument("--skip-days", type=_dates, default=frozenset(), metavar="DAY[,DAY...]",
@@ -209,9 +211,22 @@ def _spec(a: argparse.Namespace) -> TwinSpec:
                     tuple(a.covariates))
 
 
-def _training_history(a: argparse.Namespace,
-                      hours: OperatingHours) -> tuple[pd.DataFrame, dt.date]:
-    """The history to train on and the first candidate day, from a file or the store."""
+def _check_live_sensors(a: argparse.Namespace, cfg: ServiceConfig) -> None:
+    """What the twin reads live must be a sensor of the configuration the artifact is for;
+    the desk sensor need not be (it is often imported, never fed live)."""
+    from pseudotwin.config.validate import suggest
+
+    for option, names in (("--references", a.references), ("--covariates", a.covariates)):
+        if unknown := [s for s in names if s not in cfg.sensors]:
+            raise ConfigError(
+                f"{option}: {', '.join(unknown)} not a sensor of {a.config}"
+                f"{suggest(unknown[0], cfg.sensors)}; the twin could not be fed live")
+
+
+def _training_history(a: argparse.Namespace, hours: OperatingHours,
+                      cfg: ServiceConfig | None) -> tuple[pd.DataFrame, dt.date]:
+    """The history to train on and the first candidate day: --history, else --store, else
+    the store of --config's configuration ``cfg``."""
     from pseudotwin.core.series import read_history
 
     if a.history is not None:
@@ -224,34 +239,26 @@ def _training_history(a: argparse.Namespace,
 
     url = a.store
     if url is None:
-        from pseudotwin.config.validate import suggest
-
-        cfg = load_named_config(a.config)
-        # What the twin reads live must be a sensor of the configuration the artifact is
-        # for; the desk sensor need not be (it is often imported, never fed live).
-        for option, names in (("--references", a.references), ("--covariates", a.covariates)):
-            if unknown := [s for s in names if s not in cfg.sensors]:
-                raise ConfigError(
-                    f"{option}: {', '.join(unknown)} not a sensor of {a.config}"
-                    f"{suggest(unknown[0], cfg.sensors)}; the twin could not be fed live")
+        assert cfg is not None  # one of --history, --store and --config is required
         url = cfg.store
         if url is None:
-            raise ConfigError(f"{a.config}: no store configured in [service]")
+            raise ConfigError(f"{a.config}: no store configured in [service] (or give "
+                              "--history or --store)")
     with open_store(url, existing=True) as store:
         return history_from_store(store, [*a.references, *a.covariates, a.target], hours,
                                   a.train_start, a.train_days, a.skip_days)
 
 
-def _train_thinning(a: argparse.Namespace) -> Thinning:
-    """The window's policy training learns for: the config's sensors' (with --config; a
-    --min-interval may repeat it, not contradict it), else --min-interval, else the
-    default."""
+def _train_thinning(a: argparse.Namespace, cfg: ServiceConfig | None) -> Thinning:
+    """The window's policy training learns for: the sensors' of --config's configuration
+    ``cfg`` (a --min-interval may repeat it, not contradict it), else --min-interval, else
+    the default."""
     from pseudotwin.core.thinning import Thinning
 
     given = None if a.min_interval is None else Thinning(dt.timedelta(seconds=a.min_interval))
-    if a.config is None:
+    if cfg is None:
         return given or Thinning()
-    policy = load_named_config(a.config).thinning
+    policy = cfg.thinning
     if given is not None:
         if other := [s for s in [*a.references, *a.covariates]
                      if policy.interval(s) != given.default]:
@@ -276,8 +283,11 @@ def cmd_train(a: argparse.Namespace) -> int:
     from pseudotwin.core.twinlog import twin_context
 
     spec = _spec(a)
-    thinning = _train_thinning(a)  # a contradiction with --config fails before any reading
-    df, start = _training_history(a, spec.hours)
+    cfg = None if a.config is None else load_named_config(a.config)
+    if cfg is not None:  # what contradicts the configuration fails before any reading
+        _check_live_sensors(a, cfg)
+    thinning = _train_thinning(a, cfg)
+    df, start = _training_history(a, spec.hours, cfg)
     with twin_context(a.out.stem):  # the artifact's name is the twin's id by convention
         art, checked = train_validated(df, spec, start, a.train_days, a.models, _options(a),
                                        a.primary, thinning=thinning, skip_days=a.skip_days)
@@ -432,6 +442,8 @@ def _folder_out(text: str) -> Path:
 def _check_training(p: argparse.ArgumentParser, a: argparse.Namespace) -> None:
     from pseudotwin.analysis.validation import MIN_DAYS
 
+    if a.command == "train" and a.history is None and a.store is None and a.config is None:
+        p.error("one of the arguments --history --store --config is required")
     readers = [k for k, cls in MODELS.items() if cls.reads_covariates]
     if a.covariates and not any(k in readers for k in a.models):
         p.error(f"--covariates {','.join(a.covariates)}: none of the models asked for reads "
@@ -514,8 +526,7 @@ def _serve(process: Service | Recorder) -> int:
 def _config_error(command: str, path: Path, exc: ConfigError) -> int:
     """Report a configuration error of ``run``/``record``: one line when it is one problem,
     else a heading and one line per problem; EX_CONFIG (systemd does not restart on it)."""
-    sep = "\n" if "\n" in str(exc) else " "
-    print(f"pseudotwin {command}: configuration error in {path}:{sep}{exc}", file=sys.stderr)
+    print(f"pseudotwin {command}: {config_error_text(path, exc)}", file=sys.stderr)
     return EX_CONFIG
 
 
@@ -609,10 +620,28 @@ def cmd_bridge(argv: list[str]) -> int:
     return bridge_main(argv)
 
 
+class _NotingCheck:
+    """check-config's artifact check, which also notes each twin whose artifact has no σ
+    calibration (the artifact loaded once for both)."""
+
+    def __init__(self) -> None:
+        self.notes: list[str] = []
+
+    def __call__(self, twin: TwinConfig, hours: OperatingHours | None,
+                 thinning: Thinning | None) -> list[str]:
+        from pseudotwin.live.artifact import UNVALIDATED, Artifact, check_artifact
+
+        art = Artifact.load(twin.artifact)
+        if not art.calibration:
+            self.notes.append(f"twins.{twin.id}: {UNVALIDATED}")
+        return check_artifact(twin, art, hours, thinning)
+
+
 def cmd_check_config(argv: list[str]) -> int:
     from pseudotwin.cli.check_config import main as check_config_main
 
-    return check_config_main(argv, artifact_check=_artifact_check)
+    check = _NotingCheck()
+    return check_config_main(argv, artifact_check=check, notes=check.notes)
 
 
 DELEGATED: dict[str, Callable[[list[str]], int]] = {
@@ -651,7 +680,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "the mean of its readings in it; training learns from those points, "
                         "not from single samples of a chatty sensor, and replays the held-out "
                         "days through that window (default: with --config, the sensors' "
-                        "min_interval_seconds; else 60)")
+                        "min_interval_seconds, which a value that contradicts them may not "
+                        "override; else 60)")
     t.add_argument("--report", type=_folder_out, metavar="DIR",
                    help="also write a commissioning report, DIR/<twin>.html (<twin>: the "
                         "artifact's file name): one self-contained HTML page with the data "
@@ -794,7 +824,7 @@ def _main(argv: Sequence[str] | None) -> int:
         # folder made read-only meanwhile): its name and the OS's reason, not a traceback.
         print(f"pseudotwin {a.command}: error: {exc.filename}: {exc.strerror or exc}",
               file=sys.stderr)
-        return 1
+        return 2
     except KeyboardInterrupt:
         print(f"pseudotwin {a.command}: interrupted", file=sys.stderr)
         return 130

@@ -1,5 +1,5 @@
-"""``pseudotwin convert DATASET --out FILE.csv``: a shared dataset as canonical history CSV
-(the converters are :mod:`pseudotwin.history.convert`)."""
+"""``pseudotwin convert DATASET --out FILE.csv``: a shared dataset as canonical history CSV,
+or Parquet with ``--out FILE.parquet`` (the converters are :mod:`pseudotwin.history.convert`)."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("dataset", nargs="?", help="dataset name (see --list)")
     p.add_argument("--source", type=Path, help="dataset folder or file (default: shared data)")
     p.add_argument("--out", type=Path,
-                   help="output file: canonical CSV, or Parquet when it ends in .parquet")
+                   help="output file: canonical CSV, or Parquet when it ends in .parquet or .pq")
     p.add_argument("--raw", action="store_true",
                    help="keep every sample where the converter would average (room-climate-*: "
                         "one reading every ~4 s per node instead of 1-minute means)")
@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
             raise UsageError(f"--raw: {args.dataset} has no samples to keep beyond what it "
                              "converts (only room-climate-* average)")
         if args.out is None:
-            raise UsageError("--out FILE.csv is required")
+            raise UsageError("--out FILE.csv (or FILE.parquet) is required")
         t0 = time.perf_counter()
         summary = convert(args.dataset, args.source, args.out, raw=args.raw)
         print(f"{summary.line()} ({time.perf_counter() - t0:.1f} s)")

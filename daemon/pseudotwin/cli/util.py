@@ -16,6 +16,13 @@ if TYPE_CHECKING:
 EX_CONFIG = 78  # sysexits: systemd's RestartPreventExitStatus keys on it
 
 
+def config_error_text(path: Path, exc: ConfigError) -> str:
+    """The problems of the configuration at ``path``: one line when it is one problem, else a
+    heading and one line per problem."""
+    sep = "\n" if "\n" in str(exc) else " "
+    return f"configuration error in {path}:{sep}{exc}"
+
+
 def load_named_config(path: Path) -> ServiceConfig:
     """The configuration at ``path`` for a command that only reads it (train, backfill): its
     problems name the file, as those of ``run`` do."""
@@ -24,8 +31,7 @@ def load_named_config(path: Path) -> ServiceConfig:
     try:
         return load_config(path)
     except ConfigProblems as exc:
-        sep = "\n" if len(exc.problems) > 1 else " "
-        raise ConfigError(f"configuration error in {path}:{sep}{exc}") from None
+        raise ConfigError(config_error_text(path, exc)) from None
 
 
 def whole_number(lo: int, hi: int | None = None, what: str = "a whole number"

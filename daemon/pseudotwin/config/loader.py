@@ -232,9 +232,9 @@ class Loader:
         if not isinstance(value, str) or not value.strip():
             self.add("service.store", f"expected a SQLite path or crate:// URL, got {value!r}")
             return None
-        from pseudotwin.history.store import is_memory_url
+        from pseudotwin.history.store import PATHLESS_SQLITE, is_memory_url
 
-        if is_memory_url(value) or value.strip() == "sqlite:///":
+        if is_memory_url(value) or value.strip() == PATHLESS_SQLITE:
             self.add("service.store", f"{value!r} keeps nothing: the recorder's readings and "
                                       "the backfilled estimates would be gone when it stops "
                                       "(give a SQLite file path or a database URL)")

@@ -532,10 +532,12 @@ def cross_problems(
 
 
 def thinning_of(sensors: Iterable[SensorConfig]) -> Thinning:
-    """The window's thinning policy from the sensors' ``min_interval_seconds``."""
-    return Thinning(per_sensor={
-        s.id: width for s in sensors
-        if (width := timedelta(seconds=s.min_interval_seconds)) != DEFAULT_MIN_INTERVAL})
+    """The window's thinning policy from the sensors' ``min_interval_seconds`` (of a
+    duplicate id, the first definition's, as everywhere)."""
+    widths: dict[str, timedelta] = {}
+    for s in sensors:
+        widths.setdefault(s.id, timedelta(seconds=s.min_interval_seconds))
+    return Thinning(per_sensor={sid: w for sid, w in widths.items() if w != DEFAULT_MIN_INTERVAL})
 
 
 @dataclass(frozen=True, kw_only=True)

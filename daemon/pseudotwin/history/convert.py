@@ -448,10 +448,11 @@ def _room_climate_units(location: str) -> dict[str, str]:
 
 def _read_room_climate_file(path: Path, location: str) -> pd.DataFrame:
     # The files name their location; node ids alone do not tell A's 1–4 from C's 1–5.
-    named = re.search(r"location_([A-Za-z])\b", path.name)
+    named = re.search(r"location_([A-Za-z])(?![A-Za-z])", path.name)
     if named and (other := named.group(1).upper()) != location:
-        raise DataError(f"{path}: a file of location {other}, not {location} (convert "
-                        f"room-climate-{other.lower()} instead)")
+        instead = (f" (convert room-climate-{other.lower()} instead)" if other in _RC_NODES
+                   else "")
+        raise DataError(f"{path}: a file of location {other}, not {location}{instead}")
     try:
         raw = pd.read_csv(path, header=None, skipinitialspace=True)
     except (ValueError, pd.errors.ParserError, UnicodeDecodeError) as exc:

@@ -832,6 +832,10 @@ def _bulk_count(results: list[dict] | None, sent: int, table: str, url: str) -> 
 # ------------------------------------------------------------------------------ factory
 
 
+#: ``sqlite:///$DB`` with DB unset: a path forgotten, not a wish for a store in memory.
+PATHLESS_SQLITE = "sqlite:///"
+
+
 def is_memory_url(url: str) -> bool:
     """Whether ``url`` names a SQLite store in memory, which keeps nothing once closed."""
     return url.strip() in (":memory:", "sqlite://", "sqlite:///:memory:")
@@ -861,7 +865,7 @@ def open_store(url: str | os.PathLike[str], existing: bool = False) -> Store:
         return SQLiteStore(":memory:")
     if scheme == "sqlite":
         rest = text[len("sqlite://"):]
-        if rest == "/":  # sqlite:///$DB with $DB unset: not a wish for a store in memory
+        if text == PATHLESS_SQLITE:
             raise ConfigError(f"{text!r}: no file path after sqlite:/// (a store in memory "
                               "is sqlite:// or :memory:)")
         if not rest.startswith("/"):

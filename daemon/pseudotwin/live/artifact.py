@@ -118,9 +118,9 @@ class Artifact(OfTwin):
         except OSError as exc:
             with contextlib.suppress(OSError):
                 tmp.unlink(missing_ok=True)  # no half artifact beside the old one
-            if exc.filename is None:  # a failed write (a full disk) names no file
-                raise OSError(exc.errno, exc.strerror, str(p)) from exc
-            raise
+            # The artifact's name, not the .tmp's (gone), nor none (a failed write: a full
+            # disk names no file).
+            raise OSError(exc.errno, exc.strerror, str(p)) from exc
         return p
 
     @classmethod
@@ -205,8 +205,9 @@ def check_artifact(
         if not math.isclose(live, seconds):
             problems.append(
                 f"min_interval_seconds of {sensor} is {live:g}, but the twin learnt from one "
-                f"point per {seconds:g} s (its σ was measured on that window): set it back or "
-                f"retrain with train --config")
+                f"point per {seconds:g} s (its σ was measured on that window): set "
+                f"min_interval_seconds = {seconds:g} on that sensor, or retrain for this "
+                f"window (train --config, which takes the sensors' own)")
     return problems
 
 

@@ -100,6 +100,14 @@ class _GpModel(TwinModel):
         self.max_iter = max_iter
         self.seed = seed
 
+    def _terms(self, references: int) -> int:
+        """The LCM terms to fit: ``n_terms`` when set (the models that have it), else one
+        per reference."""
+        n_terms: int | None = getattr(self, "n_terms", None)
+        if n_terms is not None and n_terms < 1:
+            raise DataError(f"{self.kind} n_terms must be at least 1, not {n_terms}")
+        return n_terms or references
+
     def _train(self, fd: FitData, kernel: str, n_terms: int) -> None:
         ys = fd.y
         self.c_ = float(np.mean(ys))
@@ -160,10 +168,8 @@ class CorrGpLcm(_GpModel):
         self.references_ = tuple(training.references)
         self.target_ = training.target
         grids = [slot_matrix(training, s) for s in training.sensors]
-        if self.n_terms is not None and self.n_terms < 1:
-            raise DataError(f"corrgp-lcm n_terms must be at least 1, not {self.n_terms}")
+        n_terms = self._terms(len(self.references_))
         fd = _fit_data(grids, training.hours)
-        n_terms = self.n_terms or len(self.references_)
         self._train(fd, _kernel_for(self.kernel, training.quantity), n_terms)
         return self
 
@@ -405,9 +411,7 @@ class CorrGpMulti(CorrGpTriv):
         if unknown := [r for r in refs if r not in training.references]:
             raise DataError(f"corrgp-multi references {', '.join(unknown)} are not among the "
                             f"twin's references ({', '.join(training.references)})")
-        if self.n_terms is not None and self.n_terms < 1:
-            raise DataError(f"corrgp-multi n_terms must be at least 1, not {self.n_terms}")
-        self._fit_deviations(training, refs, self.n_terms or len(refs))
+        self._fit_deviations(training, refs, self._terms(len(refs)))
         p = self.params_
         if (p.noise < MULTI_NOISE_FLOOR).any():
             self.params_ = LcmParams(p.kernel, p.terms, np.maximum(p.noise, MULTI_NOISE_FLOOR))

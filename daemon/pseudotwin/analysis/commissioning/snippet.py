@@ -40,6 +40,13 @@ def config_snippet(artifact: Artifact, artifact_path: Path, twin: str) -> str:
     the file's future folder is unknown)."""
     hours = artifact.hours
     lo, hi = PLAUSIBLE[artifact.quantity]
+    # The window training learnt from: check-config refuses another for a live sensor.
+    learnt = artifact.training.get("min_interval_seconds", {})
+
+    def window(sensor: str) -> list[str]:
+        seconds = learnt.get(sensor)
+        return [] if seconds is None else [f"min_interval_seconds = {seconds:g}"]
+
     lines = [
         f"# pseudotwin configuration for the twin {twin} (written by `pseudotwin train "
         "--report`).",
@@ -70,6 +77,7 @@ def config_snippet(artifact: Artifact, artifact_path: Path, twin: str) -> str:
             f"unit = {_s(artifact.unit)}",
             f"min = {lo:.1f}",
             f"max = {hi:.1f}",
+            *window(sensor),
         ]
     for sensor in artifact.covariates:
         topic = "building/" + _NOT_IN_TOPIC.sub("_", sensor)
@@ -82,6 +90,7 @@ def config_snippet(artifact: Artifact, artifact_path: Path, twin: str) -> str:
             'unit = "unknown"',
             "min = -1e9",
             "max = 1e9",
+            *window(sensor),
         ]
     refs = ", ".join(_s(r) for r in artifact.references)
     covs = ", ".join(_s(c) for c in artifact.covariates)
