@@ -380,3 +380,34 @@ def test_files_are_private_whatever_the_launcher(mosquitto, desk_artifact,
         assert stat.S_IMODE(p.stat().st_mode) == 0o700, p
     for p in (state / "journal").glob("*.jsonl"):
         assert stat.S_IMODE(p.stat().st_mode) == 0o600, p
+
+
+def test_replay_that_loses_the_broker_says_where_to_resume(mosquitto, desk_artifact,
+                                                           tmp_path: Path, monkeypatch) -> None:
+    """It ended in paho's RuntimeError traceback and left the rest unsent without saying so;
+    its client id was fixed, so a second replay took the first one's session over."""
+    import pseudotwin.edge.replay as replay_module
+    from daemon_support import HandClock, config
+    from pseudotwin.errors import BrokerError
+
+    monkeypatch.setattr(replay_module, "PUBLISH_TIMEOUT_S", 2.0)
+    cfg = config(tmp_path, mosquitto.port, desk_artifact)
+    start = HOURS.at(DAY, 8.0)
+    readings = day_readings(sml())
+    readings = readings[readings["ts"] >= start]
+    third = readings["ts"].iloc[2].to_pydatetime()
+
+    class BrokerDiesAtTheThird(HandClock):
+        def wait_until(self, instant: dt.datetime, stop: threading.Event) -> bool:
+            if instant == third:
+                mosquitto.kill()
+            return True
+
+    try:
+        with pytest.raises(BrokerError) as exc:
+            replay_module.replay(cfg, readings, start, HOURS.at(DAY, 19.0), 1.0,
+                                 clock=BrokerDiesAtTheThird(start))
+    finally:
+        mosquitto.start()
+    message = str(exc.value)
+    assert "after 2 readings" in message and f"--start {third.isoformat()}" in message

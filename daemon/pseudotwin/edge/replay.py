@@ -9,6 +9,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import logging
+import os
 import threading
 
 import paho.mqtt.client as mqtt
@@ -20,6 +21,8 @@ from pseudotwin.edge.clock import Clock, ReplayClock
 from pseudotwin.errors import BrokerError, DataError
 
 log = logging.getLogger(__name__)
+
+PUBLISH_TIMEOUT_S = 30.0  # a reading the broker has not acknowledged by then is lost to it
 
 
 def payload_for(fmt: str, ts_key: str, value_key: str, ts: dt.datetime, value: float) -> bytes:
@@ -38,10 +41,13 @@ def replay(
     end: dt.datetime,
     speed: float,
     stop: threading.Event | None = None,
-    client_id: str = "pseudotwin-replay",
+    client_id: str | None = None,
     clock: Clock | None = None,
 ) -> int:
     """Publish readings with start ≤ ts < end; returns how many were published.
+
+    client_id: default the configuration's with ``-replay-<pid>``: a second replay, or the
+    daemon itself, must not take over this one's session.
 
     clock: what publishes each reading at its time (default: a ReplayClock from ``start``
     at ``speed``). An in-process daemon's own clock puts both on one time line: with two
@@ -54,6 +60,7 @@ def replay(
                   & (history["ts"] < end)].sort_values("ts", kind="stable")
     if sub.empty:
         raise DataError(f"no readings of the configured sensors between {start} and {end}")
+    client_id = client_id or f"{cfg.broker.client_id}-replay-{os.getpid()}"
     c = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=client_id, clean_session=True)
     if cfg.broker.username:
         c.username_pw_set(cfg.broker.username, cfg.broker.password())
@@ -75,7 +82,16 @@ def replay(
             s = known[sensor]
             info = c.publish(s.topic, payload_for(s.format, s.ts_key, s.value_key, t, value),
                              qos=1)
-            info.wait_for_publish(timeout=30)
+            try:
+                info.wait_for_publish(timeout=PUBLISH_TIMEOUT_S)
+                why = "" if info.is_published() else f"not acknowledged in {PUBLISH_TIMEOUT_S:g} s"
+            except (RuntimeError, ValueError) as exc:  # paho: not connected, or queue full
+                why = str(exc)
+            if why:
+                raise BrokerError(
+                    f"lost the broker {cfg.broker.host}:{cfg.broker.port} after {n} readings "
+                    f"({why}); the rest, from {t.isoformat()} on, were not published: rerun "
+                    f"with --start {t.isoformat()}")
             n += 1
     finally:
         c.disconnect()
