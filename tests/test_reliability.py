@@ -411,3 +411,21 @@ def test_replay_that_loses_the_broker_says_where_to_resume(mosquitto, desk_artif
         mosquitto.start()
     message = str(exc.value)
     assert "after 2 readings" in message and f"--start {third.isoformat()}" in message
+
+
+def test_a_second_daemon_or_recorder_on_one_state_dir_refuses_to_start(service_factory
+                                                                       ) -> None:
+    """Two daemons on one configuration knocked each other off the broker every second,
+    forever, and wrote one journal; the second now refuses (run exits 78 on it)."""
+    from pseudotwin.errors import ConfigError
+
+    first = service_factory()
+    with pytest.raises(ConfigError, match=rf"in use by another pseudotwin daemon \(PID "
+                                          rf"{os.getpid()}\)"):
+        service_factory()
+    recorder = service_factory(kind=Recorder, store="history.db")  # a lock of its own
+    with pytest.raises(ConfigError, match="in use by another pseudotwin recorder"):
+        service_factory(kind=Recorder, store="history.db")
+    recorder.stop()
+    first.stop()
+    service_factory().stop()  # the lock went with the first daemon

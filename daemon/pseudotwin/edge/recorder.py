@@ -27,6 +27,7 @@ from pseudotwin.edge.clock import Clock, SystemClock
 from pseudotwin.edge.mqttconn import Subscription, make_client, refused_fatally
 from pseudotwin.edge.prometheus import RecorderMetrics
 from pseudotwin.edge.sdnotify import notify
+from pseudotwin.edge.statelock import StateLock
 from pseudotwin.errors import ConfigError, PseudotwinError
 from pseudotwin.history.store import Store, open_store
 from pseudotwin.live.readings import (
@@ -99,6 +100,7 @@ class Recorder:
         self.retry_seconds = retry_seconds
         self.queue: queue.Queue[tuple[Any, ...]] = queue.Queue(maxsize=cfg.queue_size)
         self.spool = Spool(Path(cfg.state_dir) / "recorder-spool.jsonl")
+        self.state_lock = StateLock(Path(cfg.state_dir) / "recorder.lock", "recorder")
         self.metrics = RecorderMetrics()  # served only with [metrics] record_port
         self.rejections = RejectionCounter(log, on_reject=self.metrics.rejected_one)
         self.stop_event = threading.Event()
@@ -289,8 +291,14 @@ class Recorder:
 
     # -- life cycle -----------------------------------------------------------------------
     def start(self, wait_connected: float | None = 30.0) -> None:
+        self.state_lock.acquire()  # first: a second recorder here must not share the spool
         if self.cfg.metrics.record_port is not None:
-            self.metrics.serve(self.cfg.metrics.host, self.cfg.metrics.record_port, "recorder")
+            try:
+                self.metrics.serve(self.cfg.metrics.host, self.cfg.metrics.record_port,
+                                   "recorder")
+            except BaseException:
+                self.state_lock.release()
+                raise
         self._worker.start()
         b = self.cfg.broker
         self.client.connect_async(b.host, b.port, keepalive=b.keepalive)
@@ -312,6 +320,7 @@ class Recorder:
         if self.store is not None:
             self.store.close()
         self.metrics.close()
+        self.state_lock.release()
         log.info("recorder stopped: %d readings written, %d spooled, %d rejected",
                  self.written, self.spooled, self.rejections.total())
 

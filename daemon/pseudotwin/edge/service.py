@@ -42,6 +42,7 @@ from pseudotwin.edge.mqttconn import Subscription, make_client, refused_fatally
 from pseudotwin.edge.outputs import estimate_payload, monitor_payload
 from pseudotwin.edge.prometheus import DaemonMetrics
 from pseudotwin.edge.sdnotify import notify, watchdog_interval
+from pseudotwin.edge.statelock import StateLock
 from pseudotwin.edge.wakeup import WakeCoalescer
 from pseudotwin.errors import ConfigError
 from pseudotwin.live.artifact import UNVALIDATED, Artifact, artifact_hash, check_artifact
@@ -161,6 +162,7 @@ class Service:
         self.stop_event = threading.Event()
         self.connected = threading.Event()
         self.journal = Journal(Path(cfg.state_dir) / "journal")
+        self.state_lock = StateLock(Path(cfg.state_dir) / "daemon.lock", "daemon")
         self.rejections = RejectionCounter(log, LOG_REJECTIONS_PER_KEY)
         self.health = Health(self._set_status, cfg.queue_size)
         self.metrics = DaemonMetrics(cfg.sensors, self.twins)  # served only with [metrics]
@@ -787,8 +789,13 @@ class Service:
         return len(frame)
 
     def start(self, wait_connected: float | None = 30.0) -> None:
-        if self.cfg.metrics.port is not None:  # first: a port in use fails before anything runs
-            self.metrics.serve(self.cfg.metrics.host, self.cfg.metrics.port, "daemon")
+        self.state_lock.acquire()  # first: a second daemon here must not touch the journal
+        if self.cfg.metrics.port is not None:  # a port in use fails before anything runs
+            try:
+                self.metrics.serve(self.cfg.metrics.host, self.cfg.metrics.port, "daemon")
+            except BaseException:
+                self.state_lock.release()
+                raise
         self.restore()
         if self.discovery or self.undiscovery:  # remembered before they go out: see _on_connect
             try:
@@ -860,6 +867,7 @@ class Service:
         self.client.disconnect()
         self.client.loop_stop()
         self.metrics.close()
+        self.state_lock.release()
         log.info("stopped: %d readings accepted, %d messages published, %d rejected",
                  self.accepted, self.published, self.rejections.total())
 
