@@ -280,7 +280,11 @@ def test_bad_payloads_are_counted_logged_once_and_never_block(
     viewer.close()
 
 
-def test_silent_reference_turns_stale_and_recovers(service_factory, mosquitto) -> None:
+def test_silent_reference_turns_stale_and_recovers(service_factory, mosquitto,
+                                                   caplog) -> None:
+    """…and the log says so once each way (a silent sensor, bridge or ACL showed only in
+    the payloads' quality)."""
+    caplog.set_level(logging.INFO, logger="pseudotwin.edge.service")
     speed = 600.0  # 15 min of daemon time per 1.5 s
     svc = service_factory(HOURS.at(DAY, 8.0), speed, stale_after_minutes=30,
                           publish_every_minutes=15)
@@ -301,6 +305,13 @@ def test_silent_reference_turns_stale_and_recovers(service_factory, mosquitto) -
                          for e in viewer.on("/estimate")), what="ok again")
     pub.loop_stop()
     viewer.close()
+    went = [r for r in caplog.records if "silent for more than 30 min" in r.getMessage()]
+    came = [r for r in caplog.records if "report again" in r.getMessage()]
+    assert len(went) == 1 and len(came) == 1, caplog.text
+    assert went[0].levelno == logging.WARNING and went[0].getMessage().startswith(
+        "twin desk: reference(s) silent")
+    assert "dining/temp (last reading" in went[0].getMessage()
+    assert "the estimate is stale" in went[0].getMessage()
 
 
 def test_numerical_failure_publishes_triv_fallback_then_recovers(

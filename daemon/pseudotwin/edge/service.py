@@ -55,7 +55,7 @@ from pseudotwin.live.readings import (
     RejectionCounter,
     parse_payload,
 )
-from pseudotwin.live.twin import Twin, TwinEstimate
+from pseudotwin.live.twin import Quality, Twin, TwinEstimate
 
 log = logging.getLogger(__name__)
 
@@ -98,6 +98,11 @@ LONG_BATCH_PATTERN = (r"a worker batch took (\d+) ms \((\d+) ms of it the worker
                       r"journal (\d+) ms")
 
 
+def _clock(t: dt.datetime | None) -> str:
+    """An instant for the log: ISO 8601 in UTC, or that there is none."""
+    return "none today" if t is None else t.astimezone(dt.UTC).isoformat(timespec="seconds")
+
+
 @dataclass
 class TwinRuntime:
     """One configured twin with its live bookkeeping for today's monitor, and what its
@@ -113,6 +118,9 @@ class TwinRuntime:
     # (uncertain since and why, failover since and lost) as last published on the monitor:
     # a change goes out at the next grid instant, whatever monitor_every_minutes says.
     monitor_state: tuple[object, ...] = (None, (), None, ())
+    # The references the primary's last estimate went without (silent longer than
+    # stale_after): logged when it changes, as the payloads alone would not tell the log.
+    silent: tuple[str, ...] = ()
     # Time [unix s] of the last reading that moved the twin: the grid work goes to the
     # twins that heard from their sensors longest ago first (see Service._start_tick).
     last_input: float = 0.0
@@ -638,6 +646,28 @@ class Service:
             self._publish(topic, estimate_payload(e, unit), retain=retain, qos=qos)
             if kind == primary:
                 self.metrics.published(rt.cfg.id, e.quality, e.ts)
+                self._note_silence(rt, e)
+
+    def _note_silence(self, rt: TwinRuntime, e: TwinEstimate) -> None:
+        """Log when references fall silent for the primary (a failover answers, or the
+        estimate is stale) and when they report again: a sensor, bridge or broker ACL that
+        stops delivering shows in the payloads' quality, and now in the log, once."""
+        limit = self.cfg.stale_after
+        silent = e.lost or (tuple(s for s, t in e.refs.items() if t is None or e.ts - t > limit)
+                            if e.quality == Quality.STALE else ())
+        if silent == rt.silent:
+            return
+        if silent:
+            last = ", ".join(f"{s} (last reading {_clock(e.refs.get(s))})" for s in silent)
+            now = (f"a failover answers ({e.model}, quality {e.quality})" if e.lost
+                   else "the estimate is stale")
+            log.warning("reference(s) silent for more than %g min at %s: %s; %s. Check the "
+                        "sensor, its bridge, and that the broker lets this client read the "
+                        "topic (ACL)", limit.total_seconds() / 60, _clock(e.ts), last, now)
+        else:
+            log.info("reference(s) %s report again at %s: estimate from %s (quality %s)",
+                     ", ".join(rt.silent), _clock(e.ts), e.model, e.quality)
+        rt.silent = silent
 
     def _catch_up_grid(self, ts: dt.datetime) -> None:
         """Start the grid instants before reading time ``ts`` that are due by the clock but
