@@ -328,4 +328,4 @@ def test_cli_twin_lists_and_bad_arguments(site: Path, capsys) -> None:
     with pytest.raises(SystemExit):
         main(["backfill", "--config", cfg, "--all-twins", "--from", "2012-03-25",
               "--to", "2012-03-26", "--jobs", "0"])
-    assert "--jobs must be at least 1" in capsys.readouterr().err
+    assert "argument --jobs/-j: must be at least 1, not 0" in capsys.readouterr().err

@@ -19,6 +19,7 @@ from pseudotwin.edge.service import Service
 from pseudotwin.history.backfill import backfill
 from pseudotwin.history.store import open_store
 from pseudotwin.live.artifact import Artifact, artifact_hash
+from pseudotwin.live.readings import Reading
 from test_daemon import publisher, reading
 
 
@@ -178,7 +179,18 @@ def test_daemon_warm_starts_from_the_store_without_a_checkpoint(
     window = [r for r in svc.twins["desk"].twin.window if r.sensor == REF]
     assert window and max(r.ts for r in window) <= now + dt.timedelta(seconds=1)
     assert min(r.hours for r in window) == HOURS.init_start  # the carried value
+    # A live reading after the warm start is journaled, as the daemon journals each one.
+    live = Reading(REF, now + dt.timedelta(minutes=5), 21.5)  # a window point of its own
+    svc.journal.append(live)
     svc.journal.close()
+    # A restart later today finds a journal of today and restores from it alone: it must
+    # still hold the morning the store gave (it held only the live reading, so the window
+    # shrank to it).
+    again = Service(cfg, ReplayClock(now + dt.timedelta(minutes=6), 1.0))
+    assert again.restore() == n + 1
+    restored = [r for r in again.twins["desk"].twin.window if r.sensor == REF]
+    assert restored[:-1] == window and (restored[-1].ts, restored[-1].value) == (live.ts, 21.5)
+    again.journal.close()
 
 
 def test_backfill_refuses_an_artifact_that_does_not_fit_its_twin(

@@ -813,8 +813,17 @@ class Service:
         except Exception as exc:  # noqa: BLE001 — a warm start is best effort
             log.warning("warm start from the history store failed (%s); starting empty", exc)
             return 0
-        for s, ts, v in zip(frame["sensor"], frame["ts"], frame["value"], strict=True):
-            self._apply(Reading(s, ts.to_pydatetime(), float(v)), publish=False)
+        readings = [Reading(s, ts.to_pydatetime(), float(v))
+                    for s, ts, v in zip(frame["sensor"], frame["ts"], frame["value"], strict=True)]
+        for r in readings:
+            self._apply(r, publish=False)
+        # Journaled too: a restart later today restores from the journal alone, and without
+        # them it would lose the morning the store gave.
+        try:
+            self.journal.append_many(readings)
+        except OSError as exc:
+            log.warning("warm start: the %d stored readings could not be journaled (%s); a "
+                        "restart today would start without them", len(readings), exc)
         log.info("warm start: rebuilt today's windows from %d stored readings", len(frame))
         return len(frame)
 
