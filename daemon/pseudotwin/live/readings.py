@@ -222,8 +222,9 @@ def parse_payload(
                                       f"{(ts - arrival).total_seconds():.0f} s after arrival "
                                       f"(max skew {max_skew.total_seconds():g} s)")
     if not_before is not None and ts < not_before:
-        raise Rejected(Reason.TOO_OLD, f"timestamp {ts.isoformat()} is before the current "
-                                       f"window start {not_before.astimezone(UTC).isoformat()}")
+        raise Rejected(Reason.TOO_OLD, f"timestamp {ts.isoformat()} is before "
+                                       f"{not_before.astimezone(UTC).isoformat()}, the oldest "
+                                       "reading taken")
     return Reading(sensor.id, ts, value)
 
 
