@@ -98,6 +98,12 @@ def test_sigterm_stops_cleanly_with_systemd_notify_and_watchdog(
         while "WATCHDOG=1" not in got:
             got.append(sock.recv(256).decode())
         assert got[0] == "READY=1"
+        # a second daemon on the same configuration and state dir: refused, and worth
+        # retrying later (75, not 78: systemd starts it once this one has ended)
+        second = subprocess.run([*EXE, "run", "--config", str(cfg), "--replay-from",
+                                 REPLAY_FROM], capture_output=True, text=True, timeout=60)
+        assert second.returncode == 75, second.stderr
+        assert f"in use by another pseudotwin daemon (PID {d.pid})" in second.stderr
         d.send_signal(signal.SIGTERM)
         while got[-1] != "STOPPING=1":
             got.append(sock.recv(256).decode())

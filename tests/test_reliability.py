@@ -416,16 +416,35 @@ def test_replay_that_loses_the_broker_says_where_to_resume(mosquitto, desk_artif
 def test_a_second_daemon_or_recorder_on_one_state_dir_refuses_to_start(service_factory
                                                                        ) -> None:
     """Two daemons on one configuration knocked each other off the broker every second,
-    forever, and wrote one journal; the second now refuses (run exits 78 on it)."""
-    from pseudotwin.errors import ConfigError
+    forever, and wrote one journal; the second now refuses (run exits 75 on it: systemd
+    tries again, and starts it once the other has ended)."""
+    from pseudotwin.errors import StateInUseError
 
     first = service_factory()
-    with pytest.raises(ConfigError, match=rf"in use by another pseudotwin daemon \(PID "
-                                          rf"{os.getpid()}\)"):
+    with pytest.raises(StateInUseError, match=rf"in use by another pseudotwin daemon \(PID "
+                                              rf"{os.getpid()}\)"):
         service_factory()
     recorder = service_factory(kind=Recorder, store="history.db")  # a lock of its own
-    with pytest.raises(ConfigError, match="in use by another pseudotwin recorder"):
+    with pytest.raises(StateInUseError, match="in use by another pseudotwin recorder"):
         service_factory(kind=Recorder, store="history.db")
     recorder.stop()
     first.stop()
     service_factory().stop()  # the lock went with the first daemon
+
+
+def test_the_state_lock_is_one_holder_at_a_time_and_says_what_it_cannot_open(
+        tmp_path: Path) -> None:
+    from pseudotwin.edge.statelock import StateLock
+    from pseudotwin.errors import ConfigError, StateInUseError
+
+    a, b = (StateLock(tmp_path / "state" / "daemon.lock", "daemon") for _ in range(2))
+    a.acquire()
+    with pytest.raises(StateInUseError, match=rf"\(PID {os.getpid()}\)"):
+        b.acquire()
+    a.release()
+    b.acquire()  # released: the next one takes it
+    b.release()
+    # /proc takes no file, whoever asks (root included): one line naming the file
+    with pytest.raises(ConfigError, match="/proc/pseudotwin-lock/daemon.lock: the daemon's "
+                                          "lock file cannot be opened"):
+        StateLock(Path("/proc/pseudotwin-lock/daemon.lock"), "daemon").acquire()

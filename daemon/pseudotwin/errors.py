@@ -22,6 +22,10 @@ class NumericalError(PseudotwinError):
     """A kernel matrix could not be factorized even with the largest allowed jitter."""
 
 
+class StateInUseError(PseudotwinError):
+    """Another daemon or recorder runs on the same state dir (it may end: worth retrying)."""
+
+
 class BrokerError(PseudotwinError):
     """The MQTT broker cannot be reached (a one-shot command; the daemon reconnects)."""
 

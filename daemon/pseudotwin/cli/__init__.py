@@ -15,9 +15,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from pseudotwin import __version__
-from pseudotwin.cli.util import EX_CONFIG, config_error_text, load_named_config, whole_number
+from pseudotwin.cli.util import (
+    EX_CONFIG,
+    EX_TEMPFAIL,
+    config_error_text,
+    load_named_config,
+    whole_number,
+)
 from pseudotwin.core.spec import Quantity, TwinSpec
-from pseudotwin.errors import ConfigError, PseudotwinError
+from pseudotwin.errors import ConfigError, PseudotwinError, StateInUseError
 from pseudotwin.gp.kernels import KERNEL_REGISTRY
 from pseudotwin.models.registry import ALL_MODELS, MODELS
 
@@ -511,6 +517,9 @@ def _serve(process: Service | Recorder) -> int:
     watch_full_collections()
     try:
         process.start(wait_connected=None)  # never blocks: a signal is honoured at once
+    except StateInUseError as exc:  # the other one may end: systemd retries (RestartSec)
+        log.error("%s", exc)
+        return EX_TEMPFAIL
     except ConfigError as exc:  # found only on start, e.g. a metrics port already taken
         log.error("configuration error: %s", exc)
         return EX_CONFIG

@@ -14,6 +14,7 @@ if TYPE_CHECKING:
     from pseudotwin.config import ServiceConfig
 
 EX_CONFIG = 78  # sysexits: systemd's RestartPreventExitStatus keys on it
+EX_TEMPFAIL = 75  # sysexits: try again later (another process holds the state dir)
 
 
 def config_error_text(path: Path, exc: ConfigError) -> str:

@@ -292,13 +292,16 @@ class Recorder:
     # -- life cycle -----------------------------------------------------------------------
     def start(self, wait_connected: float | None = 30.0) -> None:
         self.state_lock.acquire()  # first: a second recorder here must not share the spool
+        try:
+            self._start(wait_connected)
+        except BaseException:
+            self.metrics.close()
+            self.state_lock.release()
+            raise
+
+    def _start(self, wait_connected: float | None) -> None:
         if self.cfg.metrics.record_port is not None:
-            try:
-                self.metrics.serve(self.cfg.metrics.host, self.cfg.metrics.record_port,
-                                   "recorder")
-            except BaseException:
-                self.state_lock.release()
-                raise
+            self.metrics.serve(self.cfg.metrics.host, self.cfg.metrics.record_port, "recorder")
         self._worker.start()
         b = self.cfg.broker
         self.client.connect_async(b.host, b.port, keepalive=b.keepalive)

@@ -10,6 +10,7 @@ import datetime as dt
 import json
 import logging
 import os
+import secrets
 import threading
 
 import paho.mqtt.client as mqtt
@@ -46,8 +47,8 @@ def replay(
 ) -> int:
     """Publish readings with start ≤ ts < end; returns how many were published.
 
-    client_id: default the configuration's with ``-replay-<pid>``: a second replay, or the
-    daemon itself, must not take over this one's session.
+    client_id: default the configuration's with ``-replay-<pid>-<random>``: a second
+    replay, or the daemon itself, must not take over this one's session.
 
     clock: what publishes each reading at its time (default: a ReplayClock from ``start``
     at ``speed``). An in-process daemon's own clock puts both on one time line: with two
@@ -60,7 +61,8 @@ def replay(
                   & (history["ts"] < end)].sort_values("ts", kind="stable")
     if sub.empty:
         raise DataError(f"no readings of the configured sensors between {start} and {end}")
-    client_id = client_id or f"{cfg.broker.client_id}-replay-{os.getpid()}"
+    # PID and a random part: in containers every replay may be PID 1
+    client_id = client_id or f"{cfg.broker.client_id}-replay-{os.getpid()}-{secrets.token_hex(2)}"
     c = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=client_id, clean_session=True)
     if cfg.broker.username:
         c.username_pw_set(cfg.broker.username, cfg.broker.password())
@@ -91,7 +93,8 @@ def replay(
                 raise BrokerError(
                     f"lost the broker {cfg.broker.host}:{cfg.broker.port} after {n} readings "
                     f"({why}); the rest, from {t.isoformat()} on, were not published: rerun "
-                    f"with --start {t.isoformat()}")
+                    f"with --start {t.isoformat()} (readings at that instant may go twice; "
+                    "the daemon drops repeats)")
             n += 1
     finally:
         c.disconnect()

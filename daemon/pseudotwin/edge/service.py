@@ -100,7 +100,9 @@ LONG_BATCH_PATTERN = (r"a worker batch took (\d+) ms \((\d+) ms of it the worker
 
 def _clock(t: dt.datetime | None) -> str:
     """An instant for the log: ISO 8601 in UTC, or that there is none."""
-    return "none today" if t is None else t.astimezone(dt.UTC).isoformat(timespec="seconds")
+    if t is None:
+        return "none since the daemon started or restored its state"
+    return t.astimezone(dt.UTC).isoformat(timespec="seconds")
 
 
 @dataclass
@@ -657,16 +659,16 @@ class Service:
                             if e.quality == Quality.STALE else ())
         if silent == rt.silent:
             return
-        if silent:
-            last = ", ".join(f"{s} (last reading {_clock(e.refs.get(s))})" for s in silent)
+        if went := [s for s in silent if s not in rt.silent]:
+            last = ", ".join(f"{s} (last reading {_clock(e.refs.get(s))})" for s in went)
             now = (f"a failover answers ({e.model}, quality {e.quality})" if e.lost
                    else "the estimate is stale")
             log.warning("reference(s) silent for more than %g min at %s: %s; %s. Check the "
                         "sensor, its bridge, and that the broker lets this client read the "
                         "topic (ACL)", limit.total_seconds() / 60, _clock(e.ts), last, now)
-        else:
+        if back := [s for s in rt.silent if s not in silent]:
             log.info("reference(s) %s report again at %s: estimate from %s (quality %s)",
-                     ", ".join(rt.silent), _clock(e.ts), e.model, e.quality)
+                     ", ".join(back), _clock(e.ts), e.model, e.quality)
         rt.silent = silent
 
     def _catch_up_grid(self, ts: dt.datetime) -> None:
@@ -822,19 +824,23 @@ class Service:
         try:
             self.journal.append_many(readings)
         except OSError as exc:
-            log.warning("warm start: the %d stored readings could not be journaled (%s); a "
-                        "restart today would start without them", len(readings), exc)
+            log.warning("warm start: the %d stored readings could not all be journaled (%s); "
+                        "a restart today may start without some of them", len(readings), exc)
         log.info("warm start: rebuilt today's windows from %d stored readings", len(frame))
         return len(frame)
 
     def start(self, wait_connected: float | None = 30.0) -> None:
         self.state_lock.acquire()  # first: a second daemon here must not touch the journal
+        try:
+            self._start(wait_connected)
+        except BaseException:
+            self.metrics.close()
+            self.state_lock.release()
+            raise
+
+    def _start(self, wait_connected: float | None) -> None:
         if self.cfg.metrics.port is not None:  # a port in use fails before anything runs
-            try:
-                self.metrics.serve(self.cfg.metrics.host, self.cfg.metrics.port, "daemon")
-            except BaseException:
-                self.state_lock.release()
-                raise
+            self.metrics.serve(self.cfg.metrics.host, self.cfg.metrics.port, "daemon")
         self.restore()
         if self.discovery or self.undiscovery:  # remembered before they go out: see _on_connect
             try:

@@ -4,16 +4,24 @@ Two daemons on one configuration share the broker's client id and the journal: t
 hands the session from one to the other every time either reconnects (each knocks the other
 off, forever), and both append to one journal. A second instance therefore refuses to start,
 naming the first one's PID. The lock is ``flock`` on a file in the state dir, so it goes with
-the process: a crashed daemon leaves a file, never a stale lock.
+the process: a crashed daemon leaves a file, never a stale lock. On a file system without
+``flock`` (some network mounts) the process runs unlocked and says so.
 """
 
 from __future__ import annotations
 
+import errno
 import fcntl
+import logging
 import os
 from pathlib import Path
 
-from pseudotwin.errors import ConfigError
+from pseudotwin.errors import ConfigError, StateInUseError
+
+log = logging.getLogger(__name__)
+
+# flock is not offered here: run unlocked rather than not at all
+_NO_FLOCK = {errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS}
 
 
 class StateLock:
@@ -25,21 +33,38 @@ class StateLock:
         self._fd: int | None = None
 
     def acquire(self) -> None:
-        """Take the lock, or raise ConfigError naming the process that holds it."""
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
+        """Take the lock; StateInUseError naming the process that holds it, ConfigError
+        when the lock file cannot be opened (the state dir's owner or file system)."""
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
+        except OSError as exc:
+            raise ConfigError(f"{self.path}: the {self.role}'s lock file cannot be opened "
+                              f"({exc.strerror or exc}); is the state dir another user's? "
+                              "(chown it to the service's user)") from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = os.read(fd, 32).decode(errors="replace").strip() or "unknown"
             os.close(fd)
-            raise ConfigError(
+            raise StateInUseError(
                 f"{self.path.parent} is in use by another pseudotwin {self.role} (PID "
                 f"{holder}): two on one state dir would share the broker session, each "
                 f"knocking the other off, and one journal; stop it, or give this one its own "
                 f"state_dir and client_id") from None
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()}\n".encode())
+        except OSError as exc:
+            os.close(fd)
+            if exc.errno not in _NO_FLOCK:
+                raise ConfigError(f"{self.path}: cannot lock ({exc.strerror or exc})") from None
+            log.warning("%s: the file system offers no flock (%s); running without the lock "
+                        "that keeps a second %s off this state dir", self.path,
+                        exc.strerror or exc, self.role)
+            return
+        try:  # the PID is for the message above only: a failure here costs nothing else
+            os.ftruncate(fd, 0)
+            os.write(fd, f"{os.getpid()}\n".encode())
+        except OSError:
+            pass
         self._fd = fd
 
     def release(self) -> None:

@@ -206,7 +206,7 @@ def check_artifact(
             problems.append(
                 f"min_interval_seconds of {sensor} is {live:g}, but the twin learnt from one "
                 f"point per {seconds:g} s (its σ was measured on that window): set "
-                f"min_interval_seconds = {seconds:g} on that sensor, or retrain for this "
+                f"min_interval_seconds = {seconds:.15g} on that sensor, or retrain for this "
                 f"window (train --config, which takes the sensors' own)")
     return problems
 

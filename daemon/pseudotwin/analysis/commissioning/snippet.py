@@ -45,7 +45,7 @@ def config_snippet(artifact: Artifact, artifact_path: Path, twin: str) -> str:
 
     def window(sensor: str) -> list[str]:
         seconds = learnt.get(sensor)
-        return [] if seconds is None else [f"min_interval_seconds = {seconds:g}"]
+        return [] if seconds is None else [f"min_interval_seconds = {seconds:.15g}"]
 
     lines = [
         f"# pseudotwin configuration for the twin {twin} (written by `pseudotwin train "
