@@ -291,13 +291,8 @@ class Recorder:
 
     # -- life cycle -----------------------------------------------------------------------
     def start(self, wait_connected: float | None = 30.0) -> None:
-        self.state_lock.acquire()  # first: a second recorder here must not share the spool
-        try:
-            self._start(wait_connected)
-        except BaseException:
-            self.metrics.close()
-            self.state_lock.release()
-            raise
+        # first: a second recorder here must not share the spool
+        self.state_lock.starting(lambda: self._start(wait_connected), self.metrics.close)
 
     def _start(self, wait_connected: float | None) -> None:
         if self.cfg.metrics.record_port is not None:

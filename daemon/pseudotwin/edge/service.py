@@ -830,13 +830,8 @@ class Service:
         return len(frame)
 
     def start(self, wait_connected: float | None = 30.0) -> None:
-        self.state_lock.acquire()  # first: a second daemon here must not touch the journal
-        try:
-            self._start(wait_connected)
-        except BaseException:
-            self.metrics.close()
-            self.state_lock.release()
-            raise
+        # first: a second daemon here must not touch the journal
+        self.state_lock.starting(lambda: self._start(wait_connected), self.metrics.close)
 
     def _start(self, wait_connected: float | None) -> None:
         if self.cfg.metrics.port is not None:  # a port in use fails before anything runs

@@ -14,6 +14,7 @@ import errno
 import fcntl
 import logging
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 from pseudotwin.errors import ConfigError, StateInUseError
@@ -66,6 +67,17 @@ class StateLock:
         except OSError:
             pass
         self._fd = fd
+
+    def starting(self, start: Callable[[], None], undo: Callable[[], None]) -> None:
+        """Take the lock, then ``start``; if that fails anywhere, ``undo`` what it may have
+        begun and let the lock go (an in-process caller may try again)."""
+        self.acquire()
+        try:
+            start()
+        except BaseException:
+            undo()
+            self.release()
+            raise
 
     def release(self) -> None:
         if self._fd is not None:
