@@ -438,3 +438,14 @@ def test_the_daemon_holds_the_artifact_to_its_window_and_says_when_it_is_unvalid
     with caplog.at_level(logging.WARNING):
         Service(load_config(cfg))
     assert "twin desk: its artifact was trained without validation" in caplog.text
+
+
+def test_skip_days_that_leave_nothing_out_are_named(sml: Path, tmp_path: Path, capsys) -> None:
+    """A day outside the training days (or mistyped) was ignored without a word."""
+    out = tmp_path / "a.json"
+    assert run(*desk_twin("train", sml, "--models", "ref,triv", "--skip-days",
+                          "2012-03-15,2012-04-01", "--out", str(out))) == 0
+    printed = capsys.readouterr().out
+    assert ("--skip-days: 2012-04-01 would not have been training days anyway (training took "
+            "2012-03-14 … 2012-03-19)") in printed
+    assert "2012-03-15 would not" not in printed  # that one was left out

@@ -276,6 +276,16 @@ def _train_thinning(a: argparse.Namespace, cfg: ServiceConfig | None) -> Thinnin
     return policy
 
 
+def _say_unused_skips(skip_days: frozenset[dt.date], art: Artifact) -> None:
+    """train's and evaluate's line on --skip-days that left nothing out (a mistyped day, or
+    one outside the training days): silence would read as done."""
+    left_out = set(art.training.get("skipped", ()))
+    if unused := sorted(str(d) for d in skip_days if str(d) not in left_out):
+        print(f"--skip-days: {', '.join(unused)} would not have been training days anyway "
+              f"(training took {art.training['start']} … {art.training['end']}); nothing "
+              "left out for them")
+
+
 def _say_odd_day(art: Artifact) -> None:
     """train's and evaluate's line on a training day unlike the others, if there is one."""
     from pseudotwin.analysis.commissioning.oddday import odd_training_day
@@ -305,6 +315,7 @@ def cmd_train(a: argparse.Namespace) -> int:
     # The commissioning report's verdict on the data, here too: a thin training day makes
     # every score below rest on less than it seems to.
     print(f"training data: {training_data(df, art, start).verdict()}")
+    _say_unused_skips(a.skip_days, art)
     _say_odd_day(art)
     for kind, m in art.models.items():
         if summary := m.fit_summary():
@@ -352,6 +363,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
                       skip_days=a.skip_days)
     print(f"trained on {', '.join(ev.artifact.training['days'])}; "
           f"scored {ev.daily['day'].nunique()} day(s) in {ev.seconds:.1f} s")
+    _say_unused_skips(a.skip_days, ev.artifact)
     _say_odd_day(ev.artifact)
     print(summary_table(ev))
     print(f"written: {a.out}/daily.csv, monthly.csv, estimates.csv, artifact.json, plots")
