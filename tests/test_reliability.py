@@ -145,6 +145,11 @@ def test_deleted_state_dir_is_detected_and_rebuilt(service_factory, mosquitto, t
     assert "was deleted while running" in caplog.text
     assert journal_lines(tmp_path) == 40
     assert svc.health.snapshot()["journal"]["recreated"] == 1
+    # its lock file went with the folder: renewed, so a second daemon is still refused
+    from pseudotwin.errors import StateInUseError
+
+    with pytest.raises(StateInUseError):
+        service_factory()
     svc.stop()
     again = Service(svc.cfg, ReplayClock(NOON, 1.0))
     assert again.restore() == 40

@@ -565,6 +565,7 @@ class Service:
         if self.journal.recreated > self._journal_recreated:
             self._journal_recreated = self.journal.recreated
             self.health.journal_rebuilt(self.journal.recreated)
+            self.state_lock.renew()  # the state dir went with its lock file
         for r, token, t0, arrived in good:
             published = self.published
             try:

@@ -79,6 +79,30 @@ class StateLock:
             self.release()
             raise
 
+    def renew(self) -> None:
+        """Lock the file at ``path`` again when it is no longer the one held (the state dir
+        was deleted while running, and rebuilt): else a second process could take a fresh
+        lock file there. Logs, never raises: the running process keeps running."""
+        if self._fd is None:
+            return
+        try:
+            held, there = os.fstat(self._fd), os.stat(self.path)
+            if (held.st_dev, held.st_ino) == (there.st_dev, there.st_ino):
+                return
+        except FileNotFoundError:
+            pass
+        except OSError as exc:
+            log.warning("%s: cannot check the lock file (%s)", self.path, exc)
+            return
+        self.release()
+        try:
+            self.acquire()
+        except (StateInUseError, ConfigError) as exc:
+            log.error("the %s's lock could not be renewed after its state dir was rebuilt: "
+                      "%s", self.role, exc)
+        else:
+            log.warning("%s: lock file renewed (the state dir was rebuilt)", self.path)
+
     def release(self) -> None:
         if self._fd is not None:
             os.close(self._fd)  # closing drops the flock; the file stays, harmlessly
