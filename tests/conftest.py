@@ -70,6 +70,40 @@ def _free_port(host: str) -> int:
         return int(s.getsockname()[1])
 
 
+def closed_port() -> int:
+    """A port on 127.0.0.1 that nothing listens on: an unreachable broker."""
+    return _free_port("127.0.0.1")
+
+
+def _accepts(port: int) -> bool:
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=0.5):
+            return True
+    except OSError:
+        return False
+
+
+@pytest.fixture
+def password_broker(tmp_path: Path) -> Iterator[int]:
+    """A Mosquitto of its own that takes user ``pt`` with password ``right`` only; its
+    port."""
+    from daemon_support import wait_for
+
+    pw = tmp_path / "passwd"
+    subprocess.run(["mosquitto_passwd", "-b", "-c", str(pw), "pt", "right"], check=True,
+                   capture_output=True)
+    port = closed_port()
+    conf = tmp_path / "mosquitto-auth.conf"
+    conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous false\npassword_file {pw}\n"
+                    f"user {pwd.getpwuid(os.getuid()).pw_name}\n")
+    proc = subprocess.Popen([shutil.which("mosquitto") or "/usr/sbin/mosquitto", "-c", str(conf)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    wait_for(lambda: _accepts(port), what="auth broker")
+    yield port
+    proc.terminate()
+    proc.wait(10)
+
+
 class MosquittoBroker:
     """A Mosquitto process on 127.0.0.1 with persistence, restartable on the same port.
 

@@ -54,7 +54,7 @@ from pyads import constants as adsc
 from pyads.testserver import AdsTestServer, AdvancedHandler, PLCVariable
 from pyads.testserver.handler import AmsPacket, AmsResponseData
 
-from conftest import MosquittoBroker, MqttClientFactory, TestClient
+from conftest import MosquittoBroker, MqttClientFactory, TestClient, closed_port
 from pseudotwin.cli.bridge import EX_CONFIG, main
 from pseudotwin.config import ConfigProblems
 from pseudotwin.edge.bridge import (
@@ -433,6 +433,22 @@ def test_bridge_reports_symbol_problems_as_fatal(plc: Plc, env: Env) -> None:
     ]
 
 
+def test_a_time_symbol_is_not_taken_for_a_number(plc: Plc, env: Env) -> None:
+    """A TIME is a UDINT on the wire: the alias rule passed it, and its milliseconds went out
+    as readings."""
+    delay = PLCVariable("MAIN.tDelay", 5000, adsc.ADST_UINT32, "TIME")
+    delay.notification_count = 9000  # a handle range of its own, as the others'
+    plc.handler.add_variable(delay)
+    bridge = Bridge(env.config([{"symbol": "MAIN.tDelay", "sensor": "ceiling/co2",
+                                 "plc_type": "UDINT"}]))
+    with running(bridge):
+        assert bridge.finished.wait(DEADLINE)
+    assert bridge.fatal is not None
+    assert bridge.fatal.problems == [
+        "plc.symbols[0].plc_type: configured UDINT, but the PLC declares 'MAIN.tDelay' as "
+        "TIME, which is not a reading (a duration, date or bit string)"]
+
+
 def test_configuration_file_problems_are_located_with_suggestions(
     env: Env, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -621,3 +637,42 @@ def test_readings_arrive_after_a_broker_restart(
         after = inbox.wait(env.topics["hmi/temp"], _is(24.0))
         assert _ts(during) <= _ts(after)
         assert bridge.dropped == 0
+
+
+# -- tests: the broker away or refusing ---------------------------------------------------
+
+
+def test_an_unreachable_broker_is_logged_and_unsent_readings_are_lost_not_published(
+    plc: Plc, env: Env, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A mistyped broker port looked like a healthy bridge (nothing logged), and the
+    readings paho still held at stop were counted as published."""
+    port = closed_port()
+    path = env.write_config()
+    path.write_text(path.read_text().replace(f"port = {env.broker.port}", f"port = {port}"),
+                    encoding="utf-8")
+    bridge = Bridge(load_bridge_config(path))
+    with caplog.at_level("WARNING"), running(bridge):
+        _wait_for(lambda: f"cannot connect to the broker at 127.0.0.1:{port}" in caplog.text,
+                  "the failed connection logged")
+        _wait_for(lambda: bridge.unacknowledged() == len(DEFAULT_SYMBOLS),
+                  "the initial values handed to paho")
+    assert bridge.published == 0
+    assert (f"{len(DEFAULT_SYMBOLS)} readings were never acknowledged by the broker "
+            f"127.0.0.1:{port} and are lost with this stop") in caplog.text
+
+
+def test_refused_credentials_exit_77(plc: Plc, env: Env, password_broker: int,
+                                     monkeypatch: pytest.MonkeyPatch,
+                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """It retried forever, two log lines per attempt; run and record exit 77 here."""
+    from pseudotwin.edge.mqttconn import EX_NOPERM
+
+    monkeypatch.setenv("PT_BRIDGE_PASSWORD", "wrong")
+    path = env.write_config()
+    path.write_text(path.read_text().replace(
+        f"port = {env.broker.port}",
+        f'port = {password_broker}\nusername = "pt"\npassword_env = "PT_BRIDGE_PASSWORD"'),
+        encoding="utf-8")
+    assert main(["--config", str(path)]) == EX_NOPERM
+    assert "the broker refused the credentials" in capsys.readouterr().err

@@ -14,6 +14,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
+from conftest import closed_port
 from daemon_support import HOURS, REF, TARGET, TZ, write_config
 from pseudotwin.cli import main
 from pseudotwin.cli.check_config import main as check_config_main
@@ -238,14 +239,8 @@ def test_init_minutes_must_not_be_negative(tmp_path: Path, capsys) -> None:
 # ------------------------------------------------------------------ 4. broker
 
 
-def _closed_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def test_replay_with_an_unreachable_broker_is_one_line(tmp_path: Path, capsys) -> None:
-    port = _closed_port()
+    port = closed_port()
     cfg = write_config(tmp_path, port, tmp_path / "none.json")
     history = _csv(tmp_path, "h.csv", f"{REF},2012-03-20T06:40:00+00:00,20.5\n")
     rc = run("replay", "--config", str(cfg), "--history", str(history),

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import pytest
 
+from conftest import closed_port
 from daemon_support import DAY, HOURS, REF, day_readings, sml, wait_for, write_config
 from pseudotwin.edge.clock import ReplayClock
 from pseudotwin.edge.mqttconn import EX_NOPERM
@@ -282,16 +283,10 @@ def test_state_from_a_day_ahead_does_not_silence_today(service_factory, mosquitt
 
 
 # -- 9. operations -------------------------------------------------------------------------
-def _closed_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_broker_down_at_start_logged_at_once_no_ready_and_sigint_is_prompt(
     desk_artifact, tmp_path: Path
 ) -> None:
-    cfg = write_config(tmp_path, _closed_port(), desk_artifact)
+    cfg = write_config(tmp_path, closed_port(), desk_artifact)
     sock_path = tmp_path / "notify.sock"
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     sock.bind(str(sock_path))
@@ -319,33 +314,6 @@ def test_broker_down_at_start_logged_at_once_no_ready_and_sigint_is_prompt(
         sock.close()
     text = log.read_text()
     assert "running" not in text[text.index("received SIGINT"):]
-
-
-@pytest.fixture
-def password_broker(tmp_path: Path):
-    pw = tmp_path / "passwd"
-    subprocess.run(["mosquitto_passwd", "-b", "-c", str(pw), "pt", "right"], check=True,
-                   capture_output=True)
-    port = _closed_port()
-    conf = tmp_path / "mosquitto-auth.conf"
-    import pwd
-
-    conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous false\npassword_file {pw}\n"
-                    f"user {pwd.getpwuid(os.getuid()).pw_name}\n")
-    proc = subprocess.Popen([shutil.which("mosquitto") or "/usr/sbin/mosquitto", "-c", str(conf)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    wait_for(lambda: _accepts(port), what="auth broker")
-    yield port
-    proc.terminate()
-    proc.wait(10)
-
-
-def _accepts(port: int) -> bool:
-    try:
-        with socket.create_connection(("127.0.0.1", port), timeout=0.5):
-            return True
-    except OSError:
-        return False
 
 
 def test_wrong_password_exits_with_a_distinct_status(password_broker, desk_artifact,

@@ -32,9 +32,10 @@ def build_parser() -> argparse.ArgumentParser:
             "heartbeat. Runs until SIGTERM/SIGINT."
         ),
         epilog=(
-            "Exit status: 0 stopped by a signal; 78 configuration error (the file, or a "
-            "symbol the PLC does not have or declares with another type); every problem is "
-            "printed with its location, e.g. 'plc.symbols[1].plc_type: ...'."
+            "Exit status: 0 stopped by a signal; 77 the broker refused the credentials; 78 "
+            "configuration error (the file, or a symbol the PLC does not have or declares "
+            "with another type); every problem is printed with its location, e.g. "
+            "'plc.symbols[1].plc_type: ...'."
         ),
     )
     p.add_argument("--config", required=True, type=Path, metavar="FILE",
@@ -53,7 +54,8 @@ def _print_problems(path: Path, problems: Sequence[str]) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``pseudotwin bridge --config FILE``: 0 after a signal, 78 on configuration errors."""
+    """``pseudotwin bridge --config FILE``: 0 after a signal, 77 when the broker refuses the
+    credentials, 78 on configuration errors."""
     try:
         args = build_parser().parse_args(argv)
     except SystemExit as exc:  # --help and usage errors; callers want an int back
@@ -87,6 +89,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+    if bridge.refused is not None:
+        print(f"pseudotwin bridge: {bridge.refused[1]}", file=sys.stderr)
+        return bridge.refused[0]
     if bridge.fatal is not None:
         print(f"pseudotwin bridge: the PLC does not match {args.config}:", file=sys.stderr)
         _print_problems(args.config, bridge.fatal.problems)

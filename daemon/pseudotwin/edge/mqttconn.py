@@ -30,7 +30,7 @@ def refused_fatally(reason_code: Any) -> tuple[int, str] | None:
     return None
 
 
-def _log_connect_failures(broker: BrokerConfig) -> Any:
+def log_connect_failures(broker: BrokerConfig) -> Any:
     """An ``on_connect_fail`` that logs every failed connection attempt with its reason
     (paho calls it inside its ``except OSError``, so the error is ``sys.exc_info()``'s),
     from the first one on; repeats of the same reason are logged once a minute."""
@@ -68,7 +68,7 @@ def make_client(broker: BrokerConfig, client_id: str, status_topic: str,
     # rest. A grid tick of 1,000 twins hands it ~6,000 estimates at once: at 20 in flight,
     # the estimate of a reading arriving next waited seconds behind them.
     c.max_inflight_messages_set(MAX_INFLIGHT)
-    c.on_connect_fail = _log_connect_failures(broker)
+    c.on_connect_fail = log_connect_failures(broker)
     return c
 
 

@@ -57,8 +57,14 @@ from pyads import constants as adsc
 from pyads.structs import SAdsSymbolEntry
 
 from pseudotwin.config import ConfigProblems, SensorConfig
-from pseudotwin.edge.bridge.config import PLC_TYPES, BridgeConfig, SymbolConfig
+from pseudotwin.edge.bridge.config import (
+    NON_NUMERIC_TYPES,
+    PLC_TYPES,
+    BridgeConfig,
+    SymbolConfig,
+)
 from pseudotwin.edge.clock import Clock, SystemClock
+from pseudotwin.edge.mqttconn import log_connect_failures, refused_fatally
 from pseudotwin.edge.replay import payload_for
 from pseudotwin.edge.sdnotify import notify, watchdog_interval
 
@@ -162,6 +168,8 @@ class Bridge:
         self.plc_up = threading.Event()
         self.mqtt_connected = threading.Event()
         self.fatal: SymbolProblems | None = None
+        # (exit status, why) when the broker refused the credentials: retrying cannot help
+        self.refused: tuple[int, str] | None = None
         # Counters (read by tests and worth a look in a debugger; only ever incremented).
         self.ads_connects = 0
         self.published = 0
@@ -174,6 +182,12 @@ class Bridge:
         self._skew_warned_gen = -1
         self._heartbeat = time.monotonic()
         self._count_lock = threading.Lock()  # counters are bumped from several threads
+        # Readings handed to paho whose PUBACK has not come (by mid), and PUBACKs that came
+        # before publish() returned their mid: ``published`` counts acknowledged readings,
+        # so one still in paho's memory at stop is reported lost, not published.
+        self._unacked: set[int] = set()
+        self._early_acks: set[int] = set()
+        self._acked = threading.Condition(self._count_lock)  # notified as _unacked empties
         # Setting plc_up and publishing it happen under one lock, in the supervisor and in
         # paho's on_connect alike: otherwise a connect racing a PLC state change could leave
         # the opposite state retained on the broker.
@@ -199,12 +213,19 @@ class Bridge:
         c.max_queued_messages_set(self.cfg.queue_size)
         c.on_connect = self._on_connect
         c.on_disconnect = self._on_disconnect
+        c.on_publish = self._on_publish
+        c.on_connect_fail = log_connect_failures(b)  # an unreachable broker is said at once
         return c
 
     def _on_connect(self, client: mqtt.Client, userdata: Any, flags: Any, reason_code: Any,
                     properties: Any) -> None:
         if reason_code.is_failure:
-            log.error("broker refused the connection: %s", reason_code)
+            if (refused := refused_fatally(reason_code)) is not None:
+                if self.refused is None:
+                    log.error("%s; giving up (fix the credentials)", refused[1])
+                self.refused = refused  # run() stops the bridge
+            else:
+                log.error("broker refused the connection: %s", reason_code)
             return
         client.publish(self.cfg.status_topic, "online", qos=1, retain=True)
         with self._state_lock:
@@ -220,6 +241,17 @@ class Bridge:
         if not self.stop_event.is_set():
             log.warning("disconnected from the broker (%s); reconnecting, readings are kept "
                         "until it is back (up to %d)", reason_code, self.cfg.queue_size)
+
+    def _on_publish(self, client: mqtt.Client, userdata: Any, mid: int, reason_code: Any,
+                    properties: Any) -> None:
+        with self._count_lock:
+            if mid in self._unacked:
+                self._unacked.discard(mid)
+                self.published += 1
+                if not self._unacked:
+                    self._acked.notify_all()
+            else:  # before publish() returned its mid (or the status message's)
+                self._early_acks.add(mid)
 
     def _publisher(self) -> None:
         while True:
@@ -248,9 +280,14 @@ class Bridge:
             self._count_drop(f"the MQTT queue is full ({self.cfg.queue_size} readings waiting "
                              "for the broker)")
         else:
-            # MQTT_ERR_NO_CONN means queued by paho for after the reconnect: not lost.
+            # MQTT_ERR_NO_CONN means queued by paho for after the reconnect: not lost yet,
+            # published once the broker acknowledges it (_on_publish).
             with self._count_lock:
-                self.published += 1
+                if info.mid in self._early_acks:
+                    self._early_acks.discard(info.mid)
+                    self.published += 1
+                else:
+                    self._unacked.add(info.mid)
 
     def _count_drop(self, why: str) -> None:
         with self._count_lock:
@@ -554,16 +591,28 @@ class Bridge:
                 info.wait_for_publish(timeout)
             except (RuntimeError, ValueError) as exc:
                 log.warning("could not publish the offline status: %s", exc)
+        if self.mqtt_connected.is_set():  # give what is in flight its acknowledgement
+            with self._acked:
+                self._acked.wait_for(lambda: not self._unacked, timeout)
         self.client.disconnect()
         self.client.loop_stop()
-        log.info("bridge stopped: %d readings published, %d dropped", self.published,
-                 self.dropped)
+        if lost := self.unacknowledged():
+            log.warning("%d readings were never acknowledged by the broker %s:%d and are lost "
+                        "with this stop (paho keeps them in memory only)", lost,
+                        self.cfg.broker.host, self.cfg.broker.port)
+        log.info("bridge stopped: %d readings published (acknowledged by the broker), %d "
+                 "dropped, %d lost at stop", self.published, self.dropped, lost)
+
+    def unacknowledged(self) -> int:
+        """Readings handed to the MQTT client that the broker has not acknowledged."""
+        with self._count_lock:
+            return len(self._unacked)
 
     def run(self) -> None:
         """Start, wait until ``request_stop()`` or a fatal problem, then stop."""
         self.start()
         try:
-            while not self.finished.wait(1.0):
+            while not self.finished.wait(1.0) and self.refused is None:
                 pass
         finally:
             self.stop()
@@ -577,6 +626,9 @@ def _type_problem(sym: SymbolConfig, info: SAdsSymbolEntry) -> str | None:
     size = int(info.size)
     if name == want.name and size == want.size:
         return None
+    if name in NON_NUMERIC_TYPES:  # a TIME is a UDINT on the wire, yet no reading
+        return (f"configured {want.name}, but the PLC declares {sym.symbol!r} as {declared}, "
+                "which is not a reading (a duration, date or bit string)")
     # An alias (TYPE T_Celsius : LREAL) reports its own name but the base type's ADS type
     # id and size; a different elementary type name is a mismatch even when the encoding
     # happens to agree (WORD vs UINT), because it usually means the wrong variable.
