@@ -147,6 +147,7 @@ class _Item:
     source: str  # "notification" or "read"
 
 
+EARLY_ACKS_KEPT = 1000  # far fewer than the 65535 mids before they wrap
 _STOP = object()
 
 
@@ -186,7 +187,9 @@ class Bridge:
         # before publish() returned their mid: ``published`` counts acknowledged readings,
         # so one still in paho's memory at stop is reported lost, not published.
         self._unacked: set[int] = set()
-        self._early_acks: set[int] = set()
+        # insertion-ordered, the oldest let go past EARLY_ACKS_KEPT: the status messages'
+        # acks land here too, and paho's mids wrap at 65535
+        self._early_acks: dict[int, None] = {}
         self._acked = threading.Condition(self._count_lock)  # notified as _unacked empties
         # Setting plc_up and publishing it happen under one lock, in the supervisor and in
         # paho's on_connect alike: otherwise a connect racing a PLC state change could leave
@@ -251,7 +254,9 @@ class Bridge:
                 if not self._unacked:
                     self._acked.notify_all()
             else:  # before publish() returned its mid (or the status message's)
-                self._early_acks.add(mid)
+                self._early_acks[mid] = None
+                if len(self._early_acks) > EARLY_ACKS_KEPT:
+                    del self._early_acks[next(iter(self._early_acks))]
 
     def _publisher(self) -> None:
         while True:
@@ -284,7 +289,7 @@ class Bridge:
             # published once the broker acknowledges it (_on_publish).
             with self._count_lock:
                 if info.mid in self._early_acks:
-                    self._early_acks.discard(info.mid)
+                    del self._early_acks[info.mid]
                     self.published += 1
                 else:
                     self._unacked.add(info.mid)
