@@ -656,7 +656,7 @@ class Service:
         estimate is stale) and when they report again: a sensor, bridge or broker ACL that
         stops delivering shows in the payloads' quality, and now in the log, once."""
         limit = self.cfg.stale_after
-        silent = e.lost or (tuple(s for s, t in e.refs.items() if t is None or e.ts - t > limit)
+        silent = e.lost or (rt.twin.silent_references(rt.twin.artifact.primary, e.ts)
                             if e.quality == Quality.STALE else ())
         if silent == rt.silent:
             return

@@ -349,6 +349,10 @@ class Twin:
     def _stale(self, kind: str, ts: dt.datetime) -> bool:
         return any(self._silent(s, ts) for s in self._needs(kind))
 
+    def silent_references(self, kind: str, ts: dt.datetime) -> tuple[str, ...]:
+        """The sensors ``kind`` needs that are silent at ``ts`` (as :meth:`_silent`)."""
+        return tuple(s for s in self._needs(kind) if self._silent(s, ts))
+
     def _silent(self, sensor: str, ts: dt.datetime) -> bool:
         """Never reported, or silent longer than ``stale_after`` at ``ts``."""
         last = self.last.get(sensor)
@@ -478,7 +482,7 @@ class Twin:
             if not math.isfinite(e.value):
                 continue  # its references have no point in today's window yet
             std = self._sigma(f.calibration, f.model.references_, h, e.std, slopes)
-            lost = tuple(s for s in self._needs(self.artifact.primary) if self._silent(s, ts))
+            lost = self.silent_references(self.artifact.primary, ts)
             return e.value, std, f.model.model_name, lost
         return None
 
