@@ -1,5 +1,5 @@
 """<twin>/monitor goes out every ``monitor_every_minutes`` (default hourly), not at every grid
-instant; estimates and baselines keep the grid."""
+instant; estimates and baselines keep the grid. Its figures are the day's."""
 
 from __future__ import annotations
 
@@ -60,3 +60,24 @@ def test_a_bad_monitor_cadence_is_a_clear_config_error(tmp_path, desk_artifact,
                                                          value: object) -> None:
     with pytest.raises(ConfigError, match="service.monitor_every_minutes"):
         config(tmp_path, 1883, desk_artifact, monitor_every_minutes=value)
+
+
+def test_the_monitor_counts_the_rejections_of_its_own_day(service_factory, mosquitto) -> None:
+    """A day's monitor does not carry the day before's rejected readings: the counts start
+    afresh with the day, not with the day's first rejection."""
+    svc = service_factory(HOURS.at(DAY, 9.95), 1.0)
+    viewer = Viewer(mosquitto.port, "pt/desk/#")
+    pub = publisher(mosquitto.port, "rejections-bridge")
+    bad = HOURS.at(DAY, 9.9)
+    pub.publish("house/dining/temp", reading(bad, 99.0), qos=1).wait_for_publish(10)
+    wait_for(lambda: svc.rejections.run_total == 1, what="the out-of-range reading rejected")
+    today, tomorrow = HOURS.at(DAY, 10.0), HOURS.at(DAY + dt.timedelta(days=1), 10.0)
+    for t in (today, tomorrow):
+        svc.queue.put(("tick", t))
+    wait_for(lambda: {stamp(today), stamp(tomorrow)} <= {m["ts"] for m in viewer.on("/monitor")},
+             what="both days' monitors")
+    rejected = {m["ts"]: m["rejected"] for m in viewer.on("/monitor")}
+    assert rejected[stamp(today)] == {"dining/temp:out-of-range": 1}
+    assert rejected[stamp(tomorrow)] == {}
+    pub.loop_stop()
+    viewer.close()

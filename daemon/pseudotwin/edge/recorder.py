@@ -320,7 +320,7 @@ class Recorder:
         self.metrics.close()
         self.state_lock.release()
         log.info("recorder stopped: %d readings written, %d spooled, %d rejected",
-                 self.written, self.spooled, self.rejections.total())
+                 self.written, self.spooled, self.rejections.run_total)
 
 
 def _file_ident(store: Store) -> tuple[int, int] | None:

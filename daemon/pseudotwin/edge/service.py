@@ -732,8 +732,9 @@ class Service:
                 return
             health = self.health.snapshot()  # ... but why the estimate changed must not wait
         rt.monitor_state = state
+        rejected = self.rejections.of_day(self.hours.day_of(instant))
         self._publish(rt.monitor_topic,
-                      monitor_payload({**rt.monitor.snapshot(instant, self.rejections.counts),
+                      monitor_payload({**rt.monitor.snapshot(instant, rejected),
                                        "health": health}),
                       retain=False, qos=MONITORING_QOS)
 
@@ -910,5 +911,5 @@ class Service:
         self.metrics.close()
         self.state_lock.release()
         log.info("stopped: %d readings accepted, %d messages published, %d rejected",
-                 self.accepted, self.published, self.rejections.total())
+                 self.accepted, self.published, self.rejections.run_total)
 

@@ -29,7 +29,7 @@ import logging
 import math
 import re
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from datetime import UTC, date, datetime, timedelta
 from enum import StrEnum
@@ -239,8 +239,9 @@ class RejectionCounter:
         self.log = logger
         self.log_limit = log_limit
         self.on_reject = on_reject
-        self.counts: Counter[tuple[str, str]] = Counter()
+        self.counts: Counter[tuple[str, str]] = Counter()  # of ``day`` only
         self.day: date | None = None
+        self.run_total = 0  # since the start, every day
 
     def add(self, sensor: str, rej: Rejected, day: date) -> None:
         self.add_reason(sensor, str(rej.reason), rej.message, day)
@@ -252,6 +253,7 @@ class RejectionCounter:
             self.day, self.counts = day, Counter()
         key = (sensor, reason)
         self.counts[key] += 1
+        self.run_total += 1
         if self.on_reject is not None:
             self.on_reject(sensor, reason)
         n = self.counts[key]
@@ -261,5 +263,7 @@ class RejectionCounter:
             self.log.warning("further %s rejections of %s today are only counted",
                              reason, sensor)
 
-    def total(self) -> int:
-        return sum(self.counts.values())
+    def of_day(self, day: date) -> Mapping[tuple[str, str], int]:
+        """Readings rejected on local ``day`` by (sensor, reason): none when the latest
+        rejection was on another day (the counts start afresh with a day's first one)."""
+        return self.counts if day == self.day else {}
