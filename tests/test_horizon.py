@@ -63,6 +63,23 @@ def test_wall_clock_is_kept_on_dst_days(day: dt.date, expected_utc: dt.datetime)
     assert np.allclose(np.diff(hours), 0.25)
 
 
+@pytest.mark.parametrize(("start", "end", "step_min", "first", "last", "n"), [
+    ("08:00", "19:00", 15, "08:00", "19:00", 45),
+    ("08:10", "19:00", 15, "08:15", "19:00", 44),  # on the quarter hours, not 08:10, 08:25, …
+    ("07:50", "18:50", 30, "08:00", "18:30", 22),
+    ("08:00", "24:00", 60, "08:00", "23:00", 16),  # midnight is the next day's, outside its window
+])
+def test_the_publish_grid_is_anchored_at_local_midnight(
+        start: str, end: str, step_min: int, first: str, last: str, n: int) -> None:
+    h = OperatingHours.from_strings(day_start=start, day_end=end, timezone=BERLIN)
+    day = dt.date(2016, 3, 27)  # a DST day: the instants stay on the wall clock
+    grid = h.grid(day, step_min / 60)
+    local = [t.astimezone(ZoneInfo(BERLIN)) for t in grid]
+    assert [f"{t:%H:%M}" for t in (local[0], local[-1])] == [first, last] and len(grid) == n
+    assert all(t.date() == day and (t.hour * 60 + t.minute) % step_min == 0 for t in local)
+    assert all(h.day_start <= h.hours_of(t) <= h.day_end for t in grid)
+
+
 def test_nonexistent_wall_time_steps_over_the_gap() -> None:
     h = OperatingHours(timezone=BERLIN)
     t = h.at(dt.date(2016, 3, 27), 2.5)  # 02:30 does not exist that night

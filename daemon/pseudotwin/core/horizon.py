@@ -197,13 +197,13 @@ class OperatingHours:
         return aware if aware >= base else base
 
     def grid(self, day: dt.date, step_hours: float) -> list[dt.datetime]:
-        """The publish grid of one local day: day start … day end every ``step_hours``
-        (wall clock, so a DST day has the same instants on the clock)."""
-        out, h = [], self.day_start
-        while h <= self.day_end + 1e-9:
-            out.append(self.at(day, h))
-            h += step_hours
-        return out
+        """The publish grid of one local day: the multiples of ``step_hours`` since local
+        midnight from day start to day end, before the next midnight (wall clock, so a DST
+        day has the same instants on the clock). Anchored at midnight, a 15-min grid is on
+        the quarter hours whatever the day start: what an MPC samples."""
+        first = math.ceil(self.day_start / step_hours - 1e-9)
+        last = math.floor(min(self.day_end, 24.0 - 1e-6) / step_hours + 1e-9)
+        return [self.at(day, k * step_hours) for k in range(first, last + 1)]
 
     def in_operating_hours(self, hours: np.ndarray | float) -> np.ndarray:
         h = np.asarray(hours, dtype=float)
