@@ -141,7 +141,7 @@ class Lockstep:
 
     def __init__(self, clock: HandClock, svc: Service) -> None:
         self.clock, self.sent = clock, 0
-        self.taken: Callable[[], int] = lambda: svc.accepted + svc.rejections.total()
+        self.taken: Callable[[], int] = lambda: svc.accepted + svc.rejections.run_total
 
     def now(self) -> dt.datetime:
         return self.clock.now()

@@ -258,7 +258,7 @@ def test_bad_payloads_are_counted_logged_once_and_never_block(
                 reading(*good[2]), reading(*good[3])]
     for p in sequence:
         pub.publish(topic, p, qos=1).wait_for_publish(10)
-    wait_for(lambda: svc.accepted + svc.rejections.total() == len(sequence),
+    wait_for(lambda: svc.accepted + svc.rejections.run_total == len(sequence),
              what="every payload handled")
     rt = svc.twins["desk"]
     window = [(r.ts, r.value) for r in rt.twin.window if r.sensor == REF]
@@ -414,7 +414,9 @@ def test_a_grid_estimate_sees_only_readings_that_arrived_before_its_tick(
 ) -> None:
     """Grid work is spread between readings (many twins' ticks must not hold a reading up),
     yet a later reading never reaches a twin before that twin's pending tick estimate."""
-    svc = service_factory(HOURS.at(DAY, 10.0), 1.0)
+    # the clock at 10:06: every reading below is from its past (one stamped ahead of
+    # the daemon's clock is taken at its arrival)
+    svc = service_factory(HOURS.at(DAY, 10.1), 1.0)
     viewer = Viewer(mosquitto.port, "pt/desk/estimate")
     pub = publisher(mosquitto.port, "tick-bridge")
     topic = "house/dining/temp"
@@ -515,12 +517,42 @@ def test_a_late_reading_revises_the_newest_estimate_and_yesterday_is_rejected(
     viewer.close()
 
 
+def test_a_reading_from_a_clock_running_ahead_is_taken_at_its_arrival(
+    service_factory, mosquitto, caplog
+) -> None:
+    """A sensor whose clock runs 4 min ahead (within max_skew): its reading counts from its
+    arrival, so no estimate is stamped in the daemon's future and the next grid estimate is
+    the retained state (stamped ahead, the reading's estimate would have outranked it)."""
+    start = HOURS.at(DAY, 9.95)
+    svc = service_factory(start, 1.0)
+    viewer = Viewer(mosquitto.port, "pt/desk/estimate")
+    pub = publisher(mosquitto.port, "ahead-bridge")
+    stamped = start + dt.timedelta(minutes=4)
+    with caplog.at_level(logging.WARNING, logger="pseudotwin"):
+        pub.publish("house/dining/temp", reading(stamped, 17.0), qos=1).wait_for_publish(10)
+        wait_for(lambda: len(viewer.on("/estimate")) == 1, what="the reading's estimate")
+    (e,) = viewer.on("/estimate")
+    at = dt.datetime.fromisoformat(e["ts"])
+    assert start <= at <= svc.clock.now() < stamped and e["refs"] == {REF: e["ts"]}
+    assert sum("after its arrival" in r.getMessage() and REF in r.getMessage()
+               for r in caplog.records) == 1
+    tick = HOURS.at(DAY, 10.0)
+    svc.queue.put(("tick", tick))
+    wait_for(lambda: any(e["ts"] == stamp(tick) for e in viewer.on("/estimate")),
+             what="the grid estimate")
+    assert retained(mosquitto.port, "pt/desk/estimate")["ts"] == stamp(tick)
+    pub.loop_stop()
+    viewer.close()
+
+
 def test_without_baselines_a_grid_instant_publishes_the_estimate_alone(
     service_factory, mosquitto, desk_artifact
 ) -> None:
     """``baselines = "none"``: the twins run the primary only; no baseline topic ever gets a
     message, the estimate still comes at readings and grid instants."""
-    svc = service_factory(HOURS.at(DAY, 10.0), 1.0, baselines="none")
+    # the clock at 10:06: every reading below is from its past (one stamped ahead of
+    # the daemon's clock is taken at its arrival)
+    svc = service_factory(HOURS.at(DAY, 10.1), 1.0, baselines="none")
     art = Artifact.load(desk_artifact)
     assert all(rt.twin.kinds == [art.primary] and not rt.baseline_topics
                for rt in svc.twins.values())

@@ -228,8 +228,8 @@ def endpoints(mosquitto, desk_artifact: Path, tmp_path: Path) -> Iterator[tuple[
             pub = publisher(mosquitto.port, "deploy-bridge")
             pub.publish(TOPIC, reading(HOURS.at(DAY, 8.5), 21.0), qos=1).wait_for_publish(10)
             pub.publish(TOPIC, b"{broken", qos=1).wait_for_publish(10)
-            wait_for(lambda: svc.accepted == 1 and svc.rejections.total() == 1
-                     and rec.written == 1 and rec.rejections.total() == 1,
+            wait_for(lambda: svc.accepted == 1 and svc.rejections.run_total == 1
+                     and rec.written == 1 and rec.rejections.run_total == 1,
                      what="both processes handled both payloads")
             pub.loop_stop()
             yield port, record_port

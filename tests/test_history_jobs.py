@@ -46,7 +46,7 @@ def test_recorder_writes_every_valid_reading_and_spools_while_the_store_is_away(
         pub.publish("house/dining/temp", reading(t, 20 + i / 100), qos=1)
     pub.publish("house/dining/temp", b"{broken", qos=1)
     pub.publish("house/room/temp", reading(ts[0], 99.0), qos=1)  # out of range
-    wait_for(lambda: rec.spooled == 20 and rec.rejections.total() == 2,
+    wait_for(lambda: rec.spooled == 20 and rec.rejections.run_total == 2,
              what="first batch spooled while the store is down, bad payloads counted")
     assert rec.written == 0
     db.parent.mkdir()  # the store comes back

@@ -117,7 +117,7 @@ def test_daemon_endpoint_counts_what_went_through_the_broker(metered, mosquitto)
     bad = [b"{not json", reading(HOURS.at(DAY, 8.1), 99.0)]  # not-json, out-of-range
     for p in [*good[:3], *bad, *good[3:]]:
         pub.publish(TOPIC, p, qos=1).wait_for_publish(10)
-    wait_for(lambda: svc.accepted == len(good) and svc.rejections.total() == len(bad)
+    wait_for(lambda: svc.accepted == len(good) and svc.rejections.run_total == len(bad)
              and len(viewer.on("/estimate")) == len(good), what="every payload handled")
     m = scrape(port)
 
@@ -197,7 +197,7 @@ def test_recorder_endpoint_counts_stored_spooled_rejected_and_store_errors(
         for i, t in enumerate(ts[:5]):
             pub.publish(TOPIC, reading(t, 20 + i / 100), qos=1)
         pub.publish(TOPIC, b"{broken", qos=1)
-        wait_for(lambda: rec.spooled == 5 and rec.rejections.total() == 1,
+        wait_for(lambda: rec.spooled == 5 and rec.rejections.run_total == 1,
                  what="spooled while the store is down")
         m = scrape(port)
         assert sample(m, "pseudotwin_recorder_readings_spooled_total") == 5

@@ -157,11 +157,13 @@ class Recorder:
                arrival: dt.datetime) -> Reading | None:
         if sensor is None:
             return None
+        day = self.cfg.hours.day_of(arrival)
         try:
             return parse_payload(sensor, payload, arrival, max_skew=self.cfg.max_skew,
-                                 not_before=OLDEST)  # history keeps late readings too
+                                 not_before=OLDEST,  # history keeps late readings too
+                                 on_ahead=lambda s: self.rejections.ahead(sensor.id, s, day))
         except Rejected as rej:
-            self.rejections.add(sensor.id, rej, self.cfg.hours.day_of(arrival))
+            self.rejections.add(sensor.id, rej, day)
             return None
         except Exception as exc:  # noqa: BLE001 — a parser bug must not kill the recorder
             log.exception("payload of %s could not be processed", sensor.id)

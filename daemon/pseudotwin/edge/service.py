@@ -588,7 +588,8 @@ class Service:
         day = self.hours.day_of(arrival)
         try:
             r = parse_payload(sensor, payload, arrival, max_skew=self.cfg.max_skew,
-                              not_before=self._not_before(day))
+                              not_before=self._not_before(day),
+                              on_ahead=lambda s: self.rejections.ahead(sensor.id, s, day))
         except Rejected as rej:
             self.rejections.add(sensor.id, rej, day)
             return None

@@ -20,6 +20,12 @@ Checks run in this order and the first failure is reported: size, syntax, value,
 valid range, future (more than ``max_skew`` after arrival), too old (before ``not_before``,
 the start of the current window). Duplicates and out-of-order readings are the window's
 business, not this module's.
+
+A timestamp after arrival but within ``max_skew`` is a clock running ahead (the sensor's,
+the bridge's, or the daemon's behind): nothing is measured in the future. The reading is
+taken at its arrival, so no estimate and no stored reading carries an instant the daemon's
+clock has not reached (estimates stamped minutes ahead would outrank every grid estimate
+after them as the retained state).
 """
 
 from __future__ import annotations
@@ -172,13 +178,16 @@ def parse_payload(
     *,
     max_skew: timedelta,
     not_before: datetime | None,
+    on_ahead: Callable[[float], None] | None = None,
 ) -> Reading:
     """The reading in ``payload`` for ``sensor``, or :class:`Rejected`.
 
     arrival: when the message arrived (aware); the timestamp of payloads without one.
-    max_skew: how far the timestamp may lie after ``arrival``.
+    max_skew: how far the timestamp may lie after ``arrival``; a reading stamped after
+        ``arrival`` within it is taken at ``arrival``.
     not_before: the start of the current window (aware); older readings are rejected.
         None accepts any age.
+    on_ahead: called with how far [s] the timestamp lay after ``arrival`` when it did.
     """
     _require_aware("arrival", arrival)
     _require_aware("not_before", not_before)
@@ -221,6 +230,10 @@ def parse_payload(
         raise Rejected(Reason.FUTURE, f"timestamp {ts.isoformat()} is "
                                       f"{(ts - arrival).total_seconds():.0f} s after arrival "
                                       f"(max skew {max_skew.total_seconds():g} s)")
+    if ts > arrival:
+        if on_ahead is not None:
+            on_ahead((ts - arrival).total_seconds())
+        ts = arrival.astimezone(UTC)
     if not_before is not None and ts < not_before:
         raise Rejected(Reason.TOO_OLD, f"timestamp {ts.isoformat()} is before "
                                        f"{not_before.astimezone(UTC).isoformat()}, the oldest "
@@ -242,6 +255,8 @@ class RejectionCounter:
         self.counts: Counter[tuple[str, str]] = Counter()  # of ``day`` only
         self.day: date | None = None
         self.run_total = 0  # since the start, every day
+        self.ahead_day: date | None = None
+        self.ahead_noted: set[str] = set()  # sensors whose clock ran ahead on ahead_day
 
     def add(self, sensor: str, rej: Rejected, day: date) -> None:
         self.add_reason(sensor, str(rej.reason), rej.message, day)
@@ -262,6 +277,18 @@ class RejectionCounter:
         if n == self.log_limit:
             self.log.warning("further %s rejections of %s today are only counted",
                              reason, sensor)
+
+    def ahead(self, sensor: str, seconds: float, day: date) -> None:
+        """A reading of ``sensor`` stamped ``seconds`` after its arrival (within max_skew,
+        taken at arrival): logged once per sensor and day."""
+        if day != self.ahead_day:
+            self.ahead_day, self.ahead_noted = day, set()
+        if sensor not in self.ahead_noted:
+            self.ahead_noted.add(sensor)
+            self.log.warning("reading of %s stamped %.0f s after its arrival: its clock (or its "
+                             "bridge's) runs ahead of the daemon's, or the daemon's behind; "
+                             "taken at its arrival (said once a day per sensor)",
+                             sensor, seconds)
 
     def of_day(self, day: date) -> Mapping[tuple[str, str], int]:
         """Readings rejected on local ``day`` by (sensor, reason): none when the latest
