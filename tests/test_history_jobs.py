@@ -14,7 +14,7 @@ from daemon_support import DAY, HOURS, REF, TARGET, config, sml, wait_for, write
 from pseudotwin.analysis.evaluate import replay_estimates
 from pseudotwin.cli import main
 from pseudotwin.edge.clock import ReplayClock
-from pseudotwin.edge.recorder import Recorder
+from pseudotwin.edge.recorder import Recorder, Spool
 from pseudotwin.edge.service import Service
 from pseudotwin.history.backfill import backfill
 from pseudotwin.history.store import open_store
@@ -60,6 +60,19 @@ def test_recorder_writes_every_valid_reading_and_spools_while_the_store_is_away(
     assert len(got) == 40  # count in = count stored
     assert [t.to_pydatetime() for t in got["ts"]] == ts
     assert not rec.spool.path.exists()
+
+
+def test_a_spool_line_cut_short_costs_no_later_reading(tmp_path: Path) -> None:
+    """A crash or a full disk mid-write leaves the spool's last line torn: the readings spooled
+    after it (acknowledged, the store being away) must not be glued onto it and lost."""
+    spool = Spool(tmp_path / "spool.jsonl")
+    at = [HOURS.at(DAY, h) for h in (8.0, 8.1, 8.2)]
+    first, *later = [Reading(REF, t, 17.0 + k) for k, t in enumerate(at)]
+    spool.add([first])
+    with open(spool.path, "ab") as fh:
+        fh.write(b'{"sensor": "dining/temp", "ts": "2012-03-20T0')  # the crash
+    spool.add(later)
+    assert spool.load() == [first, *later]
 
 
 def test_backfill_equals_evaluate_and_is_idempotent_and_resumable(

@@ -53,10 +53,16 @@ class Spool:
         path.parent.mkdir(parents=True, exist_ok=True)
 
     def add(self, readings: list[Reading]) -> None:
-        with open(self.path, "a", encoding="utf-8") as fh:
-            for r in readings:
-                fh.write(json.dumps({"sensor": r.sensor, "ts": r.ts.isoformat(),
-                                     "value": r.value}) + "\n")
+        block = "".join(json.dumps({"sensor": r.sensor, "ts": r.ts.isoformat(),
+                                    "value": r.value}) + "\n" for r in readings).encode()
+        with open(self.path, "a+b") as fh:
+            # A crash or a full disk may have cut the last line short: never glue the next
+            # reading onto it, or that acknowledged reading goes down with the torn line.
+            if fh.seek(0, os.SEEK_END) > 0:
+                fh.seek(-1, os.SEEK_END)
+                if fh.read(1) != b"\n":
+                    block = b"\n" + block
+            fh.write(block)
             fh.flush()
 
     def load(self) -> list[Reading]:
