@@ -275,11 +275,34 @@ def test_state_from_a_day_ahead_does_not_silence_today(service_factory, mosquitt
     viewer = Viewer(mosquitto.port)
     with caplog.at_level(logging.WARNING):
         svc = service_factory()
-    assert "days after today" in caplog.text
+    assert "after the daemon's clock" in caplog.text
     send(mosquitto.port, morning(), "rel-future")
     wait_for(lambda: svc.accepted == len(morning()), what="all journaled")
     wait_for(lambda: len(viewer.on("/estimate")) > 0, what="today's estimates")
     viewer.close()
+
+
+def test_state_from_later_today_stays_out_of_the_window(service_factory, mosquitto,
+                                                        tmp_path: Path, caplog) -> None:
+    """A replay's state dir run again (or a clock set back within the day): the journal holds
+    this afternoon's readings at noon. Replayed, the latest of them would stand in the window
+    as the reference's value all morning; they stay on disk."""
+    df = day_readings(sml())
+    jdir = tmp_path / "state" / "journal"
+    jdir.mkdir(parents=True)
+    early = df[(df["ts"] >= HOURS.at(DAY, 1.5)) & (df["ts"] < HOURS.at(DAY, 9.0))]
+    late = df[df["ts"] >= HOURS.at(DAY, 15.0)]
+    (jdir / f"{DAY.isoformat()}.jsonl").write_text("".join(
+        json.dumps({"sensor": REF, "ts": ts.isoformat(), "value": float(v)}) + "\n"
+        for part in (early, late) for ts, v in zip(part["ts"], part["value"], strict=True)))
+    with caplog.at_level(logging.WARNING):
+        svc = service_factory()  # clock at noon
+    (rt,) = svc.twins.values()
+    kept = sorted(p.ts for p in rt.twin.window if p.sensor == REF)
+    assert kept and kept[-1] == early["ts"].max()  # the morning's, none of the afternoon's
+    assert f"journal holds {len(late)} readings after the daemon's clock" in caplog.text
+    on_disk = (jdir / f"{DAY.isoformat()}.jsonl").read_text().splitlines()
+    assert len(on_disk) == len(early) + len(late)
 
 
 # -- 9. operations -------------------------------------------------------------------------

@@ -778,29 +778,24 @@ class Service:
         now = self.clock.now()
         since = self._not_before(self.hours.day_of(now)) - dt.timedelta(days=1)
         horizon = now + self.cfg.max_skew
-        today = self.hours.day_of(now)
-        later_days: list[Reading] = []
-        ahead = 0
+        later: list[Reading] = []
         for r in self.journal.replay(since):
-            if self.hours.day_of(r.ts) > today:
-                # Journaled by a run whose clock was a day or more ahead (the clock jumped
-                # back, or state copied from elsewhere): fed to the twins it would move their
-                # window to a day to come and silence today's. Kept on disk, not replayed.
-                later_days.append(r)
+            if r.ts > horizon:
+                # Journaled by a run whose clock was ahead (the clock jumped back, a replay's
+                # state dir run again, state copied from elsewhere): a reading of a day to
+                # come would move the twins' window to it and silence today's, one of later
+                # today would stand in the window as the latest reading all morning. Kept on
+                # disk, not replayed.
+                later.append(r)
                 continue
-            ahead += r.ts > horizon  # later today: harmless to today's window, but say so
             self._apply(r, publish=False)  # guarded per twin, as live
             n += 1
-        if later_days:
-            log.warning("journal holds %d readings of days after today by the daemon's clock "
-                        "(%s .. %s, clock %s): did the clock jump back? They are not replayed; "
-                        "today's window starts from the rest", len(later_days),
-                        min(r.ts for r in later_days).isoformat(),
-                        max(r.ts for r in later_days).isoformat(), now.isoformat())
-        if ahead:
-            log.warning("journal holds %d readings of today after the daemon's clock %s "
-                        "(more than max_skew ahead); replayed into today's window", ahead,
-                        now.isoformat())
+        if later:
+            log.warning("journal holds %d readings after the daemon's clock (%s .. %s, clock "
+                        "%s, more than max_skew ahead): did the clock jump back, or is this "
+                        "state dir a replay's run again? They are not replayed; today's window "
+                        "starts from the rest", len(later), min(r.ts for r in later).isoformat(),
+                        max(r.ts for r in later).isoformat(), now.isoformat())
         if n:
             log.info("restored state from %d journaled readings", n)
         elif self.cfg.store:
