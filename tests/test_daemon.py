@@ -391,7 +391,8 @@ def test_restart_restores_the_window_from_the_journal(mosquitto, desk_artifact,
                                                        tmp_path: Path) -> None:
     cfg = config(tmp_path, mosquitto.port, desk_artifact)
     df = day_readings(sml())
-    a = Service(cfg, ReplayClock(HOURS.at(DAY, 12.0), 1.0))
+    evening = HOURS.at(DAY, 19.5)  # after the day's last reading
+    a = Service(cfg, ReplayClock(evening, 1.0))
     for _, r in df.iterrows():
         from pseudotwin.live.readings import Reading
 
@@ -399,7 +400,7 @@ def test_restart_restores_the_window_from_the_journal(mosquitto, desk_artifact,
         a.journal.append(rd)
         a._apply(rd, publish=False)
     a.journal.close()
-    b = Service(cfg, ReplayClock(HOURS.at(DAY, 12.0), 1.0))
+    b = Service(cfg, ReplayClock(evening, 1.0))
     assert b.restore() == len(df)
     ta, tb = a.twins["desk"].twin, b.twins["desk"].twin
     assert [(r.sensor, r.ts, r.value) for r in ta.window] == \
@@ -407,6 +408,25 @@ def test_restart_restores_the_window_from_the_journal(mosquitto, desk_artifact,
     t = HOURS.at(DAY, 11.0)
     assert ta.estimate(t) == tb.estimate(t)
     b.journal.close()
+
+
+def test_a_daemon_started_on_a_grid_instant_publishes_it(service_factory, mosquitto,
+                                                          tmp_path: Path) -> None:
+    """Up on the hour (a restart at 10:00:00), the 10:00 instant's tick is still to come: its
+    estimate goes out, as a daemon that never stopped would have sent it."""
+    jdir = tmp_path / "state" / "journal"
+    jdir.mkdir(parents=True)
+    df = day_readings(sml())
+    df = df[(df["ts"] >= HOURS.at(DAY, 7.5)) & (df["ts"] < HOURS.at(DAY, 10.0))]
+    (jdir / f"{DAY.isoformat()}.jsonl").write_text("".join(
+        json.dumps({"sensor": REF, "ts": ts.isoformat(), "value": float(v)}) + "\n"
+        for ts, v in zip(df["ts"], df["value"], strict=True)))
+    viewer = Viewer(mosquitto.port, "pt/desk/estimate")
+    on_the_hour = HOURS.at(DAY, 10.0)
+    service_factory(on_the_hour, 1.0)
+    wait_for(lambda: any(e["ts"] == stamp(on_the_hour) for e in viewer.on("/estimate")),
+             what="the estimate of the instant the daemon started on")
+    viewer.close()
 
 
 def test_a_grid_estimate_sees_only_readings_that_arrived_before_its_tick(

@@ -846,7 +846,9 @@ class Service:
         if not self.wakeups.install():
             log.info("this paho-mqtt has no wake-up socket pair: every message wakes its "
                      "network thread")
-        origin = self.clock.now()  # the grid's first instant is the first after it
+        # The grid's first instant is the first whose tick is still to come: a daemon up
+        # within TICK_GRACE after an instant (at a restart on the hour, say) does its work.
+        origin = self.clock.now() - TICK_GRACE
         self._grid_next = self._next_grid(origin)
         for target, args in ((self._worker, ()), (self._ticker, (origin,))):
             th = threading.Thread(target=target, args=args, daemon=True,
