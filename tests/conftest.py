@@ -397,7 +397,10 @@ def service_factory(
     def make(start: dt.datetime | None = None, speed: float = 1.0, *, kind: type = Service,
              **kw: object) -> Any:
         cfg = config(tmp_path, mosquitto.port, desk_artifact, **kw)
-        s = kind(cfg, clock=ReplayClock(start or HOURS.at(DAY, 12.0), speed))
+        # By default a minute past noon: no grid instant is due within the test (one within
+        # the tick grace of the start would be ticked, and open today's window).
+        s = kind(cfg, clock=ReplayClock(start or HOURS.at(DAY, 12.0) + dt.timedelta(minutes=1),
+                                        speed))
         s.start(wait_connected=15)
         made.append(s)
         return s
