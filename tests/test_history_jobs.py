@@ -46,9 +46,11 @@ def test_recorder_writes_every_valid_reading_and_spools_while_the_store_is_away(
         pub.publish("house/dining/temp", reading(t, 20 + i / 100), qos=1)
     pub.publish("house/dining/temp", b"{broken", qos=1)
     pub.publish("house/room/temp", reading(ts[0], 99.0), qos=1)  # out of range
-    wait_for(lambda: rec.spooled == 20 and rec.rejections.run_total == 2,
+    for unset in (0, 12345):  # a device clock never set, an uptime sent as epoch seconds
+        pub.publish("house/dining/temp", json.dumps({"ts": unset, "value": 20.0}), qos=1)
+    wait_for(lambda: rec.spooled == 20 and rec.rejections.run_total == 4,
              what="first batch spooled while the store is down, bad payloads counted")
-    assert rec.written == 0
+    assert rec.written == 0 and rec.rejections.counts[(REF, "too-old")] == 2
     db.parent.mkdir()  # the store comes back
     for i, t in enumerate(ts[20:], start=20):
         pub.publish("house/dining/temp", reading(t, 20 + i / 100), qos=1)
@@ -122,6 +124,40 @@ def test_backfill_reports_days_without_readings(
     rc = main(["backfill", "--config", str(cfg_path), "--twin", "nope", "--from", "2012-03-24",
                "--to", "2012-03-24"])
     assert rc == 2 and "no twin 'nope'" in capsys.readouterr().err
+
+
+def test_backfill_redo_estimates_a_day_again_once_its_readings_are_imported(
+    mosquitto, desk_artifact, tmp_path: Path, capsys
+) -> None:
+    """A day imported in part (the night only) is backfilled and marked done; importing the
+    rest does not make it due again (a rerun skips it), ``--redo`` does: its rows become
+    those of a backfill from the whole day."""
+    df = sml()
+    day = dt.date(2012, 3, 20)
+    upto = df[df["ts"] < HOURS.at(day + dt.timedelta(days=1), 0.0)]
+    stores = {name: f"sqlite:///{tmp_path / name}.db" for name in ("partial", "whole")}
+    with open_store(stores["partial"]) as s:
+        s.write_readings(upto[upto["ts"] < HOURS.at(day, 3.0)])
+    with open_store(stores["whole"]) as s:
+        s.write_readings(upto)
+
+    def backfilled(name: str, *extra: str) -> pd.DataFrame:
+        (tmp_path / name).mkdir(exist_ok=True)
+        cfg = write_config(tmp_path / name, mosquitto.port, desk_artifact, store=stores[name])
+        rc = main(["backfill", "--config", str(cfg), "--twin", "desk", "--from", str(day),
+                   "--to", str(day), "--quiet", *extra])
+        assert rc == 0
+        with open_store(stores[name]) as s:
+            return s.read_estimates("desk").drop(columns="written_at")
+
+    night_only = backfilled("partial")
+    with open_store(stores["partial"]) as s:
+        s.write_readings(upto)  # the rest of the day arrives
+    assert backfilled("partial").equals(night_only)  # done already: skipped
+    assert "already backfilled" in capsys.readouterr().out
+    redone, whole = backfilled("partial", "--redo"), backfilled("whole")
+    assert not redone.equals(night_only)
+    pd.testing.assert_frame_equal(redone, whole)
 
 
 def test_train_from_the_store_picks_full_days_itself(sml_store: Path, tmp_path: Path,

@@ -540,3 +540,22 @@ def test_crate_unreachable_is_a_store_error() -> None:
         url = server.url
     with pytest.raises(StoreError, match="cannot connect to CrateDB"):
         open_store(url)
+
+
+def test_a_sqlite_store_held_by_another_writer_is_busy_not_broken(tmp_path: Path,
+                                                                  monkeypatch) -> None:
+    """An import or backfill holding the file's lock past the busy timeout: the message says
+    busy and what to do, not that the file is no usable history DB."""
+    url = f"sqlite:///{tmp_path / 'history.db'}"
+    open_store(url).close()
+    monkeypatch.setattr(store_mod, "SQLITE_BUSY_TIMEOUT_MS", 200)
+    holder = sqlite3.connect(tmp_path / "history.db", isolation_level=None)
+    holder.execute("BEGIN EXCLUSIVE")
+    try:
+        with pytest.raises(StoreError, match="busy: another process held its lock") as err:
+            open_store(url)
+        assert "not a usable" not in str(err.value)
+    finally:
+        holder.execute("ROLLBACK")
+        holder.close()
+    open_store(url).close()  # free again

@@ -49,6 +49,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="worker processes (default: the CPUs available, here "
                         f"{default_jobs()}); twins and runs of days are spread over them, "
                         "with the same rows as --jobs 1, which runs in this process")
+    p.add_argument("--redo", action="store_true",
+                   help="estimate days already backfilled with this artifact again, "
+                        "replacing their rows: after importing readings a day lacked "
+                        "(a day with some reference readings counts as done)")
     p.add_argument("--quiet", action="store_true",
                    help="no progress lines (one per finished run of days, on stderr)")
 
@@ -74,7 +78,7 @@ def run(a: argparse.Namespace) -> int:
     freeze_long_lived()
     with open_store(cfg.store, existing=True) as store:
         summary = backfill_twins(cfg, twins, a.start, a.end, store, jobs=a.jobs,
-                                 progress=not a.quiet)
+                                 progress=not a.quiet, redo=a.redo)
     print("\n".join(summary.lines()))
     for res in summary.failures:
         print(f"pseudotwin backfill: error: {res.failure_line()}", file=sys.stderr)

@@ -40,9 +40,10 @@ from pseudotwin.live.readings import (
 
 log = logging.getLogger(__name__)
 
-#: The oldest reading the recorder stores: older timestamps are nonsense for live data (and
-#: year-1 times would not survive the store's pandas round trip).
-OLDEST = dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
+#: The oldest reading the recorder stores: older timestamps are nonsense for live data, the
+#: clock of a device never set or an uptime counter sent as epoch seconds (0 is 1970-01-01),
+#: and year-1 times would not survive the store's pandas round trip.
+OLDEST = dt.datetime(2000, 1, 1, tzinfo=dt.UTC)
 
 
 class Spool:

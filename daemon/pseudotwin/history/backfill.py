@@ -159,11 +159,11 @@ def day_ended(hours: OperatingHours, day: dt.date, now: dt.datetime) -> bool:
 
 
 def plan(cfg: ServiceConfig, twin_ids: list[str], start: dt.date, end: dt.date,
-         store: Store, now: dt.datetime | None = None) -> list[TwinJob]:
+         store: Store, now: dt.datetime | None = None, redo: bool = False) -> list[TwinJob]:
     """The jobs of ``twin_ids`` over local days start … end, with the days already done
-    (of each twin's current artifact version) taken out and the days not ended by ``now``
-    (default: the clock) noted as such. Checks twins, dates and artifacts before any work
-    starts."""
+    (of each twin's current artifact version) taken out, unless ``redo`` (readings a day
+    lacked were imported since), and the days not ended by ``now`` (default: the clock)
+    noted as such. Checks twins, dates and artifacts before any work starts."""
     unknown = [t for t in twin_ids if t not in cfg.twins]
     if unknown:
         raise ConfigError(f"no twin {', '.join(repr(t) for t in unknown)} in the configuration "
@@ -188,7 +188,7 @@ def plan(cfg: ServiceConfig, twin_ids: list[str], start: dt.date, end: dt.date,
         hours = art.hours
         digest = artifact_hash(path)
         job = TwinJob(twin_id, str(path), digest, (), ())
-        done = store.done_days(job.progress_key)
+        done = set() if redo else store.done_days(job.progress_key)
         todo = tuple(d for d in days if d not in done)
         jobs.append(TwinJob(twin_id, str(path), digest, todo,
                             tuple(d for d in days if d in done),

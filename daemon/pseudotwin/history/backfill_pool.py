@@ -118,6 +118,7 @@ def backfill_twins(
     chunk_days: int | None = None,
     stream: TextIO | None = None,
     now: dt.datetime | None = None,
+    redo: bool = False,
 ) -> RunSummary:
     """Backfill ``twin_ids`` for local days start … end with up to ``jobs`` processes.
 
@@ -126,14 +127,15 @@ def backfill_twins(
     :func:`~pseudotwin.history.backfill.chunk_size`). Failures do not stop other chunks;
     they are in the summary's ``failures``. Ctrl-C returns a summary with ``interrupted``.
     Progress lines go to ``stream`` (default stderr). ``now`` (default: the clock) decides
-    which days have ended: one not ended is estimated but not marked done.
+    which days have ended: one not ended is estimated but not marked done. redo: estimate
+    the days done already again too (their rows are replaced).
     """
     if jobs < 1:
         raise ConfigError(f"--jobs must be at least 1, not {jobs}")
     if chunk_days is not None and chunk_days < 1:
         raise ConfigError(f"chunk_days must be at least 1, not {chunk_days}")
     t0 = time.perf_counter()
-    twin_jobs = plan(cfg, twin_ids, start, end, store, now)
+    twin_jobs = plan(cfg, twin_ids, start, end, store, now, redo)
     total = sum(len(j.todo) for j in twin_jobs)
     work = chunks(twin_jobs, chunk_days or chunk_size(total, jobs))
     run = RunSummary(workers=max(1, min(jobs, len(work))))

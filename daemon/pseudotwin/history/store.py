@@ -635,6 +635,15 @@ class SQLiteStore(Store):
                 self._conn.execute("ROLLBACK")
                 raise
             self.schema_version = SCHEMA_VERSION
+        except sqlite3.OperationalError as exc:
+            if "locked" not in str(exc) and "busy" not in str(exc):
+                raise StoreError(f"{self.url}: not a usable SQLite history DB ({exc})") \
+                    from None
+            # Another process held the file's write lock past the busy timeout (an import, a
+            # backfill, the recorder's write): busy, not broken.
+            wait = SQLITE_BUSY_TIMEOUT_MS / 1000
+            raise StoreError(f"{self.url}: busy: another process held its lock for more than "
+                             f"{wait:g} s ({exc}); try again once it is done") from None
         except sqlite3.DatabaseError as exc:
             raise StoreError(f"{self.url}: not a usable SQLite history DB ({exc})") from None
 
