@@ -62,7 +62,10 @@ def check_sensor_config(topic: str, body: dict, prefix: str) -> None:
     assert set(body) <= SENSOR_OPTIONS, set(body) - SENSOR_OPTIONS
     assert isinstance(body["state_topic"], str) and body["state_topic"]  # required
     assert isinstance(body["unique_id"], str) and body["unique_id"].startswith("pseudotwin_pt_")
-    assert body["default_entity_id"] == f"sensor.{body['unique_id']}"
+    # Home Assistant's entity id rule (homeassistant.core.valid_entity_id): lower-case letters,
+    # digits, single underscores, none at either end of the object id
+    assert re.fullmatch(r"sensor\.(?!_)(?!.*__)[a-z0-9_]+(?<!_)", body["default_entity_id"])
+    assert body["default_entity_id"].startswith("sensor.pseudotwin_pt_")
     assert body["state_class"] == "measurement"
     assert body["unit_of_measurement"] in UNITS_OF[body["device_class"]]
     assert isinstance(body["expire_after"], int) and body["expire_after"] > 0

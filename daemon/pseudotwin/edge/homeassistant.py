@@ -79,6 +79,13 @@ def slug(text: str) -> str:
     return _NOT_ID.sub("_", text)
 
 
+def entity_object_id(text: str) -> str:
+    """``text`` as the object part of a Home Assistant entity id, which takes lower-case
+    letters, digits and single underscores, not at either end (``room1-desk`` → ``room1_desk``):
+    unlike ``object_id`` before it, ``default_entity_id`` is not made valid for us."""
+    return re.sub(r"[^a-z0-9]+", "_", text.lower()).strip("_") or "pseudotwin"
+
+
 @dataclass(frozen=True)
 class TwinEntities:
     """What discovery needs of one running twin.
@@ -115,7 +122,7 @@ def entity_config(twin: TwinEntities, kind: str, *, base_topic: str,
     payload: dict[str, Any] = {
         "name": "Estimate" if kind == ESTIMATE else f"Baseline {kind}",
         "unique_id": uid,
-        "default_entity_id": f"{COMPONENT}.{uid}",
+        "default_entity_id": f"{COMPONENT}.{entity_object_id(uid)}",
         "state_topic": state,
         "value_template": VALUE_TEMPLATE,
         "json_attributes_topic": state,
