@@ -226,6 +226,13 @@ def test_global_log_level_before_a_delegated_subcommand(tmp_path: Path, capsys) 
     assert main(["--log-level", "WARNING", "check-config", str(missing)]) == 2
     err = capsys.readouterr().err
     assert str(missing) in err and "unrecognized arguments" not in err
+    # checked as for every subcommand: any case, CRITICAL too (as the configuration's
+    # log_level), and a level that is none is a usage error, not taken silently
+    assert main(["--log-level", "critical", "check-config", str(missing)]) == 2
+    assert str(missing) in capsys.readouterr().err
+    with pytest.raises(SystemExit) as bad:
+        main(["--log-level", "LOUD", "check-config", str(missing)])
+    assert bad.value.code == 2 and "invalid choice: 'LOUD'" in capsys.readouterr().err
 
 
 def test_train_says_whether_its_training_days_are_enough(sml: Path, tmp_path: Path,

@@ -22,6 +22,7 @@ from pseudotwin.cli.util import (
     load_named_config,
     whole_number,
 )
+from pseudotwin.config.model import LOG_LEVELS
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.errors import ConfigError, PseudotwinError, StateInUseError
 from pseudotwin.gp.kernels import KERNEL_REGISTRY
@@ -683,7 +684,7 @@ def build_parser() -> argparse.ArgumentParser:
                "'pseudotwin SUBCOMMAND --help' explains each.",
     )
     p.add_argument("--version", action="version", version=f"pseudotwin {__version__}")
-    p.add_argument("--log-level", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+    p.add_argument("--log-level", type=str.upper, choices=LOG_LEVELS,
                    help="default INFO (for run: the configuration's log_level)")
     sub = p.add_subparsers(dest="command", metavar="SUBCOMMAND")
 
@@ -822,8 +823,10 @@ def _main(argv: Sequence[str] | None) -> int:
     first = next((i for i, x in enumerate(args) if not x.startswith("-")
                   and (i == 0 or args[i - 1] != "--log-level")), None)  # not its value
     if first is not None and args[first] in DELEGATED:
-        head = args[:first]
-        setup_logging(head[head.index("--log-level") + 1] if "--log-level" in head else "INFO")
+        # The options before the subcommand are the main parser's: checked by it (a bad
+        # --log-level is its usage error, as for the other subcommands).
+        head = build_parser().parse_args(args[:first])
+        setup_logging(head.log_level or "INFO")
         return DELEGATED[args[first]](args[first + 1:])
     parser = build_parser()
     a = parser.parse_args(args)

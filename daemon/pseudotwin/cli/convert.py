@@ -23,7 +23,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("dataset", nargs="?", help="dataset name (see --list)")
     p.add_argument("--source", type=Path, help="dataset folder or file (default: shared data)")
     p.add_argument("--out", type=Path,
-                   help="output file: canonical CSV, or Parquet when it ends in .parquet or .pq")
+                   help="output file (required but with --list): canonical CSV, or Parquet "
+                        "when it ends in .parquet or .pq")
     p.add_argument("--raw", action="store_true",
                    help="keep every sample where the converter would average (room-climate-*: "
                         "one reading every ~4 s per node instead of 1-minute means)")
