@@ -182,7 +182,7 @@ def test_a_metrics_port_in_use_is_reported_before_anything_starts(
 
 
 # -- the recorder -------------------------------------------------------------------------
-def test_recorder_endpoint_counts_stored_spooled_rejected_and_store_errors(
+def test_recorder_endpoint_counts_stored_spooled_rejected_repeated_and_store_errors(
     mosquitto, desk_artifact: Path, tmp_path: Path
 ) -> None:
     port = free_port()
@@ -211,8 +211,12 @@ def test_recorder_endpoint_counts_stored_spooled_rejected_and_store_errors(
         for i, t in enumerate(ts[5:], start=5):
             pub.publish(TOPIC, reading(t, 20 + i / 100), qos=1)
         wait_for(lambda: rec.written == 10, what="spool and new readings written")
+        # one of them again (a redelivery): its sensor and instant are stored, the first stays
+        pub.publish(TOPIC, reading(ts[-1], 21.0), qos=1)
+        wait_for(lambda: rec.already_stored == 1, what="the repeated reading counted")
         m = scrape(port)
         assert sample(m, "pseudotwin_recorder_readings_stored_total") == 10
+        assert sample(m, "pseudotwin_recorder_readings_already_stored_total") == 1
         assert sample(m, "pseudotwin_recorder_spool_size_bytes") == 0
         assert sample(m, "pseudotwin_recorder_queue_depth") == 0
         pub.loop_stop()

@@ -234,6 +234,11 @@ class RecorderMetrics(_Metrics):
         self.spooled = Counter(
             "pseudotwin_recorder_readings_spooled",
             "Readings spooled to disk because the store could not take them", registry=r)
+        self.already_stored = Counter(
+            "pseudotwin_recorder_readings_already_stored",
+            "Readings not written because their sensor and millisecond were stored already "
+            "(a redelivery, or readings stamped on arrival within one ms): the first stays",
+            registry=r)
         self.rejected = self._rejected_counter("pseudotwin_recorder_readings_rejected")
         self.store_errors = Counter(
             "pseudotwin_recorder_store_errors", "Failed writes to the history store",

@@ -114,6 +114,7 @@ class Recorder:
         self.connected = threading.Event()
         self.written = 0
         self.spooled = 0
+        self.already_stored = 0  # readings whose key was in the store already (first kept)
         self.fatal: tuple[int, str] | None = None  # (exit status, why): the process must end
         self._store_ident: tuple[int, int] | None = None
         self._gen = 0
@@ -205,6 +206,11 @@ class Recorder:
             n = self._store().write_readings(readings)
             self.written += n
             self.metrics.stored.inc(n)
+            # Readings are immutable: a key stored already keeps its first value. Counted,
+            # since a backlog stamped on arrival can collapse this way (README, Delivery).
+            if (kept_first := len(readings) - n) > 0:
+                self.already_stored += kept_first
+                self.metrics.already_stored.inc(kept_first)
             return True
         except (PseudotwinError, OSError) as exc:
             self.metrics.store_errors.inc()
@@ -328,8 +334,9 @@ class Recorder:
             self.store.close()
         self.metrics.close()
         self.state_lock.release()
-        log.info("recorder stopped: %d readings written, %d spooled, %d rejected",
-                 self.written, self.spooled, self.rejections.run_total)
+        log.info("recorder stopped: %d readings written, %d spooled, %d rejected, %d not "
+                 "written as their sensor and millisecond were stored already", self.written,
+                 self.spooled, self.rejections.run_total, self.already_stored)
 
 
 def _file_ident(store: Store) -> tuple[int, int] | None:

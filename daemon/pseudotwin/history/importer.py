@@ -45,6 +45,9 @@ class ImportSummary:
             f"{self.path}: {self.rows_read} readings of {len(self.sensors)} sensor(s) "
             f"({shown}) from {self.first.isoformat()} to {self.last.isoformat()}; "
             f"{self.rows_new} new, {self.rows_read - self.rows_new} already stored"
+            + ("" if self.rows_new == self.rows_read else
+               " (or repeated in the file: the store keeps the first reading per sensor and "
+               "millisecond)")
         )
 
 
