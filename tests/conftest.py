@@ -385,10 +385,11 @@ def service_factory(
     mosquitto: MosquittoBroker, desk_artifact: Path, tmp_path: Path
 ) -> Iterator[Callable[..., Any]]:
     """Start in-process daemons (or recorders: ``kind``) on the test broker with the desk
-    twin, on a replay clock from ``start`` at ``speed``; all are stopped at the end."""
+    twin, on a replay clock from ``start`` (default a minute past noon: off_grid) at ``speed``;
+    all are stopped at the end."""
     import datetime as dt
 
-    from daemon_support import DAY, HOURS, config
+    from daemon_support import config, off_grid
     from pseudotwin.edge.clock import ReplayClock
     from pseudotwin.edge.service import Service
 
@@ -397,10 +398,7 @@ def service_factory(
     def make(start: dt.datetime | None = None, speed: float = 1.0, *, kind: type = Service,
              **kw: object) -> Any:
         cfg = config(tmp_path, mosquitto.port, desk_artifact, **kw)
-        # By default a minute past noon: no grid instant is due within the test (one within
-        # the tick grace of the start would be ticked, and open today's window).
-        s = kind(cfg, clock=ReplayClock(start or HOURS.at(DAY, 12.0) + dt.timedelta(minutes=1),
-                                        speed))
+        s = kind(cfg, clock=ReplayClock(start or off_grid(12.0), speed))
         s.start(wait_connected=15)
         made.append(s)
         return s

@@ -28,6 +28,13 @@ REF, TARGET = "dining/temp", "room/temp"
 DAY = dt.date(2012, 3, 20)
 
 
+def off_grid(hours: float) -> dt.datetime:
+    """``hours`` on DAY and a minute on: a daemon clock started there has no grid instant due
+    within a test (one within the tick grace of its start is ticked, which publishes it and
+    opens today's window) unless the test ticks it."""
+    return HOURS.at(DAY, hours) + dt.timedelta(minutes=1)
+
+
 def sml() -> pd.DataFrame:
     return load("sml2010")
 

@@ -22,6 +22,7 @@ from daemon_support import (
     HandClock,
     config,
     day_readings,
+    off_grid,
     sml,
     wait_for,
 )
@@ -286,7 +287,7 @@ def test_silent_reference_turns_stale_and_recovers(service_factory, mosquitto,
     the payloads' quality)."""
     caplog.set_level(logging.INFO, logger="pseudotwin.edge.service")
     speed = 600.0  # 15 min of daemon time per 1.5 s
-    svc = service_factory(HOURS.at(DAY, 8.0), speed, stale_after_minutes=30,
+    svc = service_factory(off_grid(8.0), speed, stale_after_minutes=30,
                           publish_every_minutes=15)
     viewer = Viewer(mosquitto.port, "pt/desk/estimate")
     pub = publisher(mosquitto.port, "stale-bridge")
@@ -317,7 +318,7 @@ def test_silent_reference_turns_stale_and_recovers(service_factory, mosquitto,
 def test_numerical_failure_publishes_triv_fallback_then_recovers(
     service_factory, mosquitto, monkeypatch
 ) -> None:
-    svc = service_factory(HOURS.at(DAY, 10.0), 1.0)
+    svc = service_factory(off_grid(10.0), 1.0)
     viewer = Viewer(mosquitto.port, "pt/desk/estimate")
     pub = publisher(mosquitto.port, "fault-bridge")
     original = IncrementalPosterior.add
@@ -346,7 +347,7 @@ def test_numerical_failure_publishes_triv_fallback_then_recovers(
 
 
 def test_broker_killed_mid_day_loses_no_reading(service_factory, mosquitto) -> None:
-    svc = service_factory(HOURS.at(DAY, 12.0), 1.0)
+    svc = service_factory(off_grid(12.0), 1.0)
     viewer = Viewer(mosquitto.port, "pt/desk/estimate", client_id="viewer-kill", clean=False)
     pub = publisher(mosquitto.port, "kill-bridge")
     hours = [8 + i / 4 for i in range(16)]
@@ -501,7 +502,7 @@ def test_a_late_reading_revises_the_newest_estimate_and_yesterday_is_rejected(
     """A reading stamped before one already applied enters the window, and the estimate of the
     newest instant goes out again: the retained estimate never goes back in time. Once today's
     window has begun, a reading of yesterday is rejected and counted, not dropped unseen."""
-    svc = service_factory(HOURS.at(DAY, 10.0), 1.0)
+    svc = service_factory(off_grid(10.0), 1.0)
     viewer = Viewer(mosquitto.port, "pt/desk/estimate")
     pub = publisher(mosquitto.port, "late-bridge")
     newest, late = HOURS.at(DAY, 9.95), HOURS.at(DAY, 9.8)
@@ -596,7 +597,7 @@ def test_baselines_are_published_on_the_grid_only_by_default(
     service_factory, mosquitto, desk_artifact
 ) -> None:
     """A reading publishes the primary estimate; the baselines (monitoring) follow the grid."""
-    svc = service_factory(HOURS.at(DAY, 10.0), 1.0)
+    svc = service_factory(off_grid(10.0), 1.0)
     assert svc.cfg.baselines == "grid"
     art = Artifact.load(desk_artifact)
     baselines = [k for k in art.published if k != art.primary]
@@ -638,7 +639,7 @@ def test_a_batch_held_up_by_its_journal_write_is_logged_with_where_the_time_went
             return getattr(time, name)
 
     caplog.set_level(logging.WARNING, logger="pseudotwin.edge.service")
-    svc = service_factory(HOURS.at(DAY, 9.0), 1.0)
+    svc = service_factory(off_grid(9.0), 1.0)
     clock = Stopwatch()
     monkeypatch.setattr(service_module, "time", clock)
     short, long = 0.6 * LONG_BATCH_S, 2 * LONG_BATCH_S  # [s]

@@ -29,7 +29,7 @@ import promql_parser
 import pytest
 import yaml
 
-from daemon_support import DAY, HOURS, REF, TARGET, wait_for, write_config
+from daemon_support import DAY, HOURS, REF, TARGET, off_grid, wait_for, write_config
 from pseudotwin.config import load_config
 from pseudotwin.edge.clock import ReplayClock
 from pseudotwin.edge.recorder import Recorder
@@ -219,7 +219,7 @@ def endpoints(mosquitto, desk_artifact: Path, tmp_path: Path) -> Iterator[tuple[
                      store=str(tmp_path / "history.db")),
         f"port = {port}\nrecord_port = {record_port}\n")
     cfg = load_config(path)
-    svc = Service(cfg, clock=ReplayClock(HOURS.at(DAY, 9.0), 1.0))
+    svc = Service(cfg, clock=ReplayClock(off_grid(9.0), 1.0))
     rec = Recorder(cfg)
     svc.start(wait_connected=15)
     try:

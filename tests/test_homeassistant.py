@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from daemon_support import DAY, HOURS, write_config
+from daemon_support import DAY, HOURS, off_grid, write_config
 from pseudotwin.config import ConfigProblems, load_config
 from pseudotwin.config.model import HomeAssistantConfig
 from pseudotwin.edge import homeassistant as ha
@@ -103,7 +103,7 @@ artifact = "{extra_twin}"
 
 
 def start(path: Path) -> Service:
-    svc = Service(load_config(path), clock=ReplayClock(HOURS.at(DAY, 9.0), 1.0))
+    svc = Service(load_config(path), clock=ReplayClock(off_grid(9.0), 1.0))
     svc.start(wait_connected=15)
     return svc
 

@@ -7,7 +7,7 @@ import datetime as dt
 
 import pytest
 
-from daemon_support import DAY, HOURS, config, wait_for
+from daemon_support import DAY, HOURS, config, off_grid, wait_for
 from pseudotwin.errors import ConfigError
 from test_daemon import Viewer, publisher, reading
 
@@ -32,7 +32,7 @@ def test_the_monitor_follows_its_own_cadence_on_the_grid(
     hours: tuple[float, ...]
 ) -> None:
     kw = {} if every is None else {"monitor_every_minutes": every}
-    svc = service_factory(HOURS.at(DAY, at[0]), 1.0, **kw)  # ticks come from the test
+    svc = service_factory(off_grid(at[0]), 1.0, **kw)  # ticks come from the test
     assert svc.cfg.monitor_every_minutes == (every or 60)
     viewer = Viewer(mosquitto.port, "pt/desk/#")
     pub = publisher(mosquitto.port, f"cadence-bridge-{every}")

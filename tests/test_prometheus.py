@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-from daemon_support import DAY, HOURS, REF, config, wait_for, write_config
+from daemon_support import DAY, HOURS, REF, config, off_grid, wait_for, write_config
 from pseudotwin.config import ConfigProblems, load_config
 from pseudotwin.config.model import MetricsConfig
 from pseudotwin.edge.clock import ReplayClock
@@ -102,7 +102,7 @@ def metered(mosquitto, desk_artifact: Path, tmp_path: Path) -> Iterator[tuple[Se
     port = free_port()
     path = with_metrics(write_config(tmp_path, mosquitto.port, desk_artifact),
                         f"port = {port}\n")
-    svc = Service(load_config(path), clock=ReplayClock(HOURS.at(DAY, 9.0), 1.0))
+    svc = Service(load_config(path), clock=ReplayClock(off_grid(9.0), 1.0))
     svc.start(wait_connected=15)
     yield svc, port
     if not svc.stop_event.is_set():
@@ -175,7 +175,7 @@ def test_a_metrics_port_in_use_is_reported_before_anything_starts(
         port = taken.getsockname()[1]
         path = with_metrics(write_config(tmp_path, mosquitto.port, desk_artifact),
                             f"port = {port}\n")
-        svc = Service(load_config(path), clock=ReplayClock(HOURS.at(DAY, 9.0), 1.0))
+        svc = Service(load_config(path), clock=ReplayClock(off_grid(9.0), 1.0))
         with pytest.raises(ConfigError, match=f"metrics.port: cannot listen on 127.0.0.1:{port}"):
             svc.start(wait_connected=1)
     assert not svc.client.is_connected() and not svc._threads

@@ -23,7 +23,16 @@ from pathlib import Path
 import pytest
 
 from conftest import closed_port
-from daemon_support import DAY, HOURS, REF, day_readings, sml, wait_for, write_config
+from daemon_support import (
+    DAY,
+    HOURS,
+    REF,
+    day_readings,
+    off_grid,
+    sml,
+    wait_for,
+    write_config,
+)
 from pseudotwin.edge.clock import ReplayClock
 from pseudotwin.edge.mqttconn import EX_NOPERM
 from pseudotwin.edge.recorder import Recorder
@@ -33,8 +42,6 @@ from test_daemon import Viewer, publisher, reading
 from test_daemon_process import EXE, start_daemon
 
 TOPIC = "house/dining/temp"
-NOON = HOURS.at(DAY, 12.0)
-PAST_NOON = NOON + dt.timedelta(minutes=1)  # service_factory's clock: no grid instant near
 BAD_TS = [b'{"ts": "0001-01-01T00:00:00+01:00", "value": 20}',
           b'{"ts": "9999-12-31T23:59:59-01:00", "value": 20}']
 
@@ -153,7 +160,7 @@ def test_deleted_state_dir_is_detected_and_rebuilt(service_factory, mosquitto, t
     with pytest.raises(StateInUseError):
         service_factory()
     svc.stop()
-    again = Service(svc.cfg, ReplayClock(PAST_NOON, 1.0))
+    again = Service(svc.cfg, ReplayClock(off_grid(12.0), 1.0))
     assert again.restore() == 40
     again.journal.close()
 

@@ -14,7 +14,17 @@ from pathlib import Path
 
 import pytest
 
-from daemon_support import DAY, HOURS, REF, TZ, day_readings, sml, uninterrupted_estimates, wait_for
+from daemon_support import (
+    DAY,
+    HOURS,
+    REF,
+    TZ,
+    day_readings,
+    off_grid,
+    sml,
+    uninterrupted_estimates,
+    wait_for,
+)
 from pseudotwin.config import ServiceConfig, load_config
 from pseudotwin.edge import homeassistant as ha
 from pseudotwin.edge.clock import ReplayClock
@@ -32,9 +42,6 @@ OWNER_OF_3 = {"office-1": 0, "office-2": 1, "office-3": 2, "office-4": 1, "offic
 TWINS = IDS[:4]  # shard 0/2: office-1, office-3; shard 1/2: office-2, office-4
 PREFIX = "ha-fleet"
 NOON = HOURS.at(DAY, 12.0)
-# The daemons' clocks start a minute past noon: the noon grid instant is the tests' own to
-# tick (a daemon up within its tick grace would publish it by itself).
-STARTED = NOON + dt.timedelta(minutes=1)
 
 
 # -- the assignment -----------------------------------------------------------------------
@@ -151,7 +158,7 @@ def test_run_with_an_unknown_twin_exits_78_naming_it(tmp_path: Path, desk_artifa
 # -- two instances on one real broker -------------------------------------------------------
 def start(cfg: ServiceConfig, shard: Shard) -> tuple[Service, FleetMember]:
     c, member = narrow(cfg, shard=shard)
-    svc = Service(c, clock=ReplayClock(STARTED, 1.0), member=member)
+    svc = Service(c, clock=ReplayClock(off_grid(12.0), 1.0), member=member)
     svc.start(wait_connected=15)
     return svc, member
 
@@ -300,7 +307,7 @@ def test_grid_work_goes_first_to_the_twins_that_heard_from_their_sensors_longest
     assert heard != TWINS
     viewer = Viewer(mosquitto.port, "pt/+/estimate")
     pub = publisher(mosquitto.port, "order-bridge")
-    svc = Service(cfg, clock=ReplayClock(STARTED, 1.0))
+    svc = Service(cfg, clock=ReplayClock(off_grid(12.0), 1.0))
     svc.start(wait_connected=15)
     try:
         for k, t in enumerate(heard):
