@@ -538,25 +538,30 @@ def test_a_late_reading_revises_the_newest_estimate_and_yesterday_is_rejected(
     viewer.close()
 
 
-def test_a_reading_from_a_clock_running_ahead_is_taken_at_its_arrival(
+def test_a_sensor_clock_running_ahead_never_stamps_an_estimate_in_the_future(
     service_factory, mosquitto, caplog
 ) -> None:
-    """A sensor whose clock runs 4 min ahead (within max_skew): its reading counts from its
-    arrival, so no estimate is stamped in the daemon's future and the next grid estimate is
-    the retained state (stamped ahead, the reading's estimate would have outranked it)."""
+    """A sensor whose clock runs 4 min ahead (within max_skew): its readings keep their
+    stamps, the estimates they move carry the daemon's clock, never the instant to come, and
+    the next grid estimate is the retained state (stamped ahead, the readings' estimates
+    would have outranked it). The log says so once a day."""
     start = HOURS.at(DAY, 9.95)
     svc = service_factory(start, 1.0)
     viewer = Viewer(mosquitto.port, "pt/desk/estimate")
     pub = publisher(mosquitto.port, "ahead-bridge")
-    stamped = start + dt.timedelta(minutes=4)
+    stamped = [start + dt.timedelta(minutes=4 + k) for k in range(2)]
     with caplog.at_level(logging.WARNING, logger="pseudotwin"):
-        pub.publish("house/dining/temp", reading(stamped, 17.0), qos=1).wait_for_publish(10)
-        wait_for(lambda: len(viewer.on("/estimate")) == 1, what="the reading's estimate")
-    (e,) = viewer.on("/estimate")
-    at = dt.datetime.fromisoformat(e["ts"])
-    assert start <= at <= svc.clock.now() < stamped and e["refs"] == {REF: e["ts"]}
+        for k, t in enumerate(stamped, start=1):
+            pub.publish("house/dining/temp", reading(t, 17.0 + k / 10),
+                        qos=1).wait_for_publish(10)
+            wait_for(lambda k=k: len(viewer.on("/estimate")) == k, what="the reading's estimate")
+    for e, t in zip(viewer.on("/estimate"), stamped, strict=True):
+        at = dt.datetime.fromisoformat(e["ts"])
+        assert start <= at <= svc.clock.now() < t and e["refs"] == {REF: stamp(t)}
     assert sum("after its arrival" in r.getMessage() and REF in r.getMessage()
                for r in caplog.records) == 1
+    (rt,) = svc.twins.values()
+    assert [p.ts for p in rt.twin.window if p.sensor == REF][-2:] == stamped  # as sent
     tick = HOURS.at(DAY, 10.0)
     svc.queue.put(("tick", tick))
     wait_for(lambda: any(e["ts"] == stamp(tick) for e in viewer.on("/estimate")),

@@ -612,8 +612,11 @@ class Service:
                             if publish:
                                 # A late reading (another input is newer) revises the
                                 # estimate of the newest instant: the retained estimate
-                                # never goes back in time.
-                                at = max(r.ts, rt.twin.newest() or r.ts)
+                                # never goes back in time. Nor ahead of the clock: a
+                                # sensor's clock running fast (within max_skew) must not
+                                # stamp estimates that outrank the grid's after them.
+                                at = min(max(r.ts, rt.twin.newest() or r.ts),
+                                         self.clock.now())
                                 self._publish_estimates(
                                     rt, rt.twin.estimate(at, kinds=rt.reading_kinds))
                     elif r.sensor == rt.cfg.target:

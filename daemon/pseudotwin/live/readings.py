@@ -22,10 +22,10 @@ the start of the current window). Duplicates and out-of-order readings are the w
 business, not this module's.
 
 A timestamp after arrival but within ``max_skew`` is a clock running ahead (the sensor's,
-the bridge's, or the daemon's behind): nothing is measured in the future. The reading is
-taken at its arrival, so no estimate and no stored reading carries an instant the daemon's
-clock has not reached (estimates stamped minutes ahead would outrank every grid estimate
-after them as the retained state).
+the bridge's, or the daemon's behind). The reading keeps its stamp: raw readings are never
+modified, and a redelivery of it is still the duplicate it is. The caller hears of a lead of
+``AHEAD_NOTICE_S`` or more (``on_ahead``), to say so; what the daemon publishes never carries
+an instant its clock has not reached (edge/service.py).
 """
 
 from __future__ import annotations
@@ -48,6 +48,10 @@ __all__ = ["MAX_PAYLOAD_BYTES", "Reading", "Reason", "Rejected", "parse_payload"
 #: Larger payloads are rejected before decoding: a reading is a few dozen bytes, and the
 #: limit bounds the work a misbehaving publisher can cause.
 MAX_PAYLOAD_BYTES = 64 * 1024
+
+#: A timestamp this far [s] or more after arrival is told to the caller (clocks kept in step
+#: by NTP differ by milliseconds; a clock set by hand or drifting, by seconds to minutes).
+AHEAD_NOTICE_S = 1.0
 
 #: Epoch values above this magnitude are milliseconds.
 EPOCH_MS_THRESHOLD = 1e11
@@ -183,11 +187,11 @@ def parse_payload(
     """The reading in ``payload`` for ``sensor``, or :class:`Rejected`.
 
     arrival: when the message arrived (aware); the timestamp of payloads without one.
-    max_skew: how far the timestamp may lie after ``arrival``; a reading stamped after
-        ``arrival`` within it is taken at ``arrival``.
+    max_skew: how far the timestamp may lie after ``arrival``.
     not_before: the start of the current window (aware); older readings are rejected.
         None accepts any age.
-    on_ahead: called with how far [s] the timestamp lay after ``arrival`` when it did.
+    on_ahead: called with how far [s] the timestamp lay after ``arrival`` when that was
+        ``AHEAD_NOTICE_S`` or more (less is the jitter of clocks kept in step).
     """
     _require_aware("arrival", arrival)
     _require_aware("not_before", not_before)
@@ -230,10 +234,8 @@ def parse_payload(
         raise Rejected(Reason.FUTURE, f"timestamp {ts.isoformat()} is "
                                       f"{(ts - arrival).total_seconds():.0f} s after arrival "
                                       f"(max skew {max_skew.total_seconds():g} s)")
-    if ts > arrival:
-        if on_ahead is not None:
-            on_ahead((ts - arrival).total_seconds())
-        ts = arrival.astimezone(UTC)
+    if on_ahead is not None and (lead := (ts - arrival).total_seconds()) >= AHEAD_NOTICE_S:
+        on_ahead(lead)
     if not_before is not None and ts < not_before:
         raise Rejected(Reason.TOO_OLD, f"timestamp {ts.isoformat()} is before "
                                        f"{not_before.astimezone(UTC).isoformat()}, the oldest "
@@ -279,15 +281,15 @@ class RejectionCounter:
                              reason, sensor)
 
     def ahead(self, sensor: str, seconds: float, day: date) -> None:
-        """A reading of ``sensor`` stamped ``seconds`` after its arrival (within max_skew,
-        taken at arrival): logged once per sensor and day."""
+        """A reading of ``sensor`` stamped ``seconds`` after its arrival (within max_skew):
+        logged once per sensor and day."""
         if day != self.ahead_day:
             self.ahead_day, self.ahead_noted = day, set()
         if sensor not in self.ahead_noted:
             self.ahead_noted.add(sensor)
             self.log.warning("reading of %s stamped %.0f s after its arrival: its clock (or its "
-                             "bridge's) runs ahead of the daemon's, or the daemon's behind; "
-                             "taken at its arrival (said once a day per sensor)",
+                             "bridge's) runs ahead of this process's, or this one's behind; "
+                             "kept at its stamp, within max_skew (said once a day per sensor)",
                              sensor, seconds)
 
     def of_day(self, day: date) -> Mapping[tuple[str, str], int]:
