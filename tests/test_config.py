@@ -271,6 +271,9 @@ BAD: list[tuple[str, Mutation, str, str]] = [
     ("slot-not-dividing", set_("service", "slot_minutes", 7), "service.slot_minutes", "divide"),
     ("publish-not-dividing", set_("service", "publish_every_minutes", 7),
      "service.publish_every_minutes", "does not divide a day"),
+    # anchored at midnight, a day-long step has no instant within 08:00–19:00
+    ("publish-off-hours", set_("service", "publish_every_minutes", 1440),
+     "service.publish_every_minutes", "no multiple since local midnight"),
     ("publish-zero", set_("service", "publish_every_minutes", 0),
      "service.publish_every_minutes", "positive"),
     ("stale-zero", set_("service", "stale_after_minutes", 0), "service.stale_after_minutes",

@@ -12,7 +12,7 @@ import os
 import re
 from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from datetime import timedelta
+from datetime import date, timedelta
 from functools import cached_property
 from pathlib import Path
 from typing import Literal
@@ -617,6 +617,12 @@ class ServiceConfig:
             [(f"twins[{k!r}]", t) for k, t in self.twins.items()],
         )
         cross += homeassistant_problems(self.homeassistant, list(self.twins))
+        if not self.hours.grid(date(2024, 1, 1), self.publish_every_minutes / 60.0):
+            # Anchored at midnight, a step longer than the operating hours may miss them.
+            cross.append(f"service.publish_every_minutes: {self.publish_every_minutes:g} min has "
+                         "no multiple since local midnight between day_start and day_end: "
+                         "nothing would ever be published on the grid; choose a step that "
+                         "divides the day and falls within the operating hours")
         if self.baselines == "none" and self.homeassistant.enabled \
                 and self.homeassistant.baselines:
             cross.append('homeassistant.baselines: true announces baseline entities, but '

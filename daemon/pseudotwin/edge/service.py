@@ -707,10 +707,9 @@ class Service:
         multiple of ``monitor_every_minutes`` since local midnight."""
         every = self.cfg.monitor_every_minutes * 60.0
         step = self.cfg.publish_every.total_seconds()
+        grid = self.hours.grid(self.hours.day_of(instant), step / 3600.0)
         s = round(self.hours.hours_of(instant) * 3600.0, 3)
-        first = s - step < self.hours.day_start * 3600.0 - 1e-3
-        last = s + step > self.hours.day_end * 3600.0 + 1e-3
-        return first or last or s // every != (s - step) // every
+        return instant in (grid[0], grid[-1]) or s // every != (s - step) // every
 
     def _tick_step(self) -> None:
         done = 0
