@@ -233,6 +233,9 @@ def test_global_log_level_before_a_delegated_subcommand(tmp_path: Path, capsys) 
     with pytest.raises(SystemExit) as bad:
         main(["--log-level", "LOUD", "check-config", str(missing)])
     assert bad.value.code == 2 and "invalid choice: 'LOUD'" in capsys.readouterr().err
+    # the bridge's own option takes the same levels
+    example = ROOT / "config" / "bridge-example.toml"
+    assert main(["bridge", "--log-level", "critical", "--check", "--config", str(example)]) == 0
 
 
 def test_train_says_whether_its_training_days_are_enough(sml: Path, tmp_path: Path,

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import json
-from datetime import UTC, datetime, timedelta, timezone
+import logging
+from datetime import UTC, date, datetime, timedelta, timezone
 from typing import Any
 
 import pytest
@@ -11,7 +12,14 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pseudotwin.config import SensorConfig
-from pseudotwin.live.readings import MAX_PAYLOAD_BYTES, Reading, Reason, Rejected, parse_payload
+from pseudotwin.live.readings import (
+    MAX_PAYLOAD_BYTES,
+    Reading,
+    Reason,
+    Rejected,
+    RejectionCounter,
+    parse_payload,
+)
 
 ARRIVAL = datetime(2024, 5, 13, 8, 15, 0, tzinfo=UTC)
 WINDOW_START = datetime(2024, 5, 13, 5, 30, 0, tzinfo=UTC)  # 07:30 Europe/Berlin
@@ -239,3 +247,18 @@ def test_naive_times_from_the_caller_are_programming_errors() -> None:
         parse(b"1", sensor=NUMBER_SENSOR, not_before=datetime(2024, 5, 13, 8))
     with pytest.raises(ValueError, match="aware"):
         Reading("s", datetime(2024, 5, 13, 8), 1.0)
+
+
+def test_rejection_counts_are_the_days_and_never_switch_back() -> None:
+    """Per local day; a straggler of the day before (a batch straddling midnight, counted by
+    its arrival) does not reset the new day's counts back to the old day."""
+    counter = RejectionCounter(logging.getLogger("test.rejections"))
+    d1, d2 = date(2024, 5, 13), date(2024, 5, 14)
+    bad = Rejected(Reason.OUT_OF_RANGE, "99 °C")
+    counter.add("a", bad, d1)
+    assert counter.of_day(d1) == {("a", "out-of-range"): 1} and counter.of_day(d2) == {}
+    counter.add("a", bad, d2)
+    counter.add("b", bad, d2)
+    counter.add("a", bad, d1)  # the straggler
+    assert sum(counter.of_day(d2).values()) == 3 and counter.of_day(d1) == {}
+    assert counter.run_total == 4

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from pseudotwin.cli.util import EX_CONFIG
 from pseudotwin.config import ConfigProblems
+from pseudotwin.config.model import LOG_LEVELS
 from pseudotwin.edge.bridge import Bridge, load_bridge_config
 from pseudotwin.errors import ConfigError
 
@@ -43,7 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(the daemon's file or one of its own)")
     p.add_argument("--check", action="store_true",
                    help="only validate the configuration file, without connecting to anything")
-    p.add_argument("--log-level", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+    p.add_argument("--log-level", type=str.upper, choices=LOG_LEVELS,
                    help="default INFO")
     return p
 

@@ -175,8 +175,7 @@ class Recorder:
             return None
         except Exception as exc:  # noqa: BLE001 — a parser bug must not kill the recorder
             log.exception("payload of %s could not be processed", sensor.id)
-            self.rejections.add_reason(sensor.id, UNPROCESSABLE, repr(exc)[:200],
-                                       self.cfg.hours.day_of(arrival))
+            self.rejections.add_reason(sensor.id, UNPROCESSABLE, repr(exc)[:200], day)
             return None
 
     def _store(self) -> Store:

@@ -266,7 +266,7 @@ class RejectionCounter:
     def add_reason(self, sensor: str, reason: str, message: str, day: date) -> None:
         """Count a rejection for a reason outside :class:`Reason` (e.g. the daemon's
         ``unprocessable``: a payload that made it fail unexpectedly)."""
-        if day != self.day:
+        if self.day is None or day > self.day:  # never back: a batch may straddle midnight
             self.day, self.counts = day, Counter()
         key = (sensor, reason)
         self.counts[key] += 1
@@ -283,7 +283,7 @@ class RejectionCounter:
     def ahead(self, sensor: str, seconds: float, day: date) -> None:
         """A reading of ``sensor`` stamped ``seconds`` after its arrival (within max_skew):
         logged once per sensor and day."""
-        if day != self.ahead_day:
+        if self.ahead_day is None or day > self.ahead_day:
             self.ahead_day, self.ahead_noted = day, set()
         if sensor not in self.ahead_noted:
             self.ahead_noted.add(sensor)
