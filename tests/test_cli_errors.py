@@ -144,15 +144,17 @@ def test_dropped_rows_are_counted_and_explained(tmp_path: Path, capsys, caplog) 
                         "1 exact duplicate(s))"]
 
 
-def test_readings_within_one_millisecond_are_not_called_already_stored_alone(
+def test_readings_within_one_millisecond_are_counted_as_repeats_not_as_stored(
     tmp_path: Path, capsys, caplog
 ) -> None:
     """Two readings 0.3 ms apart in an empty store: the store keeps one per sensor and
-    millisecond, and the summary says the second may be the file's own repeat."""
+    millisecond, and the summary says the second repeats the first, not that it was stored."""
     path = _csv(tmp_path, "submilli.csv", "a,2012-03-14T10:00:00.0001+00:00,20.5\n"
-                                          "a,2012-03-14T10:00:00.0004+00:00,25.0\n")
+                                          "a,2012-03-14T10:00:00.0004+00:00,25.0\n"
+                                          "a,2012-03-14T10:00:00.0012+00:00,25.5\n")
     out, _ = _import_warnings(path, capsys, caplog)
-    assert "1 new, 1 already stored (or repeated in the file" in out
+    assert "3 readings" in out
+    assert "2 new, 0 already stored, 1 repeating an earlier row's sensor and millisecond" in out
 
 
 def test_a_sensor_and_time_repeated_with_another_value_is_reported(
@@ -161,7 +163,7 @@ def test_a_sensor_and_time_repeated_with_another_value_is_reported(
     path = _csv(tmp_path, "conflict.csv", "a,2012-03-14T10:00:00+00:00,20.5\n"
                                           "a,2012-03-14T10:00:00+00:00,21.5\n")
     out, warnings = _import_warnings(path, capsys, caplog)
-    assert "1 already stored" in out
+    assert "1 new, 0 already stored, 1 repeating an earlier row's sensor and millisecond" in out
     assert warnings == [f"{path}: 1 row(s) repeat a sensor and time with another value (the "
                         "first is used: the store and the window keep it)"]
 

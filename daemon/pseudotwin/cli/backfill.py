@@ -50,9 +50,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         f"{default_jobs()}); twins and runs of days are spread over them, "
                         "with the same rows as --jobs 1, which runs in this process")
     p.add_argument("--redo", action="store_true",
-                   help="estimate days already backfilled with this artifact again, "
-                        "replacing their rows: after importing readings a day lacked "
-                        "(a day with some reference readings counts as done)")
+                   help="estimate days already backfilled with this artifact again and "
+                        "write their rows again: after importing readings a day lacked (a day "
+                        "with some reference readings counts as done)")
     p.add_argument("--quiet", action="store_true",
                    help="no progress lines (one per finished run of days, on stderr)")
 

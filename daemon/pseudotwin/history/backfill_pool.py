@@ -128,7 +128,7 @@ def backfill_twins(
     they are in the summary's ``failures``. Ctrl-C returns a summary with ``interrupted``.
     Progress lines go to ``stream`` (default stderr). ``now`` (default: the clock) decides
     which days have ended: one not ended is estimated but not marked done. redo: estimate
-    the days done already again too (their rows are replaced).
+    the days done already again too (their rows are written again).
     """
     if jobs < 1:
         raise ConfigError(f"--jobs must be at least 1, not {jobs}")

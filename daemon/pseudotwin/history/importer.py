@@ -37,6 +37,7 @@ class ImportSummary:
     sensors: tuple[str, ...]
     first: pd.Timestamp
     last: pd.Timestamp
+    repeats: int = 0  # rows whose sensor and millisecond an earlier row of the file has
 
     def line(self) -> str:
         """A one-line human summary."""
@@ -44,10 +45,9 @@ class ImportSummary:
         return (
             f"{self.path}: {self.rows_read} readings of {len(self.sensors)} sensor(s) "
             f"({shown}) from {self.first.isoformat()} to {self.last.isoformat()}; "
-            f"{self.rows_new} new, {self.rows_read - self.rows_new} already stored"
-            + ("" if self.rows_new == self.rows_read else
-               " (or repeated in the file: the store keeps the first reading per sensor and "
-               "millisecond)")
+            f"{self.rows_new} new, {self.rows_read - self.rows_new - self.repeats} already "
+            "stored" + (f", {self.repeats} repeating an earlier row's sensor and millisecond "
+                        "(the store keeps the first)" if self.repeats else "")
         )
 
 
@@ -80,10 +80,13 @@ def import_frame(
         new += store.write_readings(df.iloc[i:i + chunk_rows])
         if progress is not None:
             progress(min(i + chunk_rows, total), total)
+    # The store keys readings on (sensor, ms): rows of the file within one ms are one reading.
+    ms = df["ts"].dt.floor("ms")
     return ImportSummary(
         path=path,
         rows_read=total,
         rows_new=new,
+        repeats=int(pd.DataFrame({"sensor": df["sensor"], "ms": ms}).duplicated().sum()),
         sensors=tuple(sorted(df["sensor"].unique())),
         first=df["ts"].iloc[0],
         last=df["ts"].iloc[-1],
