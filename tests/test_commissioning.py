@@ -251,3 +251,30 @@ def test_too_few_days_to_validate_say_so(tmp_path: Path) -> None:
     assert "Not enough: 2 training day(s)" in text and "Not validated." in text
     assert "none acts, and the estimate is never uncertain" in text  # nothing judged them
     assert "<img" not in text and 'id="config"' in text
+
+
+def test_the_pages_sigma_on_a_held_out_day_was_calibrated_without_it() -> None:
+    """The σ the daemon publishes is calibrated on every training day, the shown one
+    included: on that day it would cover by construction. The page shows, and plots, the σ
+    validation scored each held-out day with (calibrated on the other days), so its days'
+    coverage pools to the validation table's."""
+    from pseudotwin.analysis.commissioning.heldout import held_out
+    from pseudotwin.analysis.training import train_validated
+    from pseudotwin.analysis.validation import NESTED_STD
+    from pseudotwin.live import metrics
+
+    spec = TwinSpec((REF,), TARGET, Quantity.TEMPERATURE, HOURS)
+    art, validation = train_validated(sml(), spec, TRAINING_DAYS[0], 5, ("ref", "triv"))
+    assert validation is not None
+    shown = held_out(art, validation).evaluation.estimates
+    rows = validation.held_out
+    for kind in ("ref", "triv"):
+        mine = (rows["model"] == kind).to_numpy()
+        nested = rows.loc[mine, NESTED_STD].to_numpy(float)
+        page = shown.loc[mine, "std"].to_numpy(float)
+        assert np.isfinite(nested).all() and np.allclose(page, nested)
+        published = [art.calibration[kind].sigma(HOURS.hours_of(t), s)
+                     for t, s in zip(rows.loc[mine, "ts"], rows.loc[mine, "slope"], strict=True)]
+        assert not np.allclose(page, published)  # not the in-sample σ
+        cover = metrics.coverage_pct(rows.loc[mine, "truth"], rows.loc[mine, "value"], page, 2.0)
+        assert cover == pytest.approx(art.validation["scores"][kind]["cover2_pct"])

@@ -41,6 +41,10 @@ from pseudotwin.live.envelope import Envelope
 MIN_DAYS = 2
 MIN_ROWS = 20
 MIN_RATIO = 2.0
+# Said when nothing was kept: a criterion may well have fired on larger errors, on too few
+# days or readings to count (the rule above).
+NONE_KEPT = (f"no criterion kept (none fired on ≥ {MIN_DAYS} held-out days and ≥ {MIN_ROWS} "
+             f"readings with a mean absolute error ≥ {MIN_RATIO:g}× that where none fired)")
 
 
 @dataclass(frozen=True)
@@ -142,7 +146,7 @@ def criteria_table(envelope: dict[str, Any] | None, unit: str) -> str:
     kept = envelope.get("kept") or []
     widen = envelope.get("rule", {}).get("widen", 1.0)
     lines.append(f"  uncertain: {', '.join(kept)} (σ × {widen:.2f})" if kept else
-                 "  uncertain: no criterion flags larger held-out errors; never uncertain")
+                 f"  uncertain: {NONE_KEPT}; never uncertain")
     return "\n".join(lines)
 
 

@@ -58,6 +58,9 @@ TIE_RELATIVE = 0.03
 # live: a baseline far worse than the simple answer only misleads whoever watches it.
 BASELINE_LIMIT = 1.5
 MIN_DAYS = 3  # fewer training days leave nothing to hold out against
+# The held-out rows' column of σ calibrated without each row's day (NaN: fewer than two
+# other days to calibrate on): how the commissioning page shows σ on a day it has not seen.
+NESTED_STD = "nested_std"
 
 
 @dataclass(frozen=True)
@@ -95,8 +98,9 @@ class Validation:
     offset_std: float = float("nan")
     seconds: float = 0.0
     withheld: dict[str, str] = field(default_factory=dict)
-    # The held-out rows (replay_estimates' columns and ``day``, the models' own std): what the
-    # commissioning report plots, so it needs no refit. Not saved in the artifact.
+    # The held-out rows (replay_estimates' columns and ``day``, the models' own std, and
+    # NESTED_STD): what the commissioning report plots, so it needs no refit. Not saved in
+    # the artifact.
     held_out: pd.DataFrame = field(default_factory=pd.DataFrame, repr=False)
     # The blend's members and weights from all held-out days (models/blend.py; empty: none).
     blend: dict[str, float] = field(default_factory=dict)
@@ -269,8 +273,9 @@ def validate(
             why = failures.get(kind, "no held-out estimate")
             scores[kind] = CandidateScore(kind, MODELS[kind].candidate, error=why)
             continue
-        scores[kind], calibration[kind] = _score(kind, rows, spec, offset_var,
-                                                 offset_var_without)
+        scores[kind], calibration[kind], nested = _score(kind, rows, spec, offset_var,
+                                                         offset_var_without)
+        held.loc[rows.index, NESTED_STD] = nested
     selection = _selection_nrmse(held, scores)
     chosen, reason = _choose(scores, primary, selection)
     return Validation(scores, chosen, reason, calibration, float(np.sqrt(offset_var)),
@@ -395,8 +400,9 @@ def smallest_within_noise(table: np.ndarray) -> tuple[int, int, str]:
 
 def _score(kind: str, rows: pd.DataFrame, spec: TwinSpec, offset_var: float,
            offset_var_without: Mapping[dt.date, float]
-           ) -> tuple[CandidateScore, SigmaCalibration]:
-    """``kind``'s held-out ``rows`` as its score and σ calibration."""
+           ) -> tuple[CandidateScore, SigmaCalibration, np.ndarray]:
+    """``kind``'s held-out ``rows`` as its score, its σ calibration, and each row's nested σ
+    (calibrated without the row's day: what the score's CRPS and coverage use) [n]."""
     hours = np.array([spec.hours.hours_of(t) for t in rows["ts"]])
     err = (rows["value"] - rows["truth"]).to_numpy()
     calibration = SigmaCalibration.fit(rows["day"].to_numpy(), hours, err,
@@ -409,7 +415,7 @@ def _score(kind: str, rows: pd.DataFrame, spec: TwinSpec, offset_var: float,
         crps=float(np.mean(metrics.gaussian_crps(rows["truth"], rows["value"], sigma))),
         cover2_pct=metrics.coverage_pct(rows["truth"], rows["value"], sigma, 2.0),
         days=int(rows["day"].nunique()),
-    ), calibration
+    ), calibration, sigma
 
 
 def _daily_nrmse(rows: pd.DataFrame) -> dict[tuple[str, Any], float]:

@@ -2,8 +2,10 @@
 
 The rows are the ones :func:`pseudotwin.analysis.validation.validate` replayed through the
 daemon's twin code, each day estimated by models trained on the other days; nothing is
-refit here. Each model's std is replaced by its calibrated σ (the σ the daemon publishes),
-as validation scored it.
+refit here. Each model's std is replaced by its σ calibrated on the *other* held-out days
+(nested, as validation's coverage and CRPS score it): the σ the daemon publishes is
+calibrated on every training day, the shown day included, so on that day it would cover by
+construction. A day with fewer than two others to calibrate on keeps the published σ.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import pandas as pd
 
 from pseudotwin.analysis.evaluate import Evaluation, daily_scores
 from pseudotwin.analysis.replay import REF_PREFIX
-from pseudotwin.analysis.validation import Validation
+from pseudotwin.analysis.validation import NESTED_STD, Validation
 from pseudotwin.live.artifact import Artifact
 
 if TYPE_CHECKING:
@@ -64,17 +66,21 @@ class HeldOut:
 
 
 def held_out(artifact: Artifact, validation: Validation) -> HeldOut:
-    """The validation's held-out rows with calibrated σ, scored per day."""
+    """The validation's held-out rows with σ calibrated without each row's day, scored per
+    day."""
     rows = validation.held_out
     if rows.empty:
         est = rows
     else:
-        est = rows.drop(columns=["day"]).copy()
+        est = rows.drop(columns=["day", NESTED_STD], errors="ignore").copy()
         hours = np.array([artifact.hours.hours_of(t) for t in pd.DatetimeIndex(est["ts"])])
         for kind, calib in artifact.calibration.items():
             m = (est["model"] == kind).to_numpy()
             est.loc[m, "std"] = [calib.sigma(h, s) for h, s
                                  in zip(hours[m], est.loc[m, "slope"], strict=True)]
+        if NESTED_STD in rows:
+            nested = rows[NESTED_STD].to_numpy(float)
+            est.loc[np.isfinite(nested), "std"] = nested[np.isfinite(nested)]
     daily = daily_scores(est, artifact.hours)
     return HeldOut(Evaluation(artifact, est, daily, pd.DataFrame(), validation.seconds))
 
@@ -106,6 +112,6 @@ def figures(ho: HeldOut, history: pd.DataFrame) -> list[tuple[str, str]]:
         fig = day_figure(ho.evaluation, history, day)
         fig.axes[0].set_title(f"{a.target} on {day}, held out: the primary's {what} day")
         out.append((f"The primary's {what} held-out day, {day}: the references' raw "
-                    f"readings, the desk truth, the {a.primary} estimate and its calibrated "
-                    "±2σ band.", png_data_uri(fig)))
+                    f"readings, the desk truth, the {a.primary} estimate and its ±2σ band, "
+                    "calibrated on the other training days.", png_data_uri(fig)))
     return out
