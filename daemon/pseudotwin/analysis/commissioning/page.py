@@ -186,7 +186,8 @@ def reference_section(p: Page) -> str:
     return (
         "<h2>The raw reference's own score</h2>"
         "<p>Each reference's raw reading, held and compared with the desk sensor on the "
-        "training days: the floor any model has to beat. Its daily Pearson r with the desk "
+        "training days: the error of the simplest answer, which a model must beat to be "
+        "worth running. Its daily Pearson r with the desk "
         "is the evidence of how much a model can learn from it.</p>"
         + verdict(level, "Reference vs twin:", text)
         + table("references", ["reference", "held-out daily NRMSE %", "median daily r",
