@@ -19,9 +19,9 @@ from pseudotwin.analysis.commissioning.heldout import HeldOut
 from pseudotwin.analysis.commissioning.oddday import odd_training_day
 from pseudotwin.analysis.criteria import NONE_KEPT
 from pseudotwin.analysis.replay import REF_PREFIX
-from pseudotwin.analysis.report.verdicts import COVER2_RANGE
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.calibration import Z2
+from pseudotwin.live.metrics import COVER2_RANGE
 
 COVER2_AIM = 95.4  # % of truths a calibrated Gaussian ±2σ band holds
 

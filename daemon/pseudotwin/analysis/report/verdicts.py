@@ -14,10 +14,10 @@ from pseudotwin.analysis.report.runs import BASE, REF, RunResult
 from pseudotwin.analysis.report.tables import fmt, signed
 from pseudotwin.analysis.validation import BASELINE_LIMIT
 from pseudotwin.live import metrics
+from pseudotwin.live.metrics import COVER2_RANGE
 
 # The figures for the ``estimate`` rows (Trust I):
 FLOOR_RATIO = 1.02  # mean daily NRMSE ≤ this × min(TRIV, best raw reference)
-COVER2_RANGE = (90.0, 98.0)  # ±2σ coverage of all scored readings [%]
 BEAT_TRIV = 0.9  # Trust II: mean daily NRMSE ≤ this × TRIV's on at least three runs
 OK = "✓"
 
