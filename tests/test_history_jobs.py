@@ -10,7 +10,17 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from daemon_support import DAY, HOURS, REF, TARGET, config, sml, wait_for, write_config
+from daemon_support import (
+    DAY,
+    HOURS,
+    REF,
+    TARGET,
+    config,
+    day_readings,
+    sml,
+    wait_for,
+    write_config,
+)
 from pseudotwin.analysis.evaluate import replay_estimates
 from pseudotwin.cli import main
 from pseudotwin.edge.clock import ReplayClock
@@ -226,7 +236,7 @@ def test_daemon_warm_starts_from_the_store_without_a_checkpoint(
     n = svc.restore()
     assert n > 0
     window = [r for r in svc.twins["desk"].twin.window if r.sensor == REF]
-    assert window and max(r.ts for r in window) <= now + dt.timedelta(seconds=1)
+    assert window and max(r.ts for r in window) <= now + cfg.max_skew
     assert min(r.hours for r in window) == HOURS.init_start  # the carried value
     # A live reading after the warm start is journaled, as the daemon journals each one.
     live = Reading(REF, now + dt.timedelta(minutes=5), 21.5)  # a window point of its own
@@ -240,6 +250,26 @@ def test_daemon_warm_starts_from_the_store_without_a_checkpoint(
     restored = [r for r in again.twins["desk"].twin.window if r.sensor == REF]
     assert restored[:-1] == window and (restored[-1].ts, restored[-1].value) == (live.ts, 21.5)
     again.journal.close()
+
+
+def test_a_warm_start_takes_a_reading_stamped_ahead_within_max_skew(
+    mosquitto, desk_artifact, tmp_path: Path
+) -> None:
+    """A sensor whose clock runs 2 min ahead: the recorder stored its latest reading at its
+    stamp, after the daemon's clock; the warm start takes it, as a journal restore would,
+    instead of starting from the reading before."""
+    now = HOURS.at(DAY, 9.0)
+    df = day_readings(sml())
+    ahead = Reading(REF, now + dt.timedelta(minutes=2), 18.5)
+    db = tmp_path / "history.db"
+    with open_store(str(db)) as store:
+        store.write_readings(df[df["ts"] < now])
+        store.write_readings([ahead])
+    svc = Service(config(tmp_path, mosquitto.port, desk_artifact, store=str(db)),
+                  ReplayClock(now, 1.0))
+    assert svc.restore() > 0
+    assert max(p.ts for p in svc.twins["desk"].twin.window if p.sensor == REF) == ahead.ts
+    svc.journal.close()
 
 
 def test_backfill_refuses_an_artifact_that_does_not_fit_its_twin(

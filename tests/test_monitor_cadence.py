@@ -7,7 +7,10 @@ import datetime as dt
 
 import pytest
 
-from daemon_support import DAY, HOURS, config, off_grid, wait_for
+from daemon_support import DAY, HOURS, TZ, config, off_grid, wait_for
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.edge.clock import ReplayClock
+from pseudotwin.edge.service import Service
 from pseudotwin.errors import ConfigError
 from test_daemon import Viewer, publisher, reading
 
@@ -81,3 +84,17 @@ def test_the_monitor_counts_the_rejections_of_its_own_day(service_factory, mosqu
     assert rejected[stamp(tomorrow)] == {}
     pub.loop_stop()
     viewer.close()
+
+
+def test_the_days_first_and_last_grid_instants_carry_a_monitor_whatever_the_hours(
+        tmp_path, mosquitto, desk_artifact) -> None:
+    """With day_start off the grid (08:10) the first monitor goes out at the first grid
+    instant, 08:15; with day_end 24:00 the day's figures go out at its last one, 23:45 (the
+    next midnight is the next day's). Hourly in between."""
+    svc = Service(config(tmp_path, mosquitto.port, desk_artifact),
+                  clock=ReplayClock(off_grid(12.0), 1.0))  # not started: its rule only
+    svc.hours = OperatingHours.from_strings(day_start="08:10", day_end="24:00", timezone=TZ)
+    grid = svc.hours.grid(DAY, 0.25)
+    sent = [svc.hours.hours_of(t) for t in grid if svc._monitor_at(t)]
+    assert sent == [8.25, *range(9, 24), 23.75]
+    svc.journal.close()

@@ -249,16 +249,20 @@ def test_naive_times_from_the_caller_are_programming_errors() -> None:
         Reading("s", datetime(2024, 5, 13, 8), 1.0)
 
 
-def test_rejection_counts_are_the_days_and_never_switch_back() -> None:
-    """Per local day; a straggler of the day before (a batch straddling midnight, counted by
-    its arrival) does not reset the new day's counts back to the old day."""
+def test_rejection_counts_are_kept_per_day() -> None:
+    """Per local day: a straggler of the day before (a batch straddling midnight, counted by
+    its arrival) or a clock set back across midnight counts on its own day and resets no
+    other; only the two latest days are kept."""
     counter = RejectionCounter(logging.getLogger("test.rejections"))
-    d1, d2 = date(2024, 5, 13), date(2024, 5, 14)
+    d1, d2, d3 = (date(2024, 5, 13) + timedelta(days=k) for k in range(3))
     bad = Rejected(Reason.OUT_OF_RANGE, "99 °C")
     counter.add("a", bad, d1)
     assert counter.of_day(d1) == {("a", "out-of-range"): 1} and counter.of_day(d2) == {}
     counter.add("a", bad, d2)
     counter.add("b", bad, d2)
     counter.add("a", bad, d1)  # the straggler
-    assert sum(counter.of_day(d2).values()) == 3 and counter.of_day(d1) == {}
-    assert counter.run_total == 4
+    assert counter.of_day(d1) == {("a", "out-of-range"): 2}
+    assert counter.of_day(d2) == {("a", "out-of-range"): 1, ("b", "out-of-range"): 1}
+    counter.add("c", bad, d3)
+    assert counter.of_day(d1) == {} and counter.of_day(d3) == {("c", "out-of-range"): 1}
+    assert counter.counts == counter.of_day(d3) and counter.run_total == 5

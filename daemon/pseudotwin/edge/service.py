@@ -811,7 +811,10 @@ class Service:
         assert self.cfg.store is not None
         try:
             with open_store(self.cfg.store) as store:
-                frame = store.read_readings(sensors, since, now + dt.timedelta(seconds=1))
+                # as far ahead as restore() takes journaled readings: a sensor whose clock
+                # runs ahead has its latest reading stamped up to max_skew after now
+                frame = store.read_readings(sensors, since, now + self.cfg.max_skew
+                                            + dt.timedelta(seconds=1))
         except Exception as exc:  # noqa: BLE001 — a warm start is best effort
             log.warning("warm start from the history store failed (%s); starting empty", exc)
             return 0

@@ -42,12 +42,14 @@ class ImportSummary:
     def line(self) -> str:
         """A one-line human summary."""
         shown = ", ".join(self.sensors[:8]) + (", ..." if len(self.sensors) > 8 else "")
+        # (≥ 0: a store that reports rows sent, not rows written, counts repeats as new)
+        stored = max(0, self.rows_read - self.rows_new - self.repeats)
         return (
             f"{self.path}: {self.rows_read} readings of {len(self.sensors)} sensor(s) "
             f"({shown}) from {self.first.isoformat()} to {self.last.isoformat()}; "
-            f"{self.rows_new} new, {self.rows_read - self.rows_new - self.repeats} already "
-            "stored" + (f", {self.repeats} repeating an earlier row's sensor and millisecond "
-                        "(the store keeps the first)" if self.repeats else "")
+            f"{self.rows_new} new, {stored} already stored"
+            + (f", {self.repeats} repeating an earlier row's sensor and millisecond "
+               "(the store keeps the first)" if self.repeats else "")
         )
 
 

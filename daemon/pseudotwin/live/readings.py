@@ -39,11 +39,13 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from datetime import UTC, date, datetime, timedelta
 from enum import StrEnum
-from typing import Any
+from typing import Any, TypeVar
 
 from pseudotwin.config import SensorConfig
 
 __all__ = ["MAX_PAYLOAD_BYTES", "Reading", "Reason", "Rejected", "parse_payload"]
+
+_T = TypeVar("_T")
 
 #: Larger payloads are rejected before decoding: a reading is a few dozen bytes, and the
 #: limit bounds the work a misbehaving publisher can cause.
@@ -247,18 +249,26 @@ class RejectionCounter:
     """Counts rejected readings per (sensor, reason) and local day, and logs each one —
     up to ``log_limit`` per key and day, then only counts (a broken sensor must not flood
     the log). Shared by the daemon and the recorder so both treat bad input alike.
-    ``on_reject(sensor, reason)`` is called for each one (the Prometheus counter)."""
+    ``on_reject(sensor, reason)`` is called for each one (the Prometheus counter).
+
+    The last ``KEEP_DAYS`` days are kept apart: a batch straddling midnight, or a clock set
+    back across it, counts each rejection on its own day without resetting another's."""
+
+    KEEP_DAYS = 2
 
     def __init__(self, logger: logging.Logger, log_limit: int = 10,
                  on_reject: Callable[[str, str], None] | None = None) -> None:
         self.log = logger
         self.log_limit = log_limit
         self.on_reject = on_reject
-        self.counts: Counter[tuple[str, str]] = Counter()  # of ``day`` only
-        self.day: date | None = None
+        self._counts: dict[date, Counter[tuple[str, str]]] = {}
+        self._ahead: dict[date, set[str]] = {}  # sensors whose clock ran ahead, per day
         self.run_total = 0  # since the start, every day
-        self.ahead_day: date | None = None
-        self.ahead_noted: set[str] = set()  # sensors whose clock ran ahead on ahead_day
+
+    @property
+    def counts(self) -> Counter[tuple[str, str]]:
+        """The latest day's counts by (sensor, reason)."""
+        return self._counts[max(self._counts)] if self._counts else Counter()
 
     def add(self, sensor: str, rej: Rejected, day: date) -> None:
         self.add_reason(sensor, str(rej.reason), rej.message, day)
@@ -266,14 +276,13 @@ class RejectionCounter:
     def add_reason(self, sensor: str, reason: str, message: str, day: date) -> None:
         """Count a rejection for a reason outside :class:`Reason` (e.g. the daemon's
         ``unprocessable``: a payload that made it fail unexpectedly)."""
-        if self.day is None or day > self.day:  # never back: a batch may straddle midnight
-            self.day, self.counts = day, Counter()
+        counts = _of_day(self._counts, day, Counter, self.KEEP_DAYS)
         key = (sensor, reason)
-        self.counts[key] += 1
+        counts[key] += 1
         self.run_total += 1
         if self.on_reject is not None:
             self.on_reject(sensor, reason)
-        n = self.counts[key]
+        n = counts[key]
         if n <= self.log_limit:
             self.log.warning("rejected reading of %s (%s): %s", sensor, reason, message)
         if n == self.log_limit:
@@ -283,16 +292,25 @@ class RejectionCounter:
     def ahead(self, sensor: str, seconds: float, day: date) -> None:
         """A reading of ``sensor`` stamped ``seconds`` after its arrival (within max_skew):
         logged once per sensor and day."""
-        if self.ahead_day is None or day > self.ahead_day:
-            self.ahead_day, self.ahead_noted = day, set()
-        if sensor not in self.ahead_noted:
-            self.ahead_noted.add(sensor)
+        noted = _of_day(self._ahead, day, set, self.KEEP_DAYS)
+        if sensor not in noted:
+            noted.add(sensor)
             self.log.warning("reading of %s stamped %.0f s after its arrival: its clock (or its "
                              "bridge's) runs ahead of this process's, or this one's behind; "
                              "kept at its stamp, within max_skew (said once a day per sensor)",
                              sensor, seconds)
 
     def of_day(self, day: date) -> Mapping[tuple[str, str], int]:
-        """Readings rejected on local ``day`` by (sensor, reason): none when the latest
-        rejection was on another day (the counts start afresh with a day's first one)."""
-        return self.counts if day == self.day else {}
+        """Readings rejected on local ``day`` by (sensor, reason) (none: no rejection that
+        day, or it is older than the days kept)."""
+        return self._counts.get(day, {})
+
+
+def _of_day(book: dict[date, _T], day: date, new: Callable[[], _T], keep: int) -> _T:
+    """``book``'s entry of ``day``, made with ``new`` when missing; only the ``keep`` latest
+    days stay in ``book``."""
+    if day not in book:
+        book[day] = new()
+        for old in sorted(book)[:-keep]:
+            del book[old]
+    return book.get(day, new())

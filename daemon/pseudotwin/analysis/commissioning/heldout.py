@@ -5,7 +5,7 @@ daemon's twin code, each day estimated by models trained on the other days; noth
 refit here. Each model's std is replaced by its σ calibrated on the *other* held-out days
 (nested, as validation's coverage and CRPS score it): the σ the daemon publishes is
 calibrated on every training day, the shown day included, so on that day it would cover by
-construction. A day with fewer than two others to calibrate on keeps the published σ.
+construction. A day with fewer than two others to calibrate on has no σ.
 """
 
 from __future__ import annotations
@@ -79,8 +79,9 @@ def held_out(artifact: Artifact, validation: Validation) -> HeldOut:
             est.loc[m, "std"] = [calib.sigma(h, s) for h, s
                                  in zip(hours[m], est.loc[m, "slope"], strict=True)]
         if NESTED_STD in rows:
-            nested = rows[NESTED_STD].to_numpy(float)
-            est.loc[np.isfinite(nested), "std"] = nested[np.isfinite(nested)]
+            # No σ where none could be calibrated without the day (as validation scores it):
+            # the published one would cover that day by construction.
+            est["std"] = rows[NESTED_STD].to_numpy(float)
     daily = daily_scores(est, artifact.hours)
     return HeldOut(Evaluation(artifact, est, daily, pd.DataFrame(), validation.seconds))
 
