@@ -72,16 +72,9 @@ def held_out(artifact: Artifact, validation: Validation) -> HeldOut:
     if rows.empty:
         est = rows
     else:
-        est = rows.drop(columns=["day", NESTED_STD], errors="ignore").copy()
-        hours = np.array([artifact.hours.hours_of(t) for t in pd.DatetimeIndex(est["ts"])])
-        for kind, calib in artifact.calibration.items():
-            m = (est["model"] == kind).to_numpy()
-            est.loc[m, "std"] = [calib.sigma(h, s) for h, s
-                                 in zip(hours[m], est.loc[m, "slope"], strict=True)]
-        if NESTED_STD in rows:
-            # No σ where none could be calibrated without the day (as validation scores it):
-            # the published one would cover that day by construction.
-            est["std"] = rows[NESTED_STD].to_numpy(float)
+        # No σ where none could be calibrated without the day (as validation scores it): the
+        # published one would cover that day by construction.
+        est = rows.drop(columns=["day", NESTED_STD]).assign(std=rows[NESTED_STD])
     daily = daily_scores(est, artifact.hours)
     return HeldOut(Evaluation(artifact, est, daily, pd.DataFrame(), validation.seconds))
 
