@@ -43,6 +43,17 @@ def desk_twin(command: str, history: Path, *extra: str) -> tuple[str, ...]:
             "--timezone", "Europe/Madrid", *extra)
 
 
+def refused(args: tuple[str, ...], option: str, values: tuple[str, ...], out: Path,
+            capsys: pytest.CaptureFixture[str]) -> None:
+    """Each of ``values`` for ``option`` is a usage error (2) naming it, nothing written."""
+    capsys.readouterr()
+    for bad in values:
+        with pytest.raises(SystemExit) as exc:
+            run(*args, option, bad, "--out", str(out))
+        assert exc.value.code == 2 and option in capsys.readouterr().err
+    assert not out.exists()
+
+
 def _evaluate(sml: Path, out: Path, *extra: str) -> int:
     return run(*desk_twin("evaluate", sml, "--models", "triv", "--out", str(out), *extra))
 
@@ -271,12 +282,7 @@ def test_varma_p_pins_the_order_and_skips_its_choice(sml: Path, tmp_path: Path,
     model = art.models["varma"]
     assert isinstance(model, VarmaModel) and model.p == 1 and not model.force_fallback
     assert model.order_[0] == 1 and "tuned" not in art.validation
-    capsys.readouterr()
-    for bad in ("0", "9", "two"):
-        with pytest.raises(SystemExit) as exc:
-            run(*args, "--varma-p", bad, "--out", str(tmp_path / "bad.json"))
-        assert exc.value.code == 2 and "--varma-p" in capsys.readouterr().err
-    assert not (tmp_path / "bad.json").exists()
+    refused(args, "--varma-p", ("0", "9", "two"), tmp_path / "bad.json", capsys)
 
 
 def test_lcm_terms_sets_the_corrgp_lcm_terms(sml: Path, tmp_path: Path, capsys) -> None:
@@ -289,12 +295,7 @@ def test_lcm_terms_sets_the_corrgp_lcm_terms(sml: Path, tmp_path: Path, capsys) 
     model = Artifact.load(tmp_path / "t2.json").models["corrgp-lcm"]
     assert isinstance(model, CorrGpLcm)
     assert len(model.params_.terms) == 2
-    capsys.readouterr()
-    for bad in ("0", "-1", "two"):
-        with pytest.raises(SystemExit) as exc:
-            run(*args, "--lcm-terms", bad, "--out", str(tmp_path / "bad.json"))
-        assert exc.value.code == 2 and "--lcm-terms" in capsys.readouterr().err
-    assert not (tmp_path / "bad.json").exists()
+    refused(args, "--lcm-terms", ("0", "-1", "two"), tmp_path / "bad.json", capsys)
 
 
 @pytest.mark.parametrize("command, out", [("train", "/proc/pseudotwin-test/a.json"),
