@@ -11,13 +11,13 @@ from __future__ import annotations
 
 import datetime as dt
 import errno
-import json
 import logging
 import os
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import BinaryIO
 
+from pseudotwin.edge import readinglines
 from pseudotwin.live.readings import Reading
 
 log = logging.getLogger(__name__)
@@ -70,8 +70,7 @@ class Journal:
             self._abandon()
             self._rotate(day)  # rebuilds the file from memory
         assert self._fh is not None
-        lines = [(json.dumps({"sensor": r.sensor, "ts": r.ts.isoformat(), "value": r.value})
-                  + "\n").encode() for r in readings]
+        lines = readinglines.encode(readings)
         block = b"".join(lines)
         try:
             if self._fh.write(block) != len(block):
@@ -172,9 +171,7 @@ class Journal:
             with open(p, "rb") as fh:  # bytes: invalid UTF-8 is one bad line, not a crash
                 for n, line in enumerate(fh, 1):
                     try:
-                        o = json.loads(line)
-                        yield Reading(o["sensor"], dt.datetime.fromisoformat(o["ts"]),
-                                      float(o["value"]))
-                    except (ValueError, KeyError, TypeError):  # UnicodeDecodeError included
+                        yield readinglines.decode(line)
+                    except ValueError:
                         # A line cut short by a crash mid-write: everything before it counts.
                         log.warning("journal %s line %d unreadable, skipped", p.name, n)

@@ -11,7 +11,6 @@ the daemon (the same parser and the same :class:`RejectionCounter`).
 from __future__ import annotations
 
 import datetime as dt
-import json
 import logging
 import os
 import queue
@@ -23,6 +22,7 @@ from typing import Any
 import paho.mqtt.client as mqtt
 
 from pseudotwin.config import SensorConfig, ServiceConfig
+from pseudotwin.edge import readinglines
 from pseudotwin.edge.clock import Clock, SystemClock
 from pseudotwin.edge.mqttconn import Subscription, make_client, refused_fatally
 from pseudotwin.edge.prometheus import RecorderMetrics
@@ -54,8 +54,7 @@ class Spool:
         path.parent.mkdir(parents=True, exist_ok=True)
 
     def add(self, readings: list[Reading]) -> None:
-        block = "".join(json.dumps({"sensor": r.sensor, "ts": r.ts.isoformat(),
-                                    "value": r.value}) + "\n" for r in readings).encode()
+        block = b"".join(readinglines.encode(readings))
         with open(self.path, "a+b") as fh:
             # A crash or a full disk may have cut the last line short: never glue the next
             # reading onto it, or that acknowledged reading goes down with the torn line.
@@ -73,10 +72,8 @@ class Spool:
         with open(self.path, "rb") as fh:  # bytes: invalid UTF-8 is one bad line
             for line in fh:
                 try:
-                    o = json.loads(line)
-                    out.append(Reading(o["sensor"], dt.datetime.fromisoformat(o["ts"]),
-                                       float(o["value"])))
-                except (ValueError, KeyError, TypeError):
+                    out.append(readinglines.decode(line))
+                except ValueError:
                     log.warning("spool line unreadable (cut short by a crash?), skipped")
         return out
 
