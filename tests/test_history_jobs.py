@@ -21,13 +21,15 @@ from daemon_support import (
     wait_for,
     write_config,
 )
+from fake_cratedb import FakeCrateDB
 from pseudotwin.analysis.evaluate import replay_estimates
 from pseudotwin.cli import main
+from pseudotwin.core.series import read_history
 from pseudotwin.edge.clock import ReplayClock
 from pseudotwin.edge.recorder import Recorder, Spool
 from pseudotwin.edge.service import Service
 from pseudotwin.history.backfill import backfill
-from pseudotwin.history.store import open_store
+from pseudotwin.history.store import open_store, to_ms
 from pseudotwin.live.artifact import Artifact, artifact_hash
 from pseudotwin.live.readings import Reading
 from test_daemon import publisher, reading
@@ -72,6 +74,43 @@ def test_recorder_writes_every_valid_reading_and_spools_while_the_store_is_away(
     assert len(got) == 40  # count in = count stored
     assert [t.to_pydatetime() for t in got["ts"]] == ts
     assert not rec.spool.path.exists()
+
+
+def test_rows_the_store_refuses_one_by_one_go_to_a_file_and_block_nothing(
+    mosquitto, desk_artifact, tmp_path: Path
+) -> None:
+    """CrateDB answers each row of a bulk write: a reading it always refuses must not keep the
+    spool, and every reading after it, from the store. It lands in a canonical CSV that
+    ``pseudotwin import`` loads once the cause is fixed. (FakeCrateDB is a fake: no CrateDB
+    server can run here.)"""
+    ts = [HOURS.at(DAY, 8 + i / 60) for i in range(30)]
+    bad = {to_ms(ts[3]), to_ms(ts[25])}
+    with FakeCrateDB() as crate:
+        crate.fail_row = lambda stmt, row: ("ColumnValidationException[refused]"
+                                            if row[1] in bad else None)
+        cfg = config(tmp_path, mosquitto.port, desk_artifact, store=crate.url)
+        rec = Recorder(cfg, retry_seconds=0.2)
+        rec.start(wait_connected=15)
+        pub = publisher(mosquitto.port, "rec-crate")
+        for i, t in enumerate(ts[:20]):
+            pub.publish("house/dining/temp", reading(t, 20 + i / 100), qos=1)
+        wait_for(lambda: rec.written == 19 and rec.refused == 1,
+                 what=lambda: f"19 written, 1 refused (now {rec.written}, {rec.refused})")
+        for i, t in enumerate(ts[20:], start=20):
+            pub.publish("house/dining/temp", reading(t, 20 + i / 100), qos=1)
+        wait_for(lambda: rec.written == 28 and rec.refused == 2, what="later readings stored")
+        rec.stop()
+        pub.loop_stop()
+        assert not rec.spool.path.exists()
+        with open_store(crate.url) as store:
+            stored = store.read_readings([REF])
+            assert len(stored) == 28
+            refused = read_history(rec.refused_path)
+            assert [t.to_pydatetime() for t in refused["ts"]] == [ts[3], ts[25]]
+            assert refused["value"].tolist() == [20.03, 20.25]
+            crate.fail_row = None  # the cause fixed
+            assert main(["import", str(rec.refused_path), "--store", crate.url]) == 0
+            assert [t.to_pydatetime() for t in store.read_readings([REF])["ts"]] == ts
 
 
 def test_a_spool_line_cut_short_costs_no_later_reading(tmp_path: Path) -> None:

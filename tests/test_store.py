@@ -29,6 +29,7 @@ from pseudotwin.history import store as store_mod
 from pseudotwin.history.store import (
     SCHEMA_VERSION,
     EstimateRow,
+    RowsRejected,
     Store,
     StoreError,
     _bulk_count,
@@ -484,20 +485,36 @@ def test_crate_bulk_row_failure_raises_with_the_first_error(fake: FakeCrateDB) -
     fake.fail_row = lambda stmt, row: ("ColumnValidationException[b is read-only]"
                                        if row[0] == "b/temp" else None)
     with open_store(fake.url) as s:
-        with pytest.raises(StoreError, match=r"rejected 5 of 10 rows of readings; first: "
-                                             r"row 1 \(ColumnValidationException\[b is"):
+        with pytest.raises(RowsRejected, match=r"rejected 5 of 10 rows of readings; first: "
+                                               r"row 1 \(ColumnValidationException\[b is") as e:
             s.write_readings(df)
+        assert e.value.written == 5
+        assert sorted(r[0] for r in e.value.rows) == ["b/temp"] * 5
+        assert s.read_readings("a/temp")["ts"].tolist() == list(df[df.sensor == "a/temp"].ts)
+
+
+def test_crate_rows_after_a_refused_batch_are_written_all_the_same(
+        fake: FakeCrateDB, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A row CrateDB always refuses must not keep the rows of later bulk requests out: the
+    recorder would retry the same spool forever and store nothing after it."""
+    monkeypatch.setattr(store_mod, "WRITE_CHUNK", 4)
+    df = minute_frame(["a/temp"], "2016-03-01T00:00", "2016-03-01T00:10")
+    first = int(df.ts.iloc[0].value // 1_000_000)
+    fake.fail_row = lambda stmt, row: "SQLParseException[refused]" if row[1] == first else None
+    with open_store(fake.url) as s:
+        with pytest.raises(RowsRejected, match="rejected 1 of 10 rows") as e:
+            s.write_readings(df)
+        assert e.value.written == 9 and [r[1] for r in e.value.rows] == [first]
+        assert s.read_readings("a/temp")["ts"].tolist() == df.ts.tolist()[1:]
 
 
 def test_bulk_count_understands_both_error_shapes() -> None:
-    assert _bulk_count([{"rowcount": 1}, {"rowcount": 0}, {"rowcount": -1}], 3, "t", "u") == 2
-    assert _bulk_count([], 7, "t", "u") == 7  # no per-row results: rows sent
-    with pytest.raises(StoreError, match=r"row 1 \(IOException\[disk\]\)"):
-        _bulk_count([{"rowcount": 1},
-                     {"rowcount": -2, "error": {"code": 5000, "message": "IOException[disk]"}}],
-                    2, "t", "u")
-    with pytest.raises(StoreError, match="no error message given"):
-        _bulk_count([{"rowcount": -2}], 1, "t", "u")
+    assert _bulk_count([{"rowcount": 1}, {"rowcount": 0}, {"rowcount": -1}], 3) == (2, [])
+    assert _bulk_count([], 7) == (7, [])  # no per-row results: rows sent
+    assert _bulk_count([{"rowcount": 1},
+                        {"rowcount": -2, "error": {"code": 5000, "message": "IOException[disk]"}}],
+                       2) == (1, [(1, "IOException[disk]")])
+    assert _bulk_count([{"rowcount": -2}], 1) == (0, [(0, None)])
 
 
 def test_crate_statement_error_is_a_store_error(fake: FakeCrateDB) -> None:

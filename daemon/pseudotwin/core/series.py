@@ -170,10 +170,13 @@ def read_history(path: str | Path) -> pd.DataFrame:
     return out
 
 
-def write_history(df: pd.DataFrame, path: str | Path) -> None:
+def write_history(df: pd.DataFrame, path: str | Path, append: bool = False) -> None:
     """Write a long frame as canonical CSV (ISO 8601 UTC timestamps), or as Parquet (aware
-    UTC timestamps) when ``path`` ends in .parquet or .pq, as :func:`read_history` reads."""
+    UTC timestamps) when ``path`` ends in .parquet or .pq, as :func:`read_history` reads.
+    append: add the rows to the CSV at ``path`` (its header written when it is new)."""
     if Path(path).suffix.lower() in (".parquet", ".pq"):
+        if append:
+            raise ValueError("write_history: append is for CSV files only")
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         frame = df.loc[:, list(COLUMNS)].reset_index(drop=True)
         frame["ts"] = pd.DatetimeIndex(frame["ts"]).tz_convert("UTC")
@@ -183,7 +186,9 @@ def write_history(df: pd.DataFrame, path: str | Path) -> None:
     out["ts"] = pd.DatetimeIndex(out["ts"]).tz_convert("UTC").strftime("%Y-%m-%dT%H:%M:%S.%f")
     out["ts"] = out["ts"].str.replace(r"\.?0+$", "", regex=True).str.rstrip(".") + "+00:00"
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    out.to_csv(path, index=False, float_format="%.6g")
+    fresh = not append or not Path(path).exists() or Path(path).stat().st_size == 0
+    out.to_csv(path, index=False, float_format="%.6g", mode="w" if not append else "a",
+               header=fresh)
 
 
 def require_sensors(df: pd.DataFrame, sensors: list[str], where: str = "history") -> None:

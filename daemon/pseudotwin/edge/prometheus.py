@@ -239,6 +239,11 @@ class RecorderMetrics(_Metrics):
             "Readings not written because their sensor and millisecond were stored already "
             "(a redelivery, or readings stamped on arrival within one ms): the first stays",
             registry=r)
+        self.refused = Counter(
+            "pseudotwin_recorder_readings_refused",
+            "Readings the history store refused while it took the others of their batch "
+            "(CrateDB answers per row); appended to recorder-refused.csv in the state dir",
+            registry=r)
         self.rejected = self._rejected_counter("pseudotwin_recorder_readings_rejected")
         self.store_errors = Counter(
             "pseudotwin_recorder_store_errors", "Failed writes to the history store",

@@ -20,8 +20,10 @@ from pathlib import Path
 from typing import Any
 
 import paho.mqtt.client as mqtt
+import pandas as pd
 
 from pseudotwin.config import SensorConfig, ServiceConfig
+from pseudotwin.core.series import write_history
 from pseudotwin.edge import readinglines
 from pseudotwin.edge.clock import Clock, SystemClock
 from pseudotwin.edge.mqttconn import Subscription, make_client, refused_fatally
@@ -29,7 +31,7 @@ from pseudotwin.edge.prometheus import RecorderMetrics
 from pseudotwin.edge.sdnotify import notify
 from pseudotwin.edge.statelock import StateLock
 from pseudotwin.errors import ConfigError, PseudotwinError
-from pseudotwin.history.store import Store, open_store
+from pseudotwin.history.store import RowsRejected, Store, open_store, to_ms
 from pseudotwin.live.readings import (
     UNPROCESSABLE,
     Reading,
@@ -44,6 +46,9 @@ log = logging.getLogger(__name__)
 #: clock of a device never set or an uptime counter sent as epoch seconds (0 is 1970-01-01),
 #: and year-1 times would not survive the store's pandas round trip.
 OLDEST = dt.datetime(2000, 1, 1, tzinfo=dt.UTC)
+
+#: In the state dir: readings the store refused one by one (canonical CSV, appended).
+REFUSED_FILE = "recorder-refused.csv"
 
 
 class Spool:
@@ -104,6 +109,7 @@ class Recorder:
         self.retry_seconds = retry_seconds
         self.queue: queue.Queue[tuple[Any, ...]] = queue.Queue(maxsize=cfg.queue_size)
         self.spool = Spool(Path(cfg.state_dir) / "recorder-spool.jsonl")
+        self.refused_path = Path(cfg.state_dir) / REFUSED_FILE
         self.state_lock = StateLock(Path(cfg.state_dir) / "recorder.lock", "recorder")
         self.metrics = RecorderMetrics()  # served only with [metrics] record_port
         self.rejections = RejectionCounter(log, on_reject=self.metrics.rejected_one)
@@ -112,6 +118,7 @@ class Recorder:
         self.written = 0
         self.spooled = 0
         self.already_stored = 0  # readings whose key was in the store already (first kept)
+        self.refused = 0  # readings the store refused while taking others: in refused_path
         self.fatal: tuple[int, str] | None = None  # (exit status, why): the process must end
         self._store_ident: tuple[int, int] | None = None
         self._gen = 0
@@ -198,13 +205,22 @@ class Recorder:
         """Store ``readings``; False (logged, to be spooled or kept in the spool: ``spooled``,
         readings taken from it) when the store cannot take them."""
         then = "they stay in the spool" if spooled else "spooling them to disk"
+        refused: list[Reading] = []
         try:
-            n = self._store().write_readings(readings)
+            try:
+                n = self._store().write_readings(readings)
+            except RowsRejected as exc:
+                keys = {(row[0], row[1]) for row in exc.rows}
+                refused = [r for r in readings if (r.sensor, to_ms(r.ts)) in keys]
+                if len(refused) == len(readings):
+                    raise  # nothing taken: the store is unusable for now, as if it were away
+                self._refuse(refused, exc)
+                n = exc.written
             self.written += n
             self.metrics.stored.inc(n)
             # Readings are immutable: a key stored already keeps its first value. Counted,
             # since a backlog stamped on arrival can collapse this way (README, Delivery).
-            if (kept_first := len(readings) - n) > 0:
+            if (kept_first := len(readings) - len(refused) - n) > 0:
                 self.already_stored += kept_first
                 self.metrics.already_stored.inc(kept_first)
             return True
@@ -220,6 +236,20 @@ class Recorder:
                         type(exc).__name__, exc, len(readings), then)
             self._drop_store()
             return False
+
+    def _refuse(self, readings: list[Reading], why: RowsRejected) -> None:
+        """Readings the store refused while it took the others of their batch (CrateDB
+        answers per row): kept out of the spool, which they would otherwise block for good,
+        and appended to ``refused_path`` as canonical CSV, for ``pseudotwin import``."""
+        frame = pd.DataFrame({"sensor": [r.sensor for r in readings],
+                              "ts": pd.DatetimeIndex([r.ts for r in readings]).tz_convert("UTC"),
+                              "value": [r.value for r in readings]})
+        write_history(frame, self.refused_path, append=True)  # OSError: the batch is retried
+        self.refused += len(readings)
+        self.metrics.refused.inc(len(readings))
+        log.error("the history store refused %d readings and took the others (%s); they are "
+                  "in %s: once the cause is fixed, load them with 'pseudotwin import %s "
+                  "--store URL'", len(readings), why, self.refused_path, self.refused_path)
 
     def _drop_store(self) -> None:
         if self.store is not None and self.store_url is not None:
@@ -331,8 +361,10 @@ class Recorder:
         self.metrics.close()
         self.state_lock.release()
         log.info("recorder stopped: %d readings written, %d spooled, %d rejected, %d not "
-                 "written as their sensor and millisecond were stored already", self.written,
-                 self.spooled, self.rejections.run_total, self.already_stored)
+                 "written as their sensor and millisecond were stored already%s", self.written,
+                 self.spooled, self.rejections.run_total, self.already_stored,
+                 f", {self.refused} refused by the store (in {self.refused_path})"
+                 if self.refused else "")
 
 
 def _file_ident(store: Store) -> tuple[int, int] | None:

@@ -76,6 +76,7 @@ __all__ = [
     "ESTIMATE_COLUMNS",
     "SCHEMA_VERSION",
     "EstimateRow",
+    "RowsRejected",
     "Store",
     "StoreError",
     "open_store",
@@ -118,6 +119,20 @@ Instant = dt.datetime  # timezone-aware; pandas.Timestamp is a datetime subclass
 
 class StoreError(PseudotwinError):
     """The history store cannot be opened, read or written (also: newer schema version)."""
+
+
+class RowsRejected(StoreError):
+    """The database refused some rows of a write and took the others (CrateDB answers each
+    row of a bulk request on its own; every row is attempted).
+
+    rows: the refused rows as sent, for readings ``(sensor, ts [ms since the epoch],
+    value)``; written: rows the write changed all the same.
+    """
+
+    def __init__(self, message: str, rows: list[tuple], written: int) -> None:
+        super().__init__(message)
+        self.rows = rows
+        self.written = written
 
 
 @dataclass(frozen=True)
@@ -790,7 +805,10 @@ class CrateStore(Store):
         return self._run(sql, args)
 
     def _write(self, table: str, sql: str, batches: Iterable[list[tuple]]) -> int:
-        n = 0
+        """Every batch is sent, even after one with refused rows: a row CrateDB always
+        refuses must not keep the rows after it out (RowsRejected names them all)."""
+        n, sent = 0, 0
+        refused: list[tuple[int, tuple, str | None]] = []
         for batch in batches:
             cur = self._conn.cursor()
             try:
@@ -801,7 +819,16 @@ class CrateStore(Store):
             finally:
                 cur.close()
             self._dirty.add(table)
-            n += _bulk_count(results, len(batch), table, self.url)
+            written, failed = _bulk_count(results, len(batch))
+            n += written
+            refused += [(sent + i, batch[i], msg) for i, msg in failed]
+            sent += len(batch)
+        if refused:
+            i, _, msg = refused[0]
+            raise RowsRejected(
+                f"{self.url}: CrateDB rejected {len(refused)} of {sent} rows of {table}; "
+                f"first: row {i} ({msg or 'no error message given'})",
+                [row for _, row, _ in refused], n)
         return n
 
     def _close(self) -> None:
@@ -816,26 +843,27 @@ def _first_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
-def _bulk_count(results: list[dict] | None, sent: int, table: str, url: str) -> int:
-    """Rows changed by one bulk request; StoreError naming the first failed row.
+def _bulk_count(results: list[dict] | None, sent: int) -> tuple[int, list[tuple[int, str | None]]]:
+    """(rows changed, [(index, error message) of each failed row]) of one bulk request.
 
     Per-row results: rowcount 1 (written), 0 (ON CONFLICT DO NOTHING skipped it),
     -1 (unknown: counted as sent), -2 (failed, with ``error_message`` or, in newer
     CrateDB releases, ``error: {code, message}``).
     """
     if not results:
-        return sent
-    failed = [(i, r) for i, r in enumerate(results) if (r.get("rowcount") or 0) <= -2]
-    if failed:
-        i, r = failed[0]
-        err = r.get("error")
-        msg = r.get("error_message") or (err.get("message") if isinstance(err, dict) else err)
-        raise StoreError(
-            f"{url}: CrateDB rejected {len(failed)} of {len(results)} rows of {table}; "
-            f"first: row {i} ({msg or 'no error message given'})"
-        )
-    counts = [r.get("rowcount") for r in results]
-    return sum(rc if isinstance(rc, int) and rc >= 0 else 1 for rc in counts)
+        return sent, []
+    failed = []
+    written = 0
+    for i, r in enumerate(results):
+        rc = r.get("rowcount")
+        if isinstance(rc, int) and rc <= -2:
+            err = r.get("error")
+            msg = r.get("error_message") or (err.get("message") if isinstance(err, dict)
+                                             else err)
+            failed.append((i, str(msg) if msg else None))
+        else:
+            written += rc if isinstance(rc, int) and rc >= 0 else 1
+    return written, failed
 
 
 # ------------------------------------------------------------------------------ factory
