@@ -315,6 +315,45 @@ def test_silent_reference_turns_stale_and_recovers(service_factory, mosquitto,
     assert "the estimate is stale" in went[0].getMessage()
 
 
+def test_a_flapping_reference_is_logged_a_few_times_a_day_then_said_to_flap(
+    mosquitto, desk_artifact, tmp_path: Path, caplog
+) -> None:
+    """A sensor reporting just slower than stale_after turns the estimate stale and back at
+    every reading: the log tells its first SILENCE_LINES_PER_DAY silences of the day (each
+    with its return) and that it flaps, then stays quiet about it."""
+    caplog.set_level(logging.INFO, logger="pseudotwin.edge.service")
+    limit = service_module.SILENCE_LINES_PER_DAY
+    start = off_grid(8.0)
+    clock = HandClock(start)
+    svc = Service(config(tmp_path, mosquitto.port, desk_artifact, stale_after_minutes=30,
+                         publish_every_minutes=15), clock=clock)
+    svc.start(wait_connected=15)
+    viewer = Viewer(mosquitto.port, "pt/desk/estimate")
+    pub = publisher(mosquitto.port, "flapping-bridge")
+    cycles = limit + 2
+    try:
+        for k in range(cycles):
+            at = start + dt.timedelta(minutes=50 * k)
+            clock.set(at)
+            pub.publish("house/dining/temp", reading(at, 17.0 + k / 10), qos=1)
+            wait_for(lambda n=k + 1: svc.accepted == n, what=f"reading {k + 1} accepted")
+            # past a grid instant > 30 min after it, and its tick grace
+            clock.set(at + dt.timedelta(minutes=46))
+            wait_for(lambda a=at: any(e["quality"] == "stale"
+                                      and dt.datetime.fromisoformat(e["ts"]) > a
+                                      for e in viewer.on("/estimate")),
+                     what=f"stale after reading {k + 1}")
+    finally:
+        svc.stop()
+        pub.loop_stop()
+        viewer.close()
+    went = [r.getMessage() for r in caplog.records if "silent for more than" in r.getMessage()]
+    came = [r.getMessage() for r in caplog.records if "report again" in r.getMessage()]
+    assert len(went) == limit and len(came) == limit, caplog.text  # of `cycles` each way
+    assert "not logged again today" in went[-1]
+    assert not any("not logged again today" in m for m in went[:-1])
+
+
 def test_numerical_failure_publishes_triv_fallback_then_recovers(
     service_factory, mosquitto, monkeypatch
 ) -> None:

@@ -22,7 +22,7 @@ import logging
 import queue
 import threading
 import time
-from collections import defaultdict, deque
+from collections import Counter, defaultdict, deque
 from dataclasses import dataclass, field
 from operator import attrgetter
 from pathlib import Path
@@ -60,6 +60,7 @@ from pseudotwin.live.twin import Quality, Twin, TwinEstimate
 log = logging.getLogger(__name__)
 
 LOG_REJECTIONS_PER_KEY = 10  # per sensor, reason and day; the rest are only counted
+SILENCE_LINES_PER_DAY = 3  # "reference silent" lines per twin, reference and local day
 JOURNAL_RETRY_SECONDS = 2.0  # how often a failing journal is tried again
 STOP_JOIN_SECONDS = 5.0  # the worker finishes its current item within this on stop
 # Messages journaled with one write (and taken from the queue at once): the journal's cost
@@ -123,6 +124,9 @@ class TwinRuntime:
     # The references the primary's last estimate went without (silent longer than
     # stale_after): logged when it changes, as the payloads alone would not tell the log.
     silent: tuple[str, ...] = ()
+    # Reference → its silences on silence_day (local day), to log a flapping one only so often.
+    silence_day: dt.date | None = None
+    silence_told: Counter[str] = field(default_factory=Counter)
     # Time [unix s] of the last reading that moved the twin: the grid work goes to the
     # twins that heard from their sensors longest ago first (see Service._start_tick).
     last_input: float = 0.0
@@ -664,14 +668,26 @@ class Service:
                             if e.quality == Quality.STALE else ())
         if silent == rt.silent:
             return
-        if went := [s for s in silent if s not in rt.silent]:
-            last = ", ".join(f"{s} (last reading {_clock(e.refs.get(s))})" for s in went)
+        day = self.hours.day_of(e.ts)
+        if day != rt.silence_day:
+            rt.silence_day, rt.silence_told = day, Counter()
+        went = [s for s in silent if s not in rt.silent]
+        rt.silence_told.update(went)
+        # A sensor reporting just slower than stale_after flips at every reading: its first
+        # SILENCE_LINES_PER_DAY silences of a day are logged, and that it flaps, then nothing.
+        if told := [s for s in went if rt.silence_told[s] <= SILENCE_LINES_PER_DAY]:
+            last = ", ".join(f"{s} (last reading {_clock(e.refs.get(s))})" for s in told)
             now = (f"a failover answers ({e.model}, quality {e.quality})" if e.lost
                    else "the estimate is stale")
+            flapping = [s for s in told if rt.silence_told[s] == SILENCE_LINES_PER_DAY]
             log.warning("reference(s) silent for more than %g min at %s: %s; %s. Check the "
                         "sensor, its bridge, and that the broker lets this client read the "
-                        "topic (ACL)", limit.total_seconds() / 60, _clock(e.ts), last, now)
-        if back := [s for s in rt.silent if s not in silent]:
+                        "topic (ACL)%s", limit.total_seconds() / 60, _clock(e.ts), last, now,
+                        f". {', '.join(flapping)}: silent {SILENCE_LINES_PER_DAY} times today "
+                        "(reporting about as slowly as stale_after?); not logged again today"
+                        if flapping else "")
+        back = [s for s in rt.silent if s not in silent]
+        if back := [s for s in back if rt.silence_told[s] <= SILENCE_LINES_PER_DAY]:
             log.info("reference(s) %s report again at %s: estimate from %s (quality %s)",
                      ", ".join(back), _clock(e.ts), e.model, e.quality)
         rt.silent = silent
