@@ -16,15 +16,18 @@ from pseudotwin.models.base import TrainingSet
 from pseudotwin.models.triv import TrivModel, TrivShrunkModel, TrivWeekModel
 
 
-def training_set(offset_fn, days=3, refs=("r1", "r2"), weekend_extra=0.0) -> TrainingSet:
+def training_set(offset_fn, days=3, refs=("r1", "r2"), weekend_extra=0.0,
+                 day_levels=None) -> TrainingSet:
     """``days`` days from Monday 2020-01-06; the target is the first reference plus
-    offset_fn(hours), plus ``weekend_extra`` on Saturdays and Sundays."""
+    offset_fn(hours), plus ``weekend_extra`` on Saturdays and Sundays, plus day d's
+    ``day_levels[d]``."""
     h = OperatingHours()
     rows = []
     rng = np.random.default_rng(0)
     for d in range(days):
         day = dt.date(2020, 1, 6) + dt.timedelta(days=d)
         extra = weekend_extra if day.weekday() >= 5 else 0.0
+        extra += day_levels[d] if day_levels is not None else 0.0
         for k in range(46):
             hours = 7.5 + 0.25 * k
             ts = h.at(day, hours).isoformat()
@@ -75,6 +78,16 @@ def test_shrunk_profile_keeps_a_shape_the_days_agree_on() -> None:
     m = TrivShrunkModel().fit(ts)
     assert all(lam > 0.95 for lam in m.shrink_)
     np.testing.assert_allclose(m.offsets_, TrivModel().fit(ts).offsets_, atol=0.02)
+
+
+def test_shrunk_profile_keeps_a_shape_the_days_agree_on_at_different_levels() -> None:
+    """A day's level cancels out of the profile's shape: days with one offset course at
+    levels 0.6 °C apart agree on the shape, which is kept (the level's spread is σ's)."""
+    rng = np.random.default_rng(7)
+    ts = training_set(lambda h: 0.1 * (h - 8) + rng.normal(0.0, 0.02), days=5,
+                      day_levels=[-0.3, 0.1, 0.3, -0.1, 0.0])
+    m = TrivShrunkModel().fit(ts)
+    assert all(lam > 0.95 for lam in m.shrink_), m.shrink_
 
 
 def test_shrunk_profile_falls_back_to_the_mean_offset_when_the_days_disagree() -> None:

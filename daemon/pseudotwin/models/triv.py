@@ -127,11 +127,13 @@ class TrivShrunkModel(TrivModel):
     days disagree about its shape (James–Stein, one factor per reference).
 
     With D training days, the profile's shape (O(τ) − Ō) is estimated with a sampling
-    variance of about mean_τ(s²(τ)/D) (s² the spread of the days' offsets at slot τ), while
-    its spread across slots is mean_τ (O(τ) − Ō)². The factor λ = max(0, 1 − sampling /
-    spread) keeps the shape only as far as it stands out of the days' disagreement: five
-    alike days keep it (λ ≈ 1), five days that each had their own offset course leave the
-    constant mean offset (λ = 0). Fitted: shrink_ [M] the factors λ per reference.
+    variance of about mean_τ(s²(τ)/D), s²(τ) the spread at slot τ of the days' offsets each
+    taken from its day's mean offset (a day's level cancels out of the shape, so days that
+    agree on the shape at different levels agree), while its spread across slots is
+    mean_τ (O(τ) − Ō)². The factor λ = max(0, 1 − sampling / spread) keeps the shape only as
+    far as it stands out of the days' disagreement: five alike days keep it (λ ≈ 1), five
+    days that each had their own offset course leave the constant mean offset (λ = 0).
+    Fitted: shrink_ [M] the factors λ per reference.
     """
 
     kind = "triv-shrunk"
@@ -151,7 +153,8 @@ class TrivShrunkModel(TrivModel):
             return profile
         mean = float(np.mean(profile))
         spread = float(np.mean((profile - mean) ** 2))
-        sampling = float(np.mean(np.nanvar(diffs[:, keep], axis=0, ddof=1) / n[keep]))
+        shapes = diffs - np.nanmean(diffs, axis=1, keepdims=True)  # each day's level out
+        sampling = float(np.mean(np.nanvar(shapes[:, keep], axis=0, ddof=1) / n[keep]))
         lam = max(0.0, 1.0 - sampling / spread) if spread > 0 else 0.0
         self.shrink_.append(lam)
         return mean + lam * (profile - mean)
