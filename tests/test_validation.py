@@ -233,3 +233,27 @@ def test_validation_reports_each_held_out_day_as_it_ends(caplog: pytest.LogCaptu
     assert [line.split(" held out")[0] for line in lines] == [
         f"validation: {DAY0 + dt.timedelta(days=i)}" for i in range(5)]
     assert all(f"({i} of 5) in " in line for i, line in enumerate(lines, start=1))
+
+
+def test_a_days_offset_is_its_operating_hours_mean_of_slot_levels() -> None:
+    """The day-level σ floor comes from each day's mean offset over the hours TRIV is scored
+    on, slot levels as TRIV learns them: a target that reads 3 °C high in the init phase
+    (07:30–08:00, never scored) and a 1-minute wobble off the slot starts leave it alone."""
+    from pseudotwin.analysis.validation import day_offsets
+    from pseudotwin.core.series import split_days
+
+    minutes = np.arange(7 * 60, 20 * 60)  # 07:00 … 19:59, 1-min readings
+    h = minutes / 60
+    rows = []
+    for d, level in enumerate((0.5, 1.5)):
+        base = pd.Timestamp(DAY0 + dt.timedelta(days=d), tz="UTC")
+        ts = base + pd.to_timedelta(minutes, unit="min")
+        wobble = np.where(minutes % 15 == 0, 0.8, 0.0)  # the slot starts alone read high
+        desk = 20.0 + level + np.where(h < HOURS.day_start, 3.0, 0.0) + wobble
+        rows += [pd.DataFrame({"sensor": "ref", "ts": ts, "value": 20.0}),
+                 pd.DataFrame({"sensor": "desk", "ts": ts, "value": desk})]
+    df = pd.concat(rows, ignore_index=True).sort_values("ts", kind="stable")
+    days = split_days(df, ["ref", "desk"], HOURS)
+    got = day_offsets(SPEC, days)
+    assert list(got) == [DAY0, DAY0 + dt.timedelta(days=1)]
+    np.testing.assert_allclose(list(got.values()), [0.5 + 0.8 / 15, 1.5 + 0.8 / 15], atol=1e-9)

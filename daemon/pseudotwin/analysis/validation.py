@@ -163,12 +163,15 @@ def _num(x: object, digits: int) -> str:
 
 
 def day_offsets(spec: TwinSpec, days: Sequence[DayReadings]) -> dict[dt.date, float]:
-    """Each day's mean target − reference offset [unit] (mean over the references, slot
-    grid, sample-and-hold); a day without a pair of values is left out."""
+    """Each day's mean target − reference offset [unit] over the operating hours (mean over
+    the references and the slots from day start, each slot's time-weighted level, as TRIV
+    learns its offsets); a day without a pair of values is left out."""
+    hours = spec.hours
+    scored = hours.window_slots() * hours.slot_hours >= hours.day_start - 1e-9
     means = {}
     for d in days:
-        tgt = d.slot_values(spec.target, spec.hours)
-        diffs = np.array([tgt - d.slot_values(r, spec.hours) for r in spec.references])
+        tgt = d.slot_means(spec.target, hours)[scored]
+        diffs = np.array([tgt - d.slot_means(r, hours)[scored] for r in spec.references])
         ok = np.isfinite(diffs)
         if ok.any():
             means[d.day] = float(np.mean(diffs[ok]))
