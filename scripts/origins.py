@@ -8,7 +8,7 @@ as results.py does (validation picks the primary and calibrates σ on the five t
 only) and scores the next ``--test-days`` days. Per origin: the published estimate's mean
 daily NRMSE against TRIV's and the floor (the lower of TRIV's and the best raw reference's),
 the ±2σ coverage of the estimate on the test days next to the nested coverage validation
-measured on the training days, mean σ / RMSE and CRPS / RMSE (the mean CRPS of the estimate,
+measured on the training days, RMS σ / RMSE and CRPS / RMSE (the mean CRPS of the estimate,
 a proper score of estimate and σ together, over its RMSE: for the same estimates, lower means
 a σ of the better size). Then per run and over all origins: how
 often each figure of docs/results.md holds.
@@ -108,7 +108,7 @@ def score_span(spec: RunSpec, start: dt.date, test_days: int, models: tuple[str,
         "ratio_floor": f.ratio, "ratio_triv": f.estimate / f.triv, "floor_met": f.floor_met,
         "cover2_pct": f.cover2, "cover_met": f.cover_met,
         "nested_cover2_pct": float(v["scores"][f.primary]["cover2_pct"]),
-        "std_over_rmse": f.mean_std / f.rmse if f.rmse > 0 else math.nan,
+        "std_over_rmse": f.rms_std / f.rmse if f.rmse > 0 else math.nan,
         "crps_over_rmse": f.crps / f.rmse if f.rmse > 0 else math.nan,
         # VARMA (when trained): its ratio to TRIV on the test span, whether it is published
         # live, the figure's verdict, and the order it ran with
@@ -228,7 +228,7 @@ def main() -> None:
             ("floor %", "floor_pct", 2), ("est / floor", "ratio_floor", 3),
             ("est / triv", "ratio_triv", 3), ("±2σ cover %", "cover2_pct", 1),
             ("nested cover % (training)", "nested_cover2_pct", 1),
-            ("mean σ / RMSE", "std_over_rmse", 2), ("CRPS / RMSE", "crps_over_rmse", 3)]
+            ("RMS σ / RMSE", "std_over_rmse", 2), ("CRPS / RMSE", "crps_over_rmse", 3)]
     if "varma" in models:
         cols += [("varma p", "varma_p", 0), ("varma / triv", "varma_ratio", 2),
                  ("varma live", "varma_live", None)]

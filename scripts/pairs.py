@@ -175,7 +175,7 @@ def main() -> None:
         (f"cover, days 1–{a.early_days} %", "cover2_early_pct", 1),
         ("cover, later %", "cover2_late_pct", 1),
         ("nested cover % (training)", "nested_cover2_pct", 1),
-        ("mean σ / RMSE", "std_over_rmse", 2), ("CRPS / RMSE", "crps_over_rmse", 3),
+        ("RMS σ / RMSE", "std_over_rmse", 2), ("CRPS / RMSE", "crps_over_rmse", 3),
         ("odd training day", "odd_day", None)])
     for r in rows:
         if "error" in r:
@@ -210,7 +210,7 @@ def main() -> None:
         (f"median cover, days 1–{a.early_days} %", "median_cover2_early_pct", 1),
         ("median cover, later %", "median_cover2_late_pct", 1),
         ("median nested cover %", "median_nested_pct", 1),
-        ("median σ / RMSE", "median_std_over_rmse", 2),
+        ("median RMS σ / RMSE", "median_std_over_rmse", 2),
         ("mean CRPS / RMSE", "mean_crps_over_rmse", 3),
         ("oracle σ factor", "oracle_factor", 2), ("oracle cover 90–98 %", "oracle_in_pct", 0),
         ("odd training day %", "odd_day_pct", 0),

@@ -65,6 +65,9 @@ def test_coverage_of_a_calibrated_gaussian() -> None:
     assert s.cover1_pct == pytest.approx(68.27, abs=1.5)
     assert s.cover2_pct == pytest.approx(95.45, abs=1.0)
     assert s.mean_std == pytest.approx(1.1, abs=0.02)
+    # σ of the right size: its root mean square is the RMSE; its mean, σ varying, is less
+    assert s.rms_std / s.rmse == pytest.approx(1.0, abs=0.02)
+    assert s.mean_std / s.rmse < 0.92
     # a σ three times too wide covers (nearly) everything and scores worse
     wide = metrics.score(y, mu, 3 * sigma)
     assert wide.cover2_pct > 99.9

@@ -8,11 +8,12 @@ Accuracy (thesis 6.5):
 
 Calibration of a Gaussian predictive N(μ, σ²) per estimate:
 - coverage of the ±1σ and ±2σ bands [%] (ideal 68.3 / 95.4);
-- mean σ, to set against the RMSE (a calibrated σ is about as large as the RMSE);
+- mean σ, and the root-mean-square σ to set against the RMSE (for a calibrated σ the mean
+  squared error is the mean σ², so RMS σ / RMSE ≈ 1; the mean σ is smaller when σ varies);
 - CRPS (a proper scoring rule, in the quantity's unit; lower is better):
   σ·[z(2Φ(z) − 1) + 2φ(z) − 1/√π], z = (y − μ)/σ. An estimate without a σ (NaN or 0, e.g.
   a raw reference) is a point forecast: its CRPS is |y − μ| (the σ → 0 limit) and it takes no
-  part in coverage or mean σ.
+  part in coverage or mean and RMS σ.
 
 Every score is NaN when it is undefined (no rows, zero mean truth, constant series, no σ).
 """
@@ -111,6 +112,13 @@ def mean_std(std: ArrayLike) -> float:
     return float(np.mean(s[ok])) if np.any(ok) else NAN
 
 
+def rms_std(std: ArrayLike) -> float:
+    """Root-mean-square σ over the rows that have one (NaN if none)."""
+    s = np.asarray(std, float)
+    ok = _has_std(s)
+    return float(np.sqrt(np.mean(s[ok] ** 2))) if np.any(ok) else NAN
+
+
 @dataclass(frozen=True)
 class Scores:
     """All scores of one series of estimates (a day of one model, say)."""
@@ -124,6 +132,7 @@ class Scores:
     crps: float
     mean_std: float
     rmse: float
+    rms_std: float = NAN  # set against rmse: ≈ rmse when σ is the right size
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -143,4 +152,5 @@ def score(truth: ArrayLike, est: ArrayLike, std: ArrayLike | None = None) -> Sco
         crps=float(np.mean(gaussian_crps(y, m, s))) if y.size else NAN,
         mean_std=mean_std(s),
         rmse=rmse(y, m),
+        rms_std=rms_std(s),
     )

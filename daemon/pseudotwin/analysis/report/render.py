@@ -162,13 +162,18 @@ HOW_TO_READ = f"""\
   validation's verdicts hold on days it never saw).
 * **Calibration tables** (per model, pooled over all scored readings): the share of true
   readings inside the estimate's ±1σ and ±2σ bands (a calibrated Gaussian σ covers 68.3 % and
-  95.4 %), the mean σ next to the RMSE (mean σ / RMSE ≈ 1 when σ is the right size), and the
+  95.4 %), the mean and the root-mean-square σ next to the RMSE (RMS σ / RMSE ≈ 1 when σ
+  is the right size: a calibrated σ's mean square is the mean squared error, while its mean
+  is smaller the more σ varies), and the
   mean **CRPS** (continuous ranked probability score of the Gaussian N(estimate, σ²), in the
   quantity's unit, lower is better: it rewards a small error and a σ of the right size; for
   an estimate without σ, such as a raw reference, it is the absolute error). Computed by
   `pseudotwin.live.metrics`, as in `daily.csv`. In the validation tables, CRPS and ±2σ
   coverage are nested: each held-out training day is scored with a σ calibrated on the
-  other training days' held-out errors only, a check of σ on a day it has not seen.
+  other training days' held-out errors only, a check of σ on a day it has not seen. Nested
+  in the errors, not in the models: those days' errors come from models trained with the
+  scored day among their days, so an unusual day still widens, a little, the σ it is scored
+  with (removing that would take a leave-one-out inside every fold).
 * **Verdicts** are computed by the script from the test days, against the figures the
   product must reach: the estimate's mean daily NRMSE ≤ {FLOOR_RATIO:.2f} × the *floor*, the
   lower of TRIV's and the best raw reference's (never meaningfully worse than the simple

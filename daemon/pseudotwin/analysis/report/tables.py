@@ -90,11 +90,12 @@ def calibration_md(res: RunResult) -> str:
     for m in _ordered(list(res.estimates["model"].unique())):
         e = res.estimates[res.estimates["model"] == m]
         s = metrics.score(e["truth"].to_numpy(), e["value"].to_numpy(), e["std"].to_numpy())
-        ratio = s.mean_std / s.rmse if s.rmse > 0 else float("nan")
+        ratio = s.rms_std / s.rmse if s.rmse > 0 else float("nan")
         rows.append([_label(m), fmt(s.cover1_pct, 1), fmt(s.cover2_pct, 1), fmt(s.mean_std, 3),
-                     fmt(s.rmse, 3), fmt(ratio), fmt(s.crps, 3), str(s.n)])
+                     fmt(s.rms_std, 3), fmt(s.rmse, 3), fmt(ratio), fmt(s.crps, 3), str(s.n)])
     return md_table(["model", "±1σ coverage %", "±2σ coverage %", f"mean σ [{unit}]",
-                   f"RMSE [{unit}]", "mean σ / RMSE", f"mean CRPS [{unit}]", "n"], rows)
+                   f"RMS σ [{unit}]", f"RMSE [{unit}]", "RMS σ / RMSE", f"mean CRPS [{unit}]",
+                   "n"], rows)
 
 
 def selfaware_md(res: RunResult) -> str:

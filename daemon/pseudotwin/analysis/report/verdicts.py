@@ -50,7 +50,7 @@ class Figures:
     """The issue's figures for one run, computed from its evaluation outputs.
 
     NRMSE figures are mean daily NRMSE [%] over each model's scored days; cover1/cover2 [%],
-    mean_std and rmse [unit] pool all scored readings of the ``estimate`` rows; sigma_cv is
+    mean_std, rms_std and rmse [unit] pool all scored readings of the ``estimate`` rows; sigma_cv is
     the mean over days of std(σ)/mean(σ) of those rows (0 = σ constant within each day).
     """
 
@@ -64,6 +64,7 @@ class Figures:
     cover1: float
     cover2: float
     mean_std: float
+    rms_std: float  # set against rmse: ≈ rmse when σ is the right size
     rmse: float
     crps: float  # the estimate's mean CRPS [unit] over the scored readings
     sigma_cv: float
@@ -137,7 +138,8 @@ def figures(res: RunResult) -> Figures:
         days=int(res.daily["day"].nunique()), primary=art.primary,
         estimate=float(g.get(ESTIMATE, np.nan)), triv=float(g.get(BASE, np.nan)),
         best_ref=best_ref, ref=float(raw.min()) if len(raw) else float("nan"), n=s.n,
-        cover1=s.cover1_pct, cover2=s.cover2_pct, mean_std=s.mean_std, rmse=s.rmse,
+        cover1=s.cover1_pct, cover2=s.cover2_pct, mean_std=s.mean_std, rms_std=s.rms_std,
+        rmse=s.rmse,
         crps=s.crps,
         sigma_cv=cv, varma=float(g.get("varma", np.nan)),
         varma_withheld=str(art.withheld.get("varma", "")),
@@ -171,8 +173,9 @@ def verdict_md(res: RunResult) -> str:
             f"{raw_name(res, f.best_ref)}): ratio {fmt(f.ratio, 3)} ({limit}), {where}."
         )
     lo, hi = COVER2_RANGE
-    size = (f"mean σ {fmt(f.mean_std, 3)} {unit} vs RMSE {fmt(f.rmse, 3)} {unit} "
-            f"(ratio {fmt(f.mean_std / f.rmse if f.rmse > 0 else np.nan)})")
+    size = (f"RMS σ {fmt(f.rms_std, 3)} {unit} vs RMSE {fmt(f.rmse, 3)} {unit} "
+            f"(ratio {fmt(f.rms_std / f.rmse if f.rmse > 0 else np.nan)}; mean σ "
+            f"{fmt(f.mean_std, 3)} {unit})")
     if not np.isfinite(f.cover2):
         parts.append("**±2σ coverage: not measurable** (the estimate has no σ).")
     elif f.cover_met:
