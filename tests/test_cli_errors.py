@@ -18,7 +18,7 @@ from conftest import closed_port
 from daemon_support import HOURS, REF, TARGET, TZ, write_config
 from pseudotwin.cli import main
 from pseudotwin.cli.check_config import main as check_config_main
-from pseudotwin.core.series import require_sensors, write_history
+from pseudotwin.core.series import read_history, require_sensors, write_history
 from pseudotwin.errors import DataError
 from pseudotwin.history.convert import load
 
@@ -163,9 +163,12 @@ def test_a_sensor_and_time_repeated_with_another_value_is_reported(
     path = _csv(tmp_path, "conflict.csv", "a,2012-03-14T10:00:00+00:00,20.5\n"
                                           "a,2012-03-14T10:00:00+00:00,21.5\n")
     out, warnings = _import_warnings(path, capsys, caplog)
-    assert "1 new, 0 already stored, 1 repeating an earlier row's sensor and millisecond" in out
-    assert warnings == [f"{path}: 1 row(s) repeat a sensor and time with another value (the "
-                        "first is used: the store and the window keep it)"]
+    assert "1 new, 0 already stored" in out
+    assert warnings == [f"{path}: dropped 1 of 2 rows (1 repeating a sensor and time with "
+                        "another value: the first is used, as the store and the daemon's "
+                        "window keep it)"]
+    # every reader of the file gets the first (evaluate averaged the two as the truth)
+    assert read_history(path)["value"].tolist() == [20.5]
 
 
 def test_missing_sensors_of_a_file_without_readings_say_so() -> None:

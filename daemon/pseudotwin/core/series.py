@@ -88,32 +88,32 @@ def _sensors(raw: pd.Series, where: str) -> pd.Series:
 
 @dataclass(frozen=True)
 class Dropped:
-    """Rows :func:`normalize` left out: without a finite value (blank, NaN, ±inf) and exact
-    duplicates of an earlier row."""
+    """Rows :func:`normalize` left out: without a finite value (blank, NaN, ±inf), exact
+    duplicates of an earlier row, and conflicts: rows repeating an earlier row's sensor and
+    time with another value (the first is kept, as the store and the daemon's window keep
+    it, so every reader of a file sees the same readings)."""
 
     rows: int
     not_finite: int
     duplicates: int
-    conflicts: int = 0  # kept, but a reading of the same sensor and time came first
+    conflicts: int = 0
 
     def line(self, where: str) -> str | None:
-        """One line saying how many rows were dropped and why, and how many repeat a sensor
-        and time with another value; None when neither happened."""
-        reasons = [f"{n} {why}" for n, why in ((self.not_finite, "with a blank, NaN or "
-                                                                "infinite value"),
-                                               (self.duplicates, "exact duplicate(s)")) if n]
-        parts = []
-        if reasons:
-            parts.append(f"dropped {self.not_finite + self.duplicates} of {self.rows} rows "
-                         f"({', '.join(reasons)})")
-        if self.conflicts:
-            parts.append(f"{self.conflicts} row(s) repeat a sensor and time with another "
-                         "value (the first is used: the store and the window keep it)")
-        return f"{where}: {'; '.join(parts)}" if parts else None
+        """One line saying how many rows were dropped and why; None when none was."""
+        reasons = [f"{n} {why}" for n, why in (
+            (self.not_finite, "with a blank, NaN or infinite value"),
+            (self.duplicates, "exact duplicate(s)"),
+            (self.conflicts, "repeating a sensor and time with another value: the first is "
+                             "used, as the store and the daemon's window keep it")) if n]
+        if not reasons:
+            return None
+        dropped = self.not_finite + self.duplicates + self.conflicts
+        return f"{where}: dropped {dropped} of {self.rows} rows ({', '.join(reasons)})"
 
 
 def normalize(df: pd.DataFrame, where: str = "history") -> pd.DataFrame:
-    """Validate and normalize a long frame; drops non-finite values and exact duplicates."""
+    """Validate and normalize a long frame; drops non-finite values, exact duplicates and
+    later rows of a sensor and time already read (see :class:`Dropped`)."""
     return _normalize(df, where)[0]
 
 
@@ -139,9 +139,11 @@ def _normalize(df: pd.DataFrame, where: str) -> tuple[pd.DataFrame, Dropped]:
     out["value"] = value.astype(float)
     out = out[np.isfinite(out["value"].values)]
     finite = len(out)
-    out = out.drop_duplicates().sort_values(["ts", "sensor"], kind="stable").reset_index(drop=True)
-    conflicts = int(out.duplicated(["sensor", "ts"]).sum())
-    return out, Dropped(len(df), len(df) - finite, finite - len(out), conflicts)
+    out = out.drop_duplicates()
+    unique = len(out)
+    out = out[~out.duplicated(["sensor", "ts"])]  # file order: the first stays
+    out = out.sort_values(["ts", "sensor"], kind="stable").reset_index(drop=True)
+    return out, Dropped(len(df), len(df) - finite, finite - unique, unique - len(out))
 
 
 def read_history(path: str | Path) -> pd.DataFrame:
