@@ -289,3 +289,35 @@ def test_evaluate_scores_the_models_that_serve_the_twin(house: pd.DataFrame) -> 
     ev = evaluate(house, _spec(()), DAY0, 5, ("triv", "triv-cov", "corrgp-multi"))
     assert list(ev.artifact.models) == ["triv"]
     assert set(ev.daily["model"]) == {"triv", ESTIMATE, "ref:ref"}
+
+
+def test_backfill_skips_a_day_whose_references_are_missing_though_its_covariates_report(
+    with_co2: Artifact, house: pd.DataFrame, tmp_path: Path, capsys
+) -> None:
+    """Covariates alone give nothing the daemon publishes: such a day is skipped and not
+    marked done, so readings of the reference imported later are backfilled (it was marked
+    done with stale rows only, and a rerun called it 'already backfilled')."""
+    from pseudotwin.cli import main
+    from pseudotwin.history.store import open_store
+
+    path = with_co2.save(tmp_path / "desk.json")
+    cfg = _config(tmp_path, 1883, path)
+    db = tmp_path / "history.db"
+    day = DAY0 + dt.timedelta(days=8)
+    of_day = house["ts"].dt.date == day
+    with open_store(str(db)) as store:
+        store.write_readings(house[of_day & (house["sensor"] != "ref")])
+    text = cfg.read_text(encoding="utf-8").replace('state_dir = "state"',
+                                                   f'state_dir = "state"\nstore = "{db}"')
+    cfg.write_text(text, encoding="utf-8")
+    args = ["backfill", "--config", str(cfg), "--twin", "desk", "--from", str(day), "--to",
+            str(day), "--quiet"]
+    assert main(args) == 0
+    assert f"skipped 1 day(s), no reference readings: {day}" in capsys.readouterr().out
+    with open_store(str(db)) as store:
+        assert store.read_estimates("desk").empty
+        store.write_readings(house[of_day & (house["sensor"] == "ref")])
+    assert main(args) == 0
+    assert "backfilled 1 day(s)" in capsys.readouterr().out
+    with open_store(str(db)) as store:
+        assert set(store.read_estimates("desk")["quality"]) == {"ok"}

@@ -175,6 +175,39 @@ def test_backfill_reports_days_without_readings(
     assert rc == 2 and "no twin 'nope'" in capsys.readouterr().err
 
 
+def test_backfill_and_warm_start_leave_out_stored_readings_the_daemon_would_reject(
+    mosquitto, desk_artifact, tmp_path: Path, capsys
+) -> None:
+    """``import`` knows no configuration: a stored 85 °C (the sensor's max is 50) must not
+    become an `ok` estimate of 85 °C in a backfill, nor a warm-started window. Both take the
+    day as the daemon would have: without it."""
+    df = day_readings(sml())
+    wild = (df["sensor"] == REF) & (df["ts"] == HOURS.at(DAY, 10.0))
+    assert wild.sum() == 1
+    stores = {"wild": df.assign(value=df["value"].where(~wild, 85.0)), "clean": df[~wild]}
+    rows = {}
+    for name, frame in stores.items():
+        (tmp_path / name).mkdir()
+        db = tmp_path / name / "history.db"
+        with open_store(str(db)) as store:
+            store.write_readings(frame)
+        cfg = write_config(tmp_path / name, mosquitto.port, desk_artifact, store=str(db))
+        assert main(["backfill", "--config", str(cfg), "--twin", "desk", "--from", str(DAY),
+                     "--to", str(DAY), "--quiet"]) == 0
+        out = capsys.readouterr().out
+        assert ("left out 1 stored reading(s) outside their sensor's configured min..max"
+                in out) == (name == "wild")
+        with open_store(str(db)) as store:
+            rows[name] = store.read_estimates("desk").drop(columns="written_at")
+        svc = Service(config(tmp_path / name, mosquitto.port, desk_artifact, store=str(db)),
+                      ReplayClock(HOURS.at(DAY, 12.0), 1.0))
+        svc.restore()
+        assert max(p.value for p in svc.twins["desk"].twin.window if p.sensor == REF) < 50
+        svc.journal.close()
+    assert len(rows["clean"]) > 0
+    pd.testing.assert_frame_equal(rows["wild"], rows["clean"])
+
+
 def test_backfill_redo_estimates_a_day_again_once_its_readings_are_imported(
     mosquitto, desk_artifact, tmp_path: Path, capsys
 ) -> None:

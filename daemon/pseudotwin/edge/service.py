@@ -53,6 +53,7 @@ from pseudotwin.live.readings import (
     Reason,
     Rejected,
     RejectionCounter,
+    in_range,
     parse_payload,
 )
 from pseudotwin.live.twin import Quality, Twin, TwinEstimate
@@ -834,6 +835,11 @@ class Service:
         except Exception as exc:  # noqa: BLE001 — a warm start is best effort
             log.warning("warm start from the history store failed (%s); starting empty", exc)
             return 0
+        if len(taken := in_range(frame, self.cfg.sensors)) < len(frame):
+            log.warning("warm start: left out %d stored reading(s) outside their sensor's "
+                        "configured min..max, as a reading over MQTT would be rejected",
+                        len(frame) - len(taken))
+            frame = taken
         readings = [Reading(s, ts.to_pydatetime(), float(v))
                     for s, ts, v in zip(frame["sensor"], frame["ts"], frame["value"], strict=True)]
         for r in readings:

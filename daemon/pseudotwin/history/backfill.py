@@ -43,6 +43,7 @@ from pseudotwin.core.twinlog import twin_context
 from pseudotwin.errors import ConfigError, PseudotwinError
 from pseudotwin.history.store import EstimateRow, Store
 from pseudotwin.live.artifact import Artifact, artifact_hash, check_artifact
+from pseudotwin.live.readings import in_range
 from pseudotwin.live.twin import Twin, TwinEstimate
 
 log = logging.getLogger(__name__)
@@ -69,6 +70,7 @@ class BackfillSummary:
     estimates: int = 0
     skipped: dict[str, list[str]] = field(default_factory=dict)  # reason → days
     unended: list[str] = field(default_factory=list)  # of ``days``: estimated, not done
+    out_of_range: int = 0  # stored readings outside their sensor's range: left out
     seconds: float = 0.0
 
     def skip(self, day: dt.date | str, reason: str) -> None:
@@ -83,6 +85,9 @@ class BackfillSummary:
                 self.unended, "the day has not ended (a run after its end completes it)"))
         for reason, days in self.skipped.items():
             out.append(f"skipped {_day_list(days, reason)}")
+        if self.out_of_range:
+            out.append(f"left out {self.out_of_range} stored reading(s) outside their sensor's "
+                       "configured min..max, as the daemon rejects them")
         return out
 
 
@@ -134,6 +139,7 @@ class ChunkResult:
     days: int = 0  # estimated, ``unended`` among them
     estimates: int = 0
     empty: list[dt.date] = field(default_factory=list)  # no reference readings: not marked
+    out_of_range: int = 0  # stored readings left out as the daemon would reject them
     unended: list[dt.date] = field(default_factory=list)  # estimated, not over: not marked
     failed: tuple[dt.date, str] | None = None
     detail: str = ""  # the failure's traceback, for --log-level DEBUG
@@ -338,9 +344,17 @@ def run_chunk(cfg: ServiceConfig, chunk: Chunk, store: Store, artifact: Artifact
                                 stale_after=cfg.stale_after, thinning=cfg.thinning)
                     init = hours.at(day, hours.init_start)
                     for s, (ts, v) in store.last_readings_before(refs, init).items():
-                        twin.observe(s, ts, v)
+                        if cfg.sensors[s].accepts(v):
+                            twin.observe(s, ts, v)
                 prev = day
-                if frame.empty:  # not marked: readings imported later fill it
+                # The store holds what import took unchecked (it has no configuration):
+                # the daemon rejects a reading outside its sensor's range, and so does this.
+                taken = in_range(frame, cfg.sensors)
+                res.out_of_range += len(frame) - len(taken)
+                frame = taken
+                if not frame["sensor"].isin(artifact.references).any():
+                    # not marked: readings imported later fill it (covariates alone give
+                    # nothing the daemon would publish as an estimate)
                     res.empty.append(day)
                     continue
                 n = store.write_estimates(day_rows(cfg, job, twin, day, frame))

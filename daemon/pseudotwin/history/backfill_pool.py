@@ -66,6 +66,7 @@ class RunSummary:
         s.estimates += res.estimates
         s.seconds += res.seconds
         s.unended += [str(d) for d in res.unended]
+        s.out_of_range += res.out_of_range
         for d in res.empty:
             s.skip(d, "no reference readings")
         if res.failed is not None:

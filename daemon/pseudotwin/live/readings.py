@@ -41,6 +41,8 @@ from datetime import UTC, date, datetime, timedelta
 from enum import StrEnum
 from typing import Any, TypeVar
 
+import pandas as pd
+
 from pseudotwin.config import SensorConfig
 
 __all__ = ["MAX_PAYLOAD_BYTES", "Reading", "Reason", "Rejected", "parse_payload"]
@@ -243,6 +245,16 @@ def parse_payload(
                                        f"{not_before.astimezone(UTC).isoformat()}, the oldest "
                                        "reading taken")
     return Reading(sensor.id, ts, value)
+
+
+def in_range(frame: pd.DataFrame, sensors: Mapping[str, SensorConfig]) -> pd.DataFrame:
+    """The rows of a canonical frame whose sensor is in ``sensors`` and whose value lies in
+    that sensor's configured range: stored readings as the daemon would have taken them
+    (the store also holds what ``import`` took, which knows no configuration)."""
+    lo = frame["sensor"].map({k: s.min for k, s in sensors.items()})
+    hi = frame["sensor"].map({k: s.max for k, s in sensors.items()})
+    keep = (frame["value"] >= lo) & (frame["value"] <= hi)  # NaN bounds: not configured
+    return frame if bool(keep.all()) else frame[keep.to_numpy()]
 
 
 class RejectionCounter:
