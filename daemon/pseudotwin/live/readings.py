@@ -251,6 +251,8 @@ def in_range(frame: pd.DataFrame, sensors: Mapping[str, SensorConfig]) -> pd.Dat
     """The rows of a canonical frame whose sensor is in ``sensors`` and whose value lies in
     that sensor's configured range: stored readings as the daemon would have taken them
     (the store also holds what ``import`` took, which knows no configuration)."""
+    if frame.empty:
+        return frame
     lo = frame["sensor"].map({k: s.min for k, s in sensors.items()})
     hi = frame["sensor"].map({k: s.max for k, s in sensors.items()})
     keep = (frame["value"] >= lo) & (frame["value"] <= hi)  # NaN bounds: not configured
