@@ -463,3 +463,22 @@ def test_skip_days_that_leave_nothing_out_are_named(sml: Path, tmp_path: Path, c
     assert ("--skip-days: 2012-04-01 would not have been training days anyway (training took "
             "2012-03-14 … 2012-03-19)") in printed
     assert "2012-03-15 would not" not in printed  # that one was left out
+
+
+def test_one_training_day_trains_what_one_day_can_teach_and_says_what_it_cannot(
+        sml: Path, tmp_path: Path, caplog, capsys) -> None:
+    """README offers --allow-unvalidated for one or two days: with one, VARMA (the day is its
+    own typical profile, nothing is left to fit) is skipped with a reason, not a traceback."""
+    from pseudotwin.live.artifact import Artifact
+
+    caplog.set_level(logging.INFO, logger="pseudotwin.analysis.training")
+    out = tmp_path / "a.json"
+    assert run(*desk_twin("train", sml, "--models", "ref,triv,varma", "--train-days", "1",
+                          "--allow-unvalidated", "--out", str(out))) == 0
+    assert set(Artifact.load(out).models) == {"ref", "triv"}
+    assert "varma is not trained: it needs at least 2 training days, 1 given" in caplog.text
+    capsys.readouterr()
+    assert run(*desk_twin("train", sml, "--models", "varma", "--train-days", "1",
+                          "--allow-unvalidated", "--out", str(tmp_path / "b.json"))) == 2
+    assert "none of the models asked for can learn from 1 training day(s)" in (
+        capsys.readouterr().err)

@@ -240,6 +240,17 @@ def train_validated(
             tuned[kind] = choice
             opts[kind] = {**opts.get(kind, {}), **setting.fit_with, choice.name: choice.chosen}
             log.info("%s: %s (validation on the training days)", kind, choice.reason)
+    if too_few := [k for k in models if model_class(k).min_days > len(days)]:
+        for kind in too_few:
+            log.info("%s is not trained: it needs at least %d training days, %d given", kind,
+                     model_class(kind).min_days, len(days))
+        models = [k for k in models if k not in too_few]
+        if not models:
+            raise DataError(f"none of the models asked for can learn from {len(days)} "
+                            "training day(s): ask for more days")
+        if primary in too_few:
+            raise DataError(f"primary {primary!r} needs at least "
+                            f"{model_class(primary).min_days} training days")
     for kind in models:
         if model_class(kind).stacked:
             continue  # made from the others after validation

@@ -116,6 +116,8 @@ class TwinModel(ABC):
     stacked: ClassVar[bool] = False
     # Reads the twin's covariates (TwinSpec.covariates); the others ignore them.
     reads_covariates: ClassVar[bool] = False
+    # Training days the model needs at least (training skips it, and says why, with fewer).
+    min_days: ClassVar[int] = 1
     references_: tuple[str, ...]
 
     @classmethod

@@ -385,6 +385,8 @@ class VarmaModel(TwinModel):
     options = ("p", "q", "trend", "maxiter", "max_seconds", "force_fallback", "target_mode",
                "live_refs")
     candidate = False  # a monitoring baseline (DESIGN.md §3), never the primary
+    # With one day, the day is its own typical profile: no deviation is left to fit.
+    min_days = 2
     # Held-out folds use the OLS VAR(p) form: a VARMAX fit per fold costs minutes.
     validation_options = {"force_fallback": True}
     # The order, unless the user sets p: five days hold ~220 slots, and a VAR(4) of three
