@@ -107,9 +107,20 @@ def _every_command(path: Path, tmp_path: Path) -> list[tuple[str, ...]]:
 @pytest.mark.parametrize(
     "rows,message",
     [("a,2012-03-14T10:00:00+00:00,nan\n",
-      "no valid readings (every one of its 1 rows has a blank, NaN or infinite value)"),
+      "no valid readings: dropped 1 of 1 rows (1 with a blank, NaN or infinite value)"),
      ("a,2012-03-14T10:00:00+00:00,inf\nb,2012-03-14T10:00:00+00:00,\n",
-      "no valid readings (every one of its 2 rows has a blank, NaN or infinite value)"),
+      "no valid readings: dropped 2 of 2 rows (2 with a blank, NaN or infinite value)"),
+     ("a,0,20.5\n", "no valid readings: dropped 1 of 1 rows (1 stamped before 2000-01-01, a "
+                    "device clock never set, as the recorder rejects them)"),
+     # pandas read the extra field as an index and shifted the rest: a at 1970-01-01T00:00:01
+     ("b,2012-03-14T10:00:00Z,2\na,2012-03-14T10:00:00Z,1,5\n",
+      "data row 2 has 4 fields, the header 3 (sensor,ts,value): an extra column, or a value "
+      "with a comma?"),
+     ("a,1331719200000000000,1\n", "epoch value 1331719200000000000 in data row 1 is too "
+      "large for seconds or milliseconds (microseconds or nanoseconds? divide by 1e3 or 1e6 "
+      "first)"),
+     ("a,2012-03-14T10:00:00Z,1\na,2012-02-30T10:00:00Z,1\n",
+      "'2012-02-30T10:00:00Z' in data row 2 is not a valid ISO 8601 instant"),
      (",2012-03-14T10:00:00+00:00,1\n", "data row 1 has no sensor name"),
      ("a,2012-03-14T10:00:00+00:00,1\n  ,2012-03-14T10:01:00+00:00,1\n",
       "data row 2 has no sensor name"),
@@ -364,7 +375,7 @@ def test_evaluate_on_a_file_without_valid_readings(tmp_path: Path, capsys) -> No
     path = _csv(tmp_path, "h.csv", "a,2012-03-14T10:00:00+00:00,nan\nb,2012-03-14T10:00:00Z,\n")
     assert run(*_every_command(path, tmp_path)[2]) == 2
     line = _one_line(capsys.readouterr().err)
-    assert line.endswith("no valid readings (every one of its 2 rows has a blank, NaN or "
+    assert line.endswith("no valid readings: dropped 2 of 2 rows (2 with a blank, NaN or "
                          "infinite value)")
     assert "file has:" not in line
 
@@ -429,3 +440,10 @@ def test_an_unreachable_crate_store_is_one_line(tmp_path: Path) -> None:
     assert "Retrying" not in p.stderr and "urllib3" not in p.stderr
     assert "cannot connect to CrateDB" in _one_line(
         "\n".join(x for x in p.stderr.splitlines() if " INFO " not in x))
+
+
+def test_an_offset_of_hours_alone_is_iso_8601_too(tmp_path: Path) -> None:
+    """``+01`` is ISO 8601's offset of one hour (it was refused as 'no UTC offset')."""
+    path = _csv(tmp_path, "short.csv", "a,2012-03-14T10:00:00+01,1\na,2012-03-14T10:00:00-0230,2\n")
+    assert [t.isoformat() for t in read_history(path)["ts"]] == [
+        "2012-03-14T09:00:00+00:00", "2012-03-14T12:30:00+00:00"]

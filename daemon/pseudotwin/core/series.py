@@ -7,8 +7,10 @@ message that names the file and what is wrong.
 
 from __future__ import annotations
 
+import csv
 import datetime as dt
 import logging
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -19,6 +21,14 @@ from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.errors import DataError
 
 COLUMNS = ("sensor", "ts", "value")
+
+#: The oldest reading taken, from a file or live: an older stamp is a device clock never set
+#: or an uptime counter sent as epoch seconds (0 is 1970-01-01), not history.
+OLDEST = pd.Timestamp("2000-01-01", tz="UTC")
+
+#: Epoch numbers above this are neither seconds nor milliseconds (ms reach it in year 5138):
+#: microseconds or nanoseconds, as some exports write them.
+_EPOCH_MS_MAX = 1e14
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +45,19 @@ def _row(mask: pd.Series | np.ndarray) -> int:
     return int(np.flatnonzero(np.asarray(mask))[0]) + 1
 
 
+def _checked_epoch(num: pd.Series, where: str, rows: pd.Series | None = None) -> pd.Series:
+    """_epoch of numbers that are epoch seconds or milliseconds; DataError naming the first
+    row of another unit. rows: each number's position in the column (default: in order)."""
+    huge = num.abs() > _EPOCH_MS_MAX
+    if huge.any():
+        pos = np.flatnonzero(huge.to_numpy())[0]
+        row = int(rows.iloc[pos]) if rows is not None else int(pos)
+        raise DataError(f"{where}: epoch value {num.iloc[pos]:.0f} in data row {row + 1} is "
+                        "too large for seconds or milliseconds (microseconds or "
+                        "nanoseconds? divide by 1e3 or 1e6 first)")
+    return _epoch(num)
+
+
 def parse_timestamps(raw: pd.Series, where: str) -> pd.Series:
     """ISO 8601 with offset, or epoch seconds / milliseconds (row by row) → UTC timestamps;
     a Parquet file's timestamp column must be time-zone aware."""
@@ -47,7 +70,7 @@ def parse_timestamps(raw: pd.Series, where: str) -> pd.Series:
     if pd.api.types.is_numeric_dtype(raw):
         if raw.isna().any():
             raise DataError(f"{where}: data row {_row(raw.isna())} has no timestamp")
-        return _epoch(raw.astype(float))
+        return _checked_epoch(raw.astype(float), where)
     text = raw.astype(str).str.strip()
     blank = raw.isna() | (text == "")
     if blank.any():
@@ -55,7 +78,8 @@ def parse_timestamps(raw: pd.Series, where: str) -> pd.Series:
     numeric = text.str.fullmatch(r"-?\d+(\.\d+)?")
     out = pd.Series(pd.NaT, index=raw.index, dtype="datetime64[ns, UTC]")
     if numeric.any():
-        out[numeric] = _epoch(text[numeric].astype(float))
+        positions = pd.Series(np.flatnonzero(numeric.to_numpy()))
+        out[numeric] = _checked_epoch(text[numeric].astype(float), where, positions)
     iso = text[~numeric]
     if len(iso):
         dated = iso.str.match(r"\d{4}-\d\d-\d\d")
@@ -64,16 +88,18 @@ def parse_timestamps(raw: pd.Series, where: str) -> pd.Series:
                 f"{where}: {iso[~dated].iloc[0]!r} in data row {_row(~numeric & ~dated)} is "
                 "not a timestamp (use ISO 8601 with a UTC offset, or epoch seconds / ms)"
             )
-        aware = iso.str.contains(r"(?:Z|[+-]\d\d:?\d\d)$", regex=True)
+        aware = iso.str.contains(r"(?:Z|[+-]\d\d(?::?\d\d)?)$", regex=True)
         if not aware.all():
             bad = iso[~aware].iloc[0]
             raise DataError(
                 f"{where}: timestamp {bad!r} has no UTC offset (use ISO 8601 with offset)"
             )
-        try:
-            out[~numeric] = pd.to_datetime(iso, utc=True, format="ISO8601").dt.as_unit("ns")
-        except (ValueError, TypeError) as exc:
-            raise DataError(f"{where}: unreadable timestamp ({exc})") from None
+        parsed = pd.to_datetime(iso, utc=True, format="ISO8601", errors="coerce")
+        if parsed.isna().any():
+            bad = parsed.isna().reindex(raw.index, fill_value=False)
+            raise DataError(f"{where}: {iso[parsed.isna()].iloc[0]!r} in data row {_row(bad)} "
+                            "is not a valid ISO 8601 instant")
+        out[~numeric] = parsed.dt.as_unit("ns")
     return out
 
 
@@ -97,6 +123,7 @@ class Dropped:
     not_finite: int
     duplicates: int
     conflicts: int = 0
+    too_old: int = 0  # stamped before OLDEST
 
     def line(self, where: str) -> str | None:
         """One line saying how many rows were dropped and why; None when none was."""
@@ -104,10 +131,12 @@ class Dropped:
             (self.not_finite, "with a blank, NaN or infinite value"),
             (self.duplicates, "exact duplicate(s)"),
             (self.conflicts, "repeating a sensor and time with another value: the first is "
-                             "used, as the store and the daemon's window keep it")) if n]
+                             "used, as the store and the daemon's window keep it"),
+            (self.too_old, f"stamped before {OLDEST:%Y-%m-%d}, a device clock never set, as "
+                           "the recorder rejects them")) if n]
         if not reasons:
             return None
-        dropped = self.not_finite + self.duplicates + self.conflicts
+        dropped = self.not_finite + self.duplicates + self.conflicts + self.too_old
         return f"{where}: dropped {dropped} of {self.rows} rows ({', '.join(reasons)})"
 
 
@@ -139,18 +168,22 @@ def _normalize(df: pd.DataFrame, where: str) -> tuple[pd.DataFrame, Dropped]:
     out["value"] = value.astype(float)
     out = out[np.isfinite(out["value"].values)]
     finite = len(out)
+    out = out[out["ts"] >= OLDEST]
+    too_old, finite = finite - len(out), len(out)
     out = out.drop_duplicates()
     unique = len(out)
     out = out[~out.duplicated(["sensor", "ts"])]  # file order: the first stays
     out = out.sort_values(["ts", "sensor"], kind="stable").reset_index(drop=True)
-    return out, Dropped(len(df), len(df) - finite, finite - unique, unique - len(out))
+    return out, Dropped(len(df), len(df) - finite - too_old, finite - unique, unique - len(out),
+                        too_old)
 
 
 def read_history(path: str | Path) -> pd.DataFrame:
     """Read a canonical CSV (or Parquet) history file: the one place history files are
-    read (import, train, evaluate, replay). Rows without a finite value and exact duplicates
-    are dropped, with one warning saying how many; a file left without a valid reading, a
-    row without a sensor name or timestamp, a value that is no number: DataError."""
+    read (import, train, evaluate, replay). The rows :class:`Dropped` names are dropped, with
+    one warning saying how many; a file left without a valid reading, a row without a sensor
+    name or timestamp, a value that is no number, a row with more fields than the header:
+    DataError."""
     p = Path(path)
     if not p.exists():
         raise DataError(f"{p}: no such file")
@@ -160,16 +193,41 @@ def read_history(path: str | Path) -> pd.DataFrame:
         if p.suffix.lower() in (".parquet", ".pq"):
             df = pd.read_parquet(p)
         else:
-            df = pd.read_csv(p, dtype={"sensor": str, "ts": str}, comment="#")
+            # index_col=False: pandas would take a row's extra field for an index and shift
+            # the others into the wrong columns; it then warns instead, and that is an error.
+            with warnings.catch_warnings():
+                warnings.simplefilter("error", pd.errors.ParserWarning)
+                try:
+                    df = pd.read_csv(p, dtype={"sensor": str, "ts": str}, comment="#",
+                                     index_col=False)
+                except (pd.errors.ParserWarning, pd.errors.ParserError) as exc:
+                    # the warning for an extra field in the first row, the error in others
+                    if (overlong := _overlong_row(p)) is not None:
+                        raise DataError(f"{p}: {overlong}") from None
+                    raise pd.errors.ParserError(str(exc)) from None
     except (ValueError, pd.errors.ParserError, UnicodeDecodeError, ImportError) as exc:
-        raise DataError(f"{p}: not a readable canonical history file ({exc})") from None
+        raise DataError(f"{p}: not a readable canonical history file "
+                        f"({' '.join(str(exc).split())})") from None
     out, dropped = _normalize(df, str(p))
     if out.empty:
-        raise DataError(f"{p}: no valid readings (every one of its {dropped.rows} rows has a "
-                        "blank, NaN or infinite value)")
+        raise DataError(f"{p}: no valid readings: "
+                        f"{(dropped.line('') or '').removeprefix(': ')}")
     if (line := dropped.line(str(p))) is not None:
         log.warning("%s", line)
     return out
+
+
+def _overlong_row(path: Path) -> str | None:
+    """Which data row has more (non-empty) fields than the header, said for a DataError;
+    None when none has."""
+    with open(path, encoding="utf-8", newline="") as fh:
+        rows = (r for r in csv.reader(fh) if r and not r[0].lstrip().startswith("#"))
+        header = next(rows, [])
+        for n, row in enumerate(rows, 1):
+            if len(row) > len(header) and any(f.strip() for f in row[len(header):]):
+                return (f"data row {n} has {len(row)} fields, the header {len(header)} "
+                        f"({','.join(header)}): an extra column, or a value with a comma?")
+    return None
 
 
 def write_history(df: pd.DataFrame, path: str | Path, append: bool = False) -> None:

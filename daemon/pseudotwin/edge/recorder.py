@@ -23,6 +23,7 @@ import paho.mqtt.client as mqtt
 import pandas as pd
 
 from pseudotwin.config import SensorConfig, ServiceConfig
+from pseudotwin.core import series
 from pseudotwin.core.series import write_history
 from pseudotwin.edge import readinglines
 from pseudotwin.edge.clock import Clock, SystemClock
@@ -42,10 +43,9 @@ from pseudotwin.live.readings import (
 
 log = logging.getLogger(__name__)
 
-#: The oldest reading the recorder stores: older timestamps are nonsense for live data, the
-#: clock of a device never set or an uptime counter sent as epoch seconds (0 is 1970-01-01),
-#: and year-1 times would not survive the store's pandas round trip.
-OLDEST = dt.datetime(2000, 1, 1, tzinfo=dt.UTC)
+#: The oldest reading the recorder stores, as files are read (core/series.py): older stamps
+#: are a device clock never set, and year-1 times would not survive pandas' round trip.
+OLDEST = series.OLDEST.to_pydatetime()
 
 #: In the state dir: readings the store refused one by one (canonical CSV, appended).
 REFUSED_FILE = "recorder-refused.csv"
