@@ -482,3 +482,20 @@ def test_one_training_day_trains_what_one_day_can_teach_and_says_what_it_cannot(
                           "--allow-unvalidated", "--out", str(tmp_path / "b.json"))) == 2
     assert "none of the models asked for can learn from 1 training day(s)" in (
         capsys.readouterr().err)
+
+
+def test_estimates_csv_keeps_a_sub_second_reading_stamp(sml: Path, tmp_path: Path) -> None:
+    """Stamps were cut to whole seconds: rows no longer joined back to the history, and two
+    readings within a second (4-s raw data) collided."""
+    from pseudotwin.core.series import read_history, write_history
+
+    df = read_history(sml)
+    shifted = tmp_path / "half.csv"
+    write_history(df.assign(ts=df["ts"] + pd.Timedelta(milliseconds=500)), shifted)
+    out = tmp_path / "ev"
+    assert run(*desk_twin("evaluate", shifted, "--models", "ref,triv", "--out", str(out))) == 0
+    est = pd.read_csv(out / "estimates.csv", dtype={"ts": str})
+    assert len(est) and est["ts"].str.endswith(".5+00:00").all()
+    truth = read_history(shifted)
+    assert set(pd.to_datetime(est["ts"], format="ISO8601")) <= set(
+        truth.loc[truth["sensor"] == "room/temp", "ts"])

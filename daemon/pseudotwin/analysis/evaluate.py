@@ -22,7 +22,7 @@ import pandas as pd
 from pseudotwin.analysis.replay import ESTIMATE, REF_PREFIX, replay_estimates
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.core.horizon import OperatingHours
-from pseudotwin.core.series import require_sensors
+from pseudotwin.core.series import iso_utc, require_sensors
 from pseudotwin.core.spec import TwinSpec
 from pseudotwin.core.thinning import Thinning
 from pseudotwin.errors import DataError
@@ -145,7 +145,7 @@ def write_outputs(
     out.mkdir(parents=True, exist_ok=True)
     ev.artifact.save(out / "artifact.json")
     est = ev.estimates.copy()
-    est["ts"] = pd.DatetimeIndex(est["ts"]).tz_convert("UTC").strftime("%Y-%m-%dT%H:%M:%S+00:00")
+    est["ts"] = iso_utc(est["ts"])  # a sub-second reading keeps its stamp: it joins back
     est.to_csv(out / "estimates.csv", index=False, float_format="%.6g")
     ev.daily.to_csv(out / "daily.csv", index=False, float_format="%.4f")
     ev.monthly.to_csv(out / "monthly.csv", index=False, float_format="%.4f")

@@ -230,6 +230,13 @@ def _overlong_row(path: Path) -> str | None:
     return None
 
 
+def iso_utc(ts: pd.Series | pd.DatetimeIndex) -> pd.Index:
+    """ISO 8601 UTC texts of aware timestamps, fractions of a second kept as far as they go
+    (``2012-03-14T10:00:00+00:00``, ``2012-03-14T10:00:00.5+00:00``)."""
+    text = pd.DatetimeIndex(ts).tz_convert("UTC").strftime("%Y-%m-%dT%H:%M:%S.%f")
+    return text.str.replace(r"\.?0+$", "", regex=True).str.rstrip(".") + "+00:00"
+
+
 def write_history(df: pd.DataFrame, path: str | Path, append: bool = False) -> None:
     """Write a long frame as canonical CSV (ISO 8601 UTC timestamps), or as Parquet (aware
     UTC timestamps) when ``path`` ends in .parquet or .pq, as :func:`read_history` reads.
@@ -243,8 +250,7 @@ def write_history(df: pd.DataFrame, path: str | Path, append: bool = False) -> N
         frame.to_parquet(path, index=False)
         return
     out = df.loc[:, list(COLUMNS)].copy()
-    out["ts"] = pd.DatetimeIndex(out["ts"]).tz_convert("UTC").strftime("%Y-%m-%dT%H:%M:%S.%f")
-    out["ts"] = out["ts"].str.replace(r"\.?0+$", "", regex=True).str.rstrip(".") + "+00:00"
+    out["ts"] = iso_utc(out["ts"])
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fresh = not append or not Path(path).exists() or Path(path).stat().st_size == 0
     out.to_csv(path, index=False, float_format="%.6g", mode="w" if not append else "a",
