@@ -24,7 +24,7 @@ from daemon_support import (
 from fake_cratedb import FakeCrateDB
 from pseudotwin.analysis.evaluate import replay_estimates
 from pseudotwin.cli import main
-from pseudotwin.core.series import read_history
+from pseudotwin.core.series import read_history, write_history
 from pseudotwin.edge.clock import ReplayClock
 from pseudotwin.edge.recorder import Recorder, Spool
 from pseudotwin.edge.service import Service
@@ -240,6 +240,37 @@ def test_backfill_redo_estimates_a_day_again_once_its_readings_are_imported(
     redone, whole = backfilled("partial", "--redo"), backfilled("whole")
     assert not redone.equals(night_only)
     pd.testing.assert_frame_equal(redone, whole)
+
+
+def test_train_from_the_store_equals_train_from_a_file_of_the_same_readings(
+        tmp_path: Path) -> None:
+    """The first training day's carry-over (a reference silent overnight, its last evening
+    reading held) and covariates that miss whole days: from the store as from the file
+    (the store's first day started without a carry-over, and it required covariates on a
+    training day that a file does not)."""
+    df = sml()
+    df = df[df["ts"] < "2012-03-24T23:00Z"]
+    local = df["ts"].dt.tz_convert("Europe/Madrid")
+    silent = (df["sensor"] == REF) & (local.dt.hour < 9)  # a COV sensor quiet overnight
+    co2_gone = (df["sensor"] == "dining/co2") & local.dt.day.isin([15, 16])
+    df = df[~silent & ~co2_gone]
+    csv, db = tmp_path / "h.csv", tmp_path / "h.db"
+    write_history(df, csv)
+    with open_store(str(db)) as store:
+        store.write_readings(read_history(csv))
+    arts = {}
+    for source in (["--history", str(csv)], ["--store", str(db)]):
+        out = tmp_path / f"{source[0][2:]}.json"
+        assert main(["--log-level", "WARNING", "train", *source, "--references", REF,
+                     "--target", TARGET, "--covariates", "dining/co2", "--quantity",
+                     "temperature", "--timezone", "Europe/Madrid", "--train-start",
+                     "2012-03-15", "--models", "ref,triv,triv-cov", "--out", str(out)]) == 0
+        arts[source[0]] = json.loads(out.read_text())
+    a, b = arts["--history"], arts["--store"]
+    assert a["training"]["days"] == b["training"]["days"]
+    assert a["training"]["days"][:2] == ["2012-03-15", "2012-03-16"]  # without their CO2
+    assert a["models"] == b["models"]
+    assert a["validation"]["scores"] == b["validation"]["scores"]
 
 
 def test_train_from_the_store_picks_full_days_itself(sml_store: Path, tmp_path: Path,

@@ -332,6 +332,13 @@ def train_validated(
     ), v
 
 
+def first_full_day(first: dt.datetime, hours: OperatingHours) -> dt.date:
+    """The first local day whose data, beginning at ``first``, covers its init phase: the
+    day of ``first``, or the next when the data begins mid-day."""
+    day = hours.day_of(first)
+    return day + dt.timedelta(days=1) if hours.hours_of(first) > hours.init_start else day
+
+
 def history_from_store(
     store: Store,
     sensors: Sequence[str],
@@ -339,15 +346,18 @@ def history_from_store(
     start: dt.date | None = None,
     n_days: int = 5,
     skip_days: Collection[dt.date] = (),
+    extra: Sequence[str] = (),
 ) -> tuple[pd.DataFrame, dt.date]:
-    """The readings needed to train on the first ``n_days`` usable days in the store, none of
-    ``skip_days``.
+    """The readings needed to train on the first ``n_days`` usable days in the store (every
+    one of ``sensors`` reports in operating hours), none of ``skip_days``; the ``extra``
+    sensors' (covariates') readings come along, whether or not they report, as
+    :func:`choose_training_days` takes them from a file.
 
-    Streams the store one day at a time from ``start`` (default: the first stored reading of
-    the sensors) and keeps only the usable days and the day before each (its carry-over), so a
-    year of history is never loaded. A usable day of ``skip_days`` is kept too, so that
-    training can say it left it out. Returns the frame and the first usable day, a left-out
-    one included.
+    Streams the store one day at a time from ``start`` (default: the first full day of the
+    sensors' readings) and keeps only the usable days and the day before each (its
+    carry-over, the day before the first included), so a year of history is never loaded.
+    A usable day of ``skip_days`` is kept too, so that training can say it left it out.
+    Returns the frame and the first usable day, a left-out one included.
     """
     # One sensor without any reading (a typo, a sensor never recorded) is named, rather than
     # counted as too few usable days.
@@ -355,18 +365,18 @@ def history_from_store(
         raise DataError(f"the history store has no readings of {', '.join(silent)}")
     span = store.reading_range(list(sensors))
     assert span is not None  # every sensor has readings
-    first = start or hours.day_of(span[0])
-    if start is None and hours.hours_of(span[0]) > hours.init_start:
-        first += dt.timedelta(days=1)  # the data begins mid-day: that day is not a full one
+    first = start or first_full_day(span[0], hours)
     last = hours.day_of(span[1])
     kept: list[pd.DataFrame] = []
     chosen: list[dt.date] = []
     left_out: list[dt.date] = []
     prev: pd.DataFrame | None = None
-    for day, frame in store.iter_days(list(sensors), first, last, hours.timezone):
+    read = [*sensors, *extra]
+    # From the day before the first: its evening is the first day's carry-over, as in a file.
+    for day, frame in store.iter_days(read, first - dt.timedelta(days=1), last, hours.timezone):
         both = frame if prev is None else pd.concat([prev, frame], ignore_index=True)
-        if not frame.empty and day_is_usable(split_days(both, list(sensors), hours, [day])[0],
-                                             sensors, hours):
+        if day >= first and not frame.empty and day_is_usable(
+                split_days(both, read, hours, [day])[0], sensors, hours):
             kept.append(both)
             (left_out if day in skip_days else chosen).append(day)
             if len(chosen) == n_days:

@@ -234,12 +234,13 @@ def _training_history(a: argparse.Namespace, hours: OperatingHours,
                       cfg: ServiceConfig | None) -> tuple[pd.DataFrame, dt.date]:
     """The history to train on and the first candidate day: --history, else --store, else
     the store of --config's configuration ``cfg``."""
+    from pseudotwin.analysis.training import first_full_day
     from pseudotwin.core.series import read_history
 
     if a.history is not None:
         df = read_history(a.history)
-        if a.train_start is None:
-            return df, hours.day_of(df["ts"].min().to_pydatetime())
+        if a.train_start is None:  # as from the store: a day the data begins in is not full
+            return df, first_full_day(df["ts"].min().to_pydatetime(), hours)
         return df, a.train_start
     from pseudotwin.analysis.training import history_from_store
     from pseudotwin.history.store import open_store
@@ -252,8 +253,8 @@ def _training_history(a: argparse.Namespace, hours: OperatingHours,
             raise ConfigError(f"{a.config}: no store configured in [service] (or give "
                               "--history or --store)")
     with open_store(url, existing=True) as store:
-        return history_from_store(store, [*a.references, *a.covariates, a.target], hours,
-                                  a.train_start, a.train_days, a.skip_days)
+        return history_from_store(store, [*a.references, a.target], hours, a.train_start,
+                                  a.train_days, a.skip_days, a.covariates)
 
 
 def _train_thinning(a: argparse.Namespace, cfg: ServiceConfig | None) -> Thinning:
