@@ -112,7 +112,8 @@ def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
                    help="selects the default kernel: RQ for temperature, Matérn 5/2 for CO2")
     p.add_argument("--train-start", required=not train, type=_date,
                    help="first candidate training day YYYY-MM-DD (local)"
-                        + ("; default: the first day of the data" if train else ""))
+                        + ("; default: the first full day of the data (not the one it "
+                           "begins in after the init phase starts)" if train else ""))
     p.add_argument("--train-days", type=int, default=5,
                    help="training days: the first N days from --train-start on which every "
                         "sensor reports (default 5; at least 3, unless --allow-unvalidated)")
