@@ -79,6 +79,27 @@ def test_held_out_weights_never_see_the_day_they_score() -> None:
     assert got["slope"].to_numpy() == pytest.approx(0.05)  # the members' mean
 
 
+def test_a_member_failing_in_a_fold_scores_the_blend_as_the_live_twin_answers() -> None:
+    """Live, a blend whose member fails numerically publishes TRIV's answer with quality
+    fallback (it cannot combine without the member); validation must score that, not mix
+    the member's fallback row (TRIV's value) in at the member's weight."""
+    days = [dt.date(2024, 1, d) for d in range(1, 4)]
+    rows = []
+    for d in days:
+        for k in range(4):
+            ts = pd.Timestamp(f"{d} 10:00", tz="UTC") + pd.Timedelta(minutes=15 * k)
+            failed = d == days[-1] and k == 2
+            for model, err in (("a", 0.1), ("b", 0.3)):
+                quality = "fallback" if failed and model == "a" else "ok"
+                value = 25.0 if quality == "fallback" else 20.0 + err  # TRIV's answer: 25
+                rows.append({"ts": ts, "model": model, "value": value, "std": 0.2,
+                             "truth": 20.0, "quality": quality, "slope": 0.0, "day": d})
+    got = _blend_rows(pd.DataFrame(rows), ["a", "b"])
+    hit = got[got["quality"] == "fallback"]
+    assert len(hit) == 1 and hit["value"].iloc[0] == 25.0 and hit["std"].iloc[0] == 0.2
+    assert (got.loc[got["quality"] == "ok", "value"] < 20.3).all()
+
+
 def test_training_builds_the_blend_from_validation(art: Artifact) -> None:
     scores = art.validation["scores"]
     singles = {k: scores[k]["nrmse_pct"] for k in ("ref", "triv", "triv-shrunk")}

@@ -43,6 +43,7 @@ from pseudotwin.live import metrics
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.calibration import SigmaCalibration
 from pseudotwin.live.envelope import Envelope
+from pseudotwin.live.twin import Quality
 from pseudotwin.models import blend
 from pseudotwin.models.base import Estimate, TrainingSet, TwinModel
 from pseudotwin.models.registry import MODELS, build
@@ -471,6 +472,10 @@ def _blend_rows(held: pd.DataFrame, members: Sequence[str],
                 continue  # a member without an estimate here: the blend has none either
             e = blend.combine(w, {k: Estimate(v, s) for k, v, s in
                                   zip(g["model"], g["value"], g["std"], strict=True)})
+            if (failed := g[g["quality"] == Quality.FALLBACK.value]).shape[0]:
+                # A member failed numerically: its row holds TRIV's answer, and the live
+                # blend, which cannot combine without it, publishes TRIV's answer alone.
+                e = Estimate(float(failed["value"].iloc[0]), float(failed["std"].iloc[0]))
             bad = g.loc[g["quality"] != "ok", "quality"]
             row = {"ts": ts, "value": e.value, "std": e.std,
                    "truth": float(g["truth"].iloc[0]),
