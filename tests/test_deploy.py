@@ -18,6 +18,7 @@ import re
 import shutil
 import sqlite3
 import subprocess
+import sys
 import tomllib
 import uuid
 from collections.abc import Callable, Iterator
@@ -470,3 +471,26 @@ def test_sql_runs_on_a_real_cratedb() -> None:
             store._run(f"DROP TABLE IF EXISTS {table}")  # type: ignore[attr-defined]
         store.close()
 
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="no systemd-analyze")
+def test_the_systemd_units_verify_and_wait_for_readiness_however_long(tmp_path: Path) -> None:
+    """systemd-analyze checks every directive (the executable pointed at this checkout's, the
+    units' own path being the install's); a Type=notify unit waits for READY=1 without a
+    start timeout: with the broker down at boot, the default 90 s failed the start and
+    restarted the unit in a loop."""
+    exe = Path(sys.executable).parent / "pseudotwin"  # this venv's
+    assert exe.exists()
+    units = sorted(DEPLOY.glob("*.service"))
+    assert [u.name for u in units] == ["pseudotwin-bridge.service",
+                                       "pseudotwin-recorder.service", "pseudotwin.service"]
+    for unit in units:
+        text = unit.read_text(encoding="utf-8")
+        assert "ExecStart=/opt/pseudotwin/bin/pseudotwin " in text
+        if "Type=notify" in text:
+            assert "\nTimeoutStartSec=infinity\n" in text, unit.name
+        (tmp_path / unit.name).write_text(text.replace("/opt/pseudotwin/bin/pseudotwin",
+                                                       str(exe)), encoding="utf-8")
+    done = subprocess.run(["systemd-analyze", "verify", *map(str, sorted(tmp_path.iterdir()))],
+                          capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 0 and not done.stderr.strip(), done.stderr
