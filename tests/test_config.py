@@ -619,6 +619,20 @@ def test_check_config_reports_missing_ca_file_and_state_dir_that_is_a_file(
     assert has(problems, "service.state_dir", "not a directory")
 
 
+def test_check_config_refuses_a_ca_file_that_holds_no_certificate(tmp_path: Path) -> None:
+    """paho's tls_set raised ssl.SSLError at start (a traceback, exit 1: systemd restarted the
+    daemon in a loop) while check-config passed the file."""
+    doc = base_doc()
+    doc["broker"].update(tls=True, ca_file="ca.pem")
+    (tmp_path / "ca.pem").write_text("not a certificate\n")
+    assert has(problems_of(tmp_path, doc, check=True), "broker.ca_file",
+               "holds no usable CA certificate (PEM expected")
+    system = Path("/etc/ssl/certs/ca-certificates.crt")  # Debian's bundle: real PEM CAs
+    if system.is_file():
+        shutil.copy(system, tmp_path / "ca.pem")
+        assert not has(problems_of(tmp_path, doc, check=True), "broker.ca_file")
+
+
 def test_artifact_check_hook_gets_each_existing_twin(tmp_path: Path) -> None:
     path = write(tmp_path, base_doc())
     (tmp_path / "artifacts").mkdir()

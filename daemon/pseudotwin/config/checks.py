@@ -9,6 +9,7 @@ source is readable, and the state dir is not a file and could be created.
 from __future__ import annotations
 
 import os
+import ssl
 from pathlib import Path
 from typing import Any
 
@@ -28,8 +29,15 @@ def broker_problems(broker: BrokerConfig) -> Found:
     problem = broker.password_problem()
     if problem is not None:
         found.append(problem)
-    if broker.ca_file is not None and not broker.ca_file.is_file():
-        found.append(("ca_file", f"{broker.ca_file} does not exist"))
+    if broker.ca_file is not None:
+        if not broker.ca_file.is_file():
+            found.append(("ca_file", f"{broker.ca_file} does not exist"))
+        else:
+            try:  # as paho's tls_set will load it: a bad file must not crash the start
+                ssl.create_default_context(cafile=str(broker.ca_file))
+            except (ssl.SSLError, OSError, ValueError) as exc:
+                found.append(("ca_file", f"{broker.ca_file} holds no usable CA certificate "
+                                         f"(PEM expected; {getattr(exc, 'reason', None) or exc})"))
     return found
 
 
