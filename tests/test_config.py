@@ -268,6 +268,7 @@ BAD: list[tuple[str, Mutation, str, str]] = [
     ("day-order", both(set_("service", "day_start", "19:00"), set_("service", "day_end", "08:00")),
      "service.day_start", "before day_end"),
     ("init-too-long", set_("service", "init_minutes", 600), "service.init_minutes", "init"),
+    ("init-negative", set_("service", "init_minutes", -30), "service.init_minutes", "≥ 0"),
     ("slot-not-dividing", set_("service", "slot_minutes", 7), "service.slot_minutes", "divide"),
     ("publish-not-dividing", set_("service", "publish_every_minutes", 7),
      "service.publish_every_minutes", "does not divide a day"),

@@ -390,7 +390,8 @@ def _suggest_tz(name: str) -> str:
 def _hours_field(message: str) -> str:
     """Best location for an OperatingHours error, by the first field its message names."""
     candidates = {"day_start": "day_start", "day_end": "day_end", "init phase": "init_minutes",
-                  "slot_minutes": "slot_minutes", "time zone": "timezone"}
+                  "init_minutes": "init_minutes", "slot_minutes": "slot_minutes",
+                  "time zone": "timezone"}
     hits = [(message.find(k), v) for k, v in candidates.items() if k in message]
     return min(hits)[1] if hits else "day_start"
 
