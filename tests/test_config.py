@@ -634,6 +634,23 @@ def test_check_config_refuses_a_ca_file_that_holds_no_certificate(tmp_path: Path
         assert not has(problems_of(tmp_path, doc, check=True), "broker.ca_file")
 
 
+def test_a_sqlite_url_is_a_path_from_the_config_folder_and_its_folder_is_checked(
+        tmp_path: Path) -> None:
+    """A plain path was resolved against the config's folder, ``sqlite:///rel.db`` against
+    the working directory (/ under systemd), and its missing folder went unnoticed."""
+    folder = tmp_path / "etc"
+    folder.mkdir()
+    doc = base_doc()
+    for url, want in (("sqlite:///history.db", folder / "history.db"),
+                      ("history.db", folder / "history.db"),
+                      (f"sqlite:///{tmp_path}/abs.db", tmp_path / "abs.db")):
+        doc["service"]["store"] = url
+        assert load_config(write(folder, doc)).store == str(want), url
+    doc["service"]["store"] = "sqlite:///nodir/history.db"
+    assert has(problems_of(folder, doc, check=True), "service.store",
+               f"directory {folder / 'nodir'} does not exist")
+
+
 def test_artifact_check_hook_gets_each_existing_twin(tmp_path: Path) -> None:
     path = write(tmp_path, base_doc())
     (tmp_path / "artifacts").mkdir()

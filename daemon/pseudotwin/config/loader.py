@@ -256,7 +256,12 @@ class Loader:
                 self.add("service.store", "credentials do not belong in the store URL; set "
                                           "PSEUDOTWIN_CRATE_USER / PSEUDOTWIN_CRATE_PASSWORD")
                 return None
-            return value
+            if value.startswith("sqlite:///") and not is_memory_url(value):
+                # The file's path, as a path is taken: a relative one from this file's
+                # folder (not the working directory, / under systemd), its folder checked.
+                value = value[len("sqlite:///"):]
+            else:
+                return value
         return str(self.base_dir / value)
 
     def load_hours(self, table: dict[str, Any]) -> OperatingHours | None:
