@@ -24,6 +24,7 @@ from daemon_support import (
 from fake_cratedb import FakeCrateDB
 from pseudotwin.analysis.evaluate import replay_estimates
 from pseudotwin.cli import main
+from pseudotwin.config import load_config
 from pseudotwin.core.series import read_history, write_history
 from pseudotwin.edge.clock import ReplayClock
 from pseudotwin.edge.recorder import Recorder, Spool
@@ -111,6 +112,43 @@ def test_rows_the_store_refuses_one_by_one_go_to_a_file_and_block_nothing(
             crate.fail_row = None  # the cause fixed
             assert main(["import", str(rec.refused_path), "--store", crate.url]) == 0
             assert [t.to_pydatetime() for t in store.read_readings([REF])["ts"]] == ts
+
+
+def test_a_retained_reading_without_a_timestamp_is_not_taken_again_at_each_subscribe(
+    mosquitto, desk_artifact, tmp_path: Path
+) -> None:
+    """A bare number published with retain comes again at every subscribe: stamped on
+    arrival it was an old value taken in as new at each reconnect, and a dead sensor never
+    turned stale. Daemon and recorder reject it as `retained`; unretained ones are readings."""
+    cfg_path = write_config(tmp_path, mosquitto.port, desk_artifact,
+                            store=str(tmp_path / "history.db"))
+    text = cfg_path.read_text(encoding="utf-8").replace(
+        'topic = "house/dining/temp"', 'topic = "house/dining/temp"\nformat = "number"')
+    cfg_path.write_text(text, encoding="utf-8")
+    cfg = load_config(cfg_path)
+    pub = publisher(mosquitto.port, "retaining-panel")
+    pub.publish("house/dining/temp", b"17.0", qos=1, retain=True).wait_for_publish(10)
+    for _ in range(2):  # a start, and a restart on the same state
+        svc = Service(cfg, ReplayClock(HOURS.at(DAY, 9.0), 1.0))
+        svc.start(wait_connected=15)
+        rec = Recorder(cfg, retry_seconds=0.2)
+        rec.start(wait_connected=15)
+        wait_for(lambda s=svc, r=rec: s.rejections.counts.get((REF, "retained")) == 1
+                 and r.rejections.counts.get((REF, "retained")) == 1,
+                 what="the retained value rejected by both")
+        assert not [p for p in svc.twins["desk"].twin.window if p.sensor == REF]
+        rec.stop()
+        svc.stop()
+    svc = Service(cfg, ReplayClock(HOURS.at(DAY, 9.0), 1.0))
+    svc.start(wait_connected=15)
+    try:
+        pub.publish("house/dining/temp", b"17.2", qos=1).wait_for_publish(10)
+        wait_for(lambda: [p.value for p in svc.twins["desk"].twin.window
+                          if p.sensor == REF] == [17.2], what="an unretained bare number taken")
+    finally:
+        svc.stop()
+        pub.publish("house/dining/temp", b"", qos=1, retain=True).wait_for_publish(10)
+        pub.loop_stop()
 
 
 def test_a_spool_line_cut_short_costs_no_later_reading(tmp_path: Path) -> None:

@@ -222,10 +222,26 @@ def test_rejections(payload: bytes, sensor: SensorConfig, reason: str) -> None:
 
 
 def test_every_reason_code_is_exercised_and_stable() -> None:
-    assert {r for _, _, _, r in REJECTIONS} == {reason.value for reason in Reason}
+    # retained: test_a_retained_message_is_a_reading_only_with_its_own_timestamp
+    assert {r for _, _, _, r in REJECTIONS} | {"retained"} == {reason.value for reason in Reason}
     assert {reason.value for reason in Reason} == {
         "not-json", "missing-key", "not-a-number", "non-finite", "out-of-range", "future",
-        "too-old", "too-large", "bad-timestamp"}
+        "too-old", "too-large", "bad-timestamp", "retained"}
+
+
+def test_a_retained_message_is_a_reading_only_with_its_own_timestamp() -> None:
+    """Delivered again at every subscribe: stamped on arrival it would be an old value
+    taken in as new; with a timestamp it is the same reading again (a duplicate)."""
+    def retained(payload: bytes, sensor: SensorConfig) -> Reading:
+        return parse_payload(sensor, payload, ARRIVAL, max_skew=SKEW, not_before=WINDOW_START,
+                             retained=True)
+
+    with pytest.raises(Rejected) as info:
+        retained(b"612", NUMBER_SENSOR)
+    assert info.value.reason == "retained" and "unknown time" in info.value.message
+    r = retained(b'{"ts": "2024-05-13T08:14:30Z", "value": 21.5}', JSON_SENSOR)
+    assert r.ts == datetime(2024, 5, 13, 8, 14, 30, tzinfo=UTC)
+    assert parse(b"612", sensor=NUMBER_SENSOR).ts == ARRIVAL  # not retained: a reading now
 
 
 def test_messages_name_the_problem() -> None:

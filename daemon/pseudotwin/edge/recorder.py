@@ -151,7 +151,7 @@ class Recorder:
 
     def _on_message(self, client: mqtt.Client, userdata: Any, msg: mqtt.MQTTMessage) -> None:
         item = (self.cfg.sensor_for_topic(msg.topic), msg.payload, self.clock.now(),
-                (self._gen, msg.mid, msg.qos))
+                (self._gen, msg.mid, msg.qos), bool(msg.retain))
         while not self.stop_event.is_set():
             try:
                 self.queue.put(item, timeout=1.0)
@@ -166,14 +166,15 @@ class Recorder:
 
     # -- the worker -----------------------------------------------------------------------
     def _parse(self, sensor: SensorConfig | None, payload: bytes,
-               arrival: dt.datetime) -> Reading | None:
+               arrival: dt.datetime, retained: bool = False) -> Reading | None:
         if sensor is None:
             return None
         day = self.cfg.hours.day_of(arrival)
         try:
             return parse_payload(sensor, payload, arrival, max_skew=self.cfg.max_skew,
                                  not_before=OLDEST,  # history keeps late readings too
-                                 on_ahead=lambda s: self.rejections.ahead(sensor.id, s, day))
+                                 on_ahead=lambda s: self.rejections.ahead(sensor.id, s, day),
+                                 retained=retained)
         except Rejected as rej:
             self.rejections.add(sensor.id, rej, day)
             return None
@@ -310,8 +311,8 @@ class Recorder:
                 self._guarded_flush(batch, tokens)
                 return
             if item is not None:
-                sensor, payload, arrival, token = item
-                r = self._parse(sensor, payload, arrival)
+                sensor, payload, arrival, token, retained = item
+                r = self._parse(sensor, payload, arrival, retained)
                 if r is not None:
                     batch.append(r)
                     tokens.append(token)

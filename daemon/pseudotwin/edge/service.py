@@ -303,7 +303,7 @@ class Service:
         sensor = self.cfg.sensor_for_topic(msg.topic)
         # perf_counter: the arrival the reading-to-estimate latency counts from.
         item = ("msg", sensor, msg.topic, msg.payload, self.clock.now(), time.perf_counter(),
-                (self._gen, msg.mid, msg.qos))
+                (self._gen, msg.mid, msg.qos), bool(msg.retain))
         while True:
             try:
                 self.queue.put(item, timeout=1.0)
@@ -536,11 +536,12 @@ class Service:
         good: list[tuple[Reading, tuple[int, int, int], float, float]] = []
         for i, item in enumerate(items):
             t0 = time.perf_counter()
-            _, sensor, topic, payload, arrival, arrived, token = item
+            _, sensor, topic, payload, arrival, arrived, token, retained = item
             try:
                 # the rest of the batch is still waiting, as if in the queue
                 r = self._parse(sensor, topic, payload, arrival, token,
-                                backlog=self.queue.qsize() + len(items) - i - 1)
+                                backlog=self.queue.qsize() + len(items) - i - 1,
+                                retained=retained)
             except Exception:  # noqa: BLE001 — counted, acknowledged: it must not come back
                 log.exception("unexpected error while handling a msg event")
                 r = None
@@ -583,8 +584,8 @@ class Service:
                 self.metrics.reading_latency.observe(t1 - arrived)
 
     def _parse(self, sensor: SensorConfig | None, topic: str, payload: bytes,
-               arrival: dt.datetime, token: tuple[int, int, int], *, backlog: int
-               ) -> Reading | None:
+               arrival: dt.datetime, token: tuple[int, int, int], *, backlog: int,
+               retained: bool = False) -> Reading | None:
         """The message's reading, or None (rejected and counted; the caller acks).
         backlog: messages waiting behind this one (the health's flood detection)."""
         if sensor is None:
@@ -594,7 +595,8 @@ class Service:
         try:
             r = parse_payload(sensor, payload, arrival, max_skew=self.cfg.max_skew,
                               not_before=self._not_before(day),
-                              on_ahead=lambda s: self.rejections.ahead(sensor.id, s, day))
+                              on_ahead=lambda s: self.rejections.ahead(sensor.id, s, day),
+                              retained=retained)
         except Rejected as rej:
             self.rejections.add(sensor.id, rej, day)
             return None

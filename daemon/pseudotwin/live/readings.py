@@ -82,6 +82,7 @@ class Reason(StrEnum):
     OUT_OF_RANGE = "out-of-range"
     FUTURE = "future"
     TOO_OLD = "too-old"
+    RETAINED = "retained"
 
 
 class Rejected(Exception):
@@ -187,6 +188,7 @@ def parse_payload(
     max_skew: timedelta,
     not_before: datetime | None,
     on_ahead: Callable[[float], None] | None = None,
+    retained: bool = False,
 ) -> Reading:
     """The reading in ``payload`` for ``sensor``, or :class:`Rejected`.
 
@@ -196,6 +198,9 @@ def parse_payload(
         None accepts any age.
     on_ahead: called with how far [s] the timestamp lay after ``arrival`` when that was
         ``AHEAD_NOTICE_S`` or more (less is the jitter of clocks kept in step).
+    retained: the broker kept the message and delivered it on subscribing: a payload
+        without a timestamp is then an old value of unknown time, not a reading now
+        (rejected as ``retained``; every reconnect would otherwise take it in again).
     """
     _require_aware("arrival", arrival)
     _require_aware("not_before", not_before)
@@ -229,6 +234,10 @@ def parse_payload(
         if sensor.ts_key:
             ts = _timestamp(doc[sensor.ts_key], sensor.ts_key)
     if ts is None:
+        if retained:
+            raise Rejected(Reason.RETAINED, "a retained message without a timestamp: sent at "
+                                            "some earlier, unknown time (publish readings "
+                                            "unretained, or with a timestamp)")
         ts = arrival.astimezone(UTC)
 
     if not sensor.accepts(value):
