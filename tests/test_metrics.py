@@ -28,6 +28,9 @@ def test_nrmse_dmax_and_r_on_a_hand_example() -> None:
     assert np.isnan(metrics.pearson_r([1.0, 1.0, 1.0], [1.0, 2.0, 3.0]))  # constant
     assert np.isnan(metrics.pearson_r([1.0, 2.0], [1.0, 2.0]))  # too few points
     assert np.isnan(metrics.nrmse_pct([], []))
+    # constant series: no correlation (22.3's float std is 4e-15, and r came out 0.0)
+    assert np.isnan(metrics.pearson_r(np.arange(7.0), [22.3] * 7))
+    assert np.isnan(metrics.pearson_r([21.7] * 7, np.arange(7.0)))
 
 
 def _crps_by_integral(y: float, mu: float, sigma: float) -> float:

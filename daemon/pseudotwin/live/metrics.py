@@ -73,7 +73,8 @@ def dmax_pct(truth: ArrayLike, est: ArrayLike) -> float:
 def pearson_r(a: ArrayLike, b: ArrayLike) -> float:
     """Pearson correlation; NaN with fewer than 3 points or a constant series."""
     x, y = _arrays(a, b)
-    if x.size < 3 or np.std(x) == 0 or np.std(y) == 0:
+    # np.ptp, not np.std: a constant series of 22.3 has a std of 4e-15, not 0
+    if x.size < 3 or np.ptp(x) == 0 or np.ptp(y) == 0:
         return NAN
     return float(np.corrcoef(x, y)[0, 1])
 
