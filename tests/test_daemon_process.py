@@ -152,3 +152,27 @@ def test_check_config_reports_an_artifact_that_does_not_fit(
                        timeout=60)
     assert p.returncode == 1
     assert "quantity 'co2' differs from the artifact's 'temperature'" in p.stderr
+
+
+def test_sighup_stops_the_daemon_cleanly_and_says_it_reloads_nothing(
+    mosquitto, desk_artifact, tmp_path: Path
+) -> None:
+    """A terminal closed under a foreground run sent SIGHUP, which killed the daemon without
+    a log line, a clean stop or its retained offline status."""
+    cfg = write_config(tmp_path, mosquitto.port, desk_artifact)
+    sock_path = tmp_path / "notify.sock"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(sock_path))
+    sock.settimeout(20)
+    log = tmp_path / "daemon.log"
+    d = start_daemon(cfg, log, {"NOTIFY_SOCKET": str(sock_path)})
+    try:
+        assert sock.recv(256).decode() == "READY=1"
+        d.send_signal(signal.SIGHUP)
+        assert d.wait(30) == 0
+    finally:
+        if d.poll() is None:
+            d.kill()
+        sock.close()
+    text = log.read_text()
+    assert "received SIGHUP; stopping (SIGHUP reloads nothing" in text and "stopped:" in text

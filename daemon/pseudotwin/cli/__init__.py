@@ -18,8 +18,10 @@ from pseudotwin import __version__
 from pseudotwin.cli.util import (
     EX_CONFIG,
     EX_TEMPFAIL,
+    STOP_SIGNALS,
     config_error_text,
     load_named_config,
+    stop_signal_line,
     whole_number,
 )
 from pseudotwin.config.model import LOG_LEVELS
@@ -510,7 +512,8 @@ def _load_service_config(path: Path) -> ServiceConfig:
 
 
 def _serve(process: Service | Recorder) -> int:
-    """Start a long-running process (daemon, recorder) and stop it on SIGTERM/SIGINT."""
+    """Start a long-running process (daemon, recorder) and stop it on SIGTERM, SIGINT or
+    SIGHUP."""
     import signal
     import threading
 
@@ -523,11 +526,11 @@ def _serve(process: Service | Recorder) -> int:
     done = threading.Event()
 
     def on_signal(signum: int, frame: object) -> None:
-        log.info("received %s; stopping", signal.Signals(signum).name)
+        log.info("%s", stop_signal_line(signum))
         done.set()
 
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, on_signal)
     freeze_long_lived()  # the loaded twins live as long as the process
     watch_full_collections()
     try:
@@ -738,7 +741,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("run", help="run the live daemon (MQTT in, pseudo-measurements out)",
                        description="Run the twins of a configuration against the MQTT broker "
-                                   "until SIGTERM/SIGINT. Exit status 78 on a configuration "
+                                   "until SIGTERM/SIGINT/SIGHUP. Exit status 78 on a configuration "
                                    "error (systemd does not restart it then).")
     r.add_argument("--config", required=True, type=Path, help="TOML configuration file")
     r.add_argument("--replay-from", type=_aware, metavar="INSTANT",

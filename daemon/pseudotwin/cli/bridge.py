@@ -1,5 +1,5 @@
 """``pseudotwin bridge --config FILE``: publish PLC symbols (ADS notifications) as MQTT
-readings until SIGTERM/SIGINT (the bridge itself is :mod:`pseudotwin.edge.bridge`)."""
+readings until SIGTERM/SIGINT/SIGHUP (the bridge itself is :mod:`pseudotwin.edge.bridge`)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import threading
 from collections.abc import Sequence
 from pathlib import Path
 
-from pseudotwin.cli.util import EX_CONFIG
+from pseudotwin.cli.util import EX_CONFIG, STOP_SIGNALS, stop_signal_line
 from pseudotwin.config import ConfigProblems
 from pseudotwin.config.model import LOG_LEVELS
 from pseudotwin.edge.bridge import Bridge, load_bridge_config
@@ -30,7 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
             "of the symbols in [[plc.symbols]] go to their sensors' MQTT topics, QoS 1, "
             "time-stamped by the PLC. Reconnects by itself when the PLC, the route or the "
             "broker drops; the PLC state is polled every plc.poll_seconds because ADS has no "
-            "heartbeat. Runs until SIGTERM/SIGINT."
+            "heartbeat. Runs until SIGTERM/SIGINT/SIGHUP."
         ),
         epilog=(
             "Exit status: 0 stopped by a signal; 77 the broker refused the credentials; 78 "
@@ -77,13 +77,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     bridge = Bridge(cfg)
 
     def on_signal(signum: int, frame: object) -> None:
-        log.info("received %s; stopping", signal.Signals(signum).name)
+        log.info("%s", stop_signal_line(signum))
         bridge.request_stop()
 
     in_main = threading.current_thread() is threading.main_thread()
     previous = {}
     if in_main:
-        for sig in (signal.SIGTERM, signal.SIGINT):
+        for sig in STOP_SIGNALS:
             previous[sig] = signal.signal(sig, on_signal)
     try:
         bridge.run()

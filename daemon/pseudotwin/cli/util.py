@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -15,6 +16,17 @@ if TYPE_CHECKING:
 
 EX_CONFIG = 78  # sysexits: systemd's RestartPreventExitStatus keys on it
 EX_TEMPFAIL = 75  # sysexits: try again later (another process holds the state dir)
+
+#: Signals that stop a long-running process cleanly. SIGHUP too: a terminal closed under a
+#: foreground run killed it without a line or a clean stop; it reloads nothing.
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+
+
+def stop_signal_line(signum: int) -> str:
+    """The log line of a stop signal."""
+    name = signal.Signals(signum).name
+    return f"received {name}; stopping" + (" (SIGHUP reloads nothing: the configuration is "
+                                           "read at start)" if signum == signal.SIGHUP else "")
 
 
 def config_error_text(path: Path, exc: ConfigError) -> str:
