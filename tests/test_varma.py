@@ -457,3 +457,12 @@ def test_unconverged_varmax_falls_back(
     assert m.model_name_ == "var-fallback" and not m.converged_
     assert reason in m.fit_message_ and "least squares" in m.fit_message_
     np.testing.assert_array_equal(m.params_, fallback.params_)
+
+
+def test_no_reference_reading_yet_gives_no_estimate(varma: VarmaModel) -> None:
+    """The filter's prior is the typical day, not a measurement: without any reference
+    reading (a reference that never reported) VARMA published one as the twin's baseline."""
+    est = varma.start_day(TEST_DAYS[0])
+    assert math.isnan(est.predict(9.0).value)
+    est.observe(REF, 8.5, 17.0)
+    assert math.isfinite(est.predict(9.0).value)

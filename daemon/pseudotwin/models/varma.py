@@ -873,8 +873,12 @@ class VarmaDay(DayEstimator):
         """Filtered target at the last window slot starting at or before ``hours`` [h].
 
         Before the first window slot no reading may be used yet: the stationary prior of
-        the first slot is returned.
+        the first slot is returned. Without any reference reading yet (today's or a
+        carry-over) there is no estimate (NaN): the filter's prior is the typical day, not a
+        measurement, and the daemon never invents data.
         """
+        if not any(self._times.values()):
+            return Estimate(math.nan, math.nan)
         if self._pending:
             self._flush()
         slot = self.model.hours_.slot_index_of(hours) - self._first
