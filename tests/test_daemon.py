@@ -354,6 +354,35 @@ def test_a_flapping_reference_is_logged_a_few_times_a_day_then_said_to_flap(
     assert not any("not logged again today" in m for m in went[:-1])
 
 
+def test_a_reference_never_heard_of_is_logged_once_stale_after_has_passed(
+    mosquitto, desk_artifact, tmp_path: Path, caplog
+) -> None:
+    """A reference that never reports (a topic mistyped, a bridge down) left the primary
+    without a value, so nothing was published and nothing logged. It is logged once the
+    daemon has run stale_after without hearing from it, and not before."""
+    caplog.set_level(logging.INFO, logger="pseudotwin.edge.service")
+    start = off_grid(8.0)
+    clock = HandClock(start)
+    svc = Service(config(tmp_path, mosquitto.port, desk_artifact, stale_after_minutes=30,
+                         publish_every_minutes=15, monitor_every_minutes=15), clock=clock)
+    svc.start(wait_connected=15)
+    viewer = Viewer(mosquitto.port, "pt/desk/monitor")
+    silent = lambda: [r.getMessage() for r in caplog.records  # noqa: E731
+                      if "silent for more than" in r.getMessage()]
+    try:
+        clock.set(start + dt.timedelta(minutes=30))  # 08:15 and 08:30 ticked: too early
+        wait_for(lambda: any(m["ts"] == stamp(HOURS.at(DAY, 8.5)) for m in viewer.on("/monitor")),
+                 what="the 08:30 monitor")
+        assert silent() == []
+        clock.set(start + dt.timedelta(minutes=46))  # 08:45: 44 min since the start
+        wait_for(lambda: len(silent()) == 1, what="the silent reference logged")
+    finally:
+        svc.stop()
+        viewer.close()
+    assert "dining/temp (last reading none since the daemon started" in silent()[0]
+    assert "the estimate is stale" in silent()[0]
+
+
 def test_numerical_failure_publishes_triv_fallback_then_recovers(
     service_factory, mosquitto, monkeypatch
 ) -> None:

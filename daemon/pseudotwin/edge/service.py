@@ -150,6 +150,9 @@ class Service:
         self.status_topic = f"{cfg.base_topic}/status" + (f"/{member.name}" if member else "")
         self.clock = clock or SystemClock()
         self.hours = cfg.hours
+        # The daemon's clock at start: a reference unheard of since is "silent" only once
+        # stale_after has passed (at a fresh start every reference is unheard of at first).
+        self.up_since: dt.datetime | None = None
         self.twins: dict[str, TwinRuntime] = {}
         self.by_sensor: dict[str, list[TwinRuntime]] = defaultdict(list)
         problems = []
@@ -646,6 +649,8 @@ class Service:
         unit = rt.twin.artifact.unit
         for kind, e in ests.items():
             if not e.publishable:
+                if kind == primary and e.quality == Quality.STALE:
+                    self._note_silence(rt, e)  # nothing to publish: a reference never heard
                 continue
             if kind == primary:
                 topic, qos = rt.estimate_topic, 1
@@ -669,6 +674,9 @@ class Service:
         limit = self.cfg.stale_after
         silent = e.lost or (rt.twin.silent_references(rt.twin.artifact.primary, e.ts)
                             if e.quality == Quality.STALE else ())
+        if self.up_since is not None and e.ts - self.up_since <= limit:
+            # unheard of since a start less than stale_after ago: not silent for that long
+            silent = tuple(s for s in silent if e.refs.get(s) is not None)
         if silent == rt.silent:
             return
         day = self.hours.day_of(e.ts)
@@ -861,6 +869,7 @@ class Service:
         self.state_lock.starting(lambda: self._start(wait_connected), self.metrics.close)
 
     def _start(self, wait_connected: float | None) -> None:
+        self.up_since = self.clock.now()
         if self.cfg.metrics.port is not None:  # a port in use fails before anything runs
             self.metrics.serve(self.cfg.metrics.host, self.cfg.metrics.port, "daemon")
         self.restore()
