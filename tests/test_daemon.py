@@ -25,8 +25,10 @@ from daemon_support import (
     off_grid,
     sml,
     wait_for,
+    write_config,
 )
 from pseudotwin.analysis.evaluate import replay_estimates
+from pseudotwin.config import load_config
 from pseudotwin.edge.clock import ReplayClock
 from pseudotwin.edge.replay import replay
 from pseudotwin.edge.service import LONG_BATCH_PATTERN, LONG_BATCH_S, TICK_GRACE, Service
@@ -381,6 +383,32 @@ def test_a_reference_never_heard_of_is_logged_once_stale_after_has_passed(
         viewer.close()
     assert "dining/temp (last reading none since the daemon started" in silent()[0]
     assert "the estimate is stale" in silent()[0]
+
+
+def test_two_daemons_on_one_client_id_are_told_that_they_take_each_others_session(
+    mosquitto, desk_artifact, tmp_path: Path, caplog
+) -> None:
+    """Two daemons (state dirs of their own) on one broker.client_id knocked each other off
+    every second; the log said only 'disconnected; reconnecting'."""
+    caplog.set_level(logging.WARNING, logger="pseudotwin.edge.mqttconn")
+    daemons = []
+    for name in ("first", "second"):
+        (tmp_path / name).mkdir()
+        path = write_config(tmp_path / name, mosquitto.port, desk_artifact)
+        path.write_text(path.read_text(encoding="utf-8").replace(
+            f'client_id = "pt-{name}"', 'client_id = "pt-shared"'), encoding="utf-8")
+        svc = Service(load_config(path), clock=ReplayClock(off_grid(12.0), 1.0))
+        svc.start(wait_connected=None)
+        daemons.append(svc)
+    try:
+        wait_for(lambda: any("another client with the same id" in r.getMessage()
+                             for r in caplog.records), timeout=60,
+                 what="the takeover named in the log")
+    finally:
+        for svc in daemons:
+            svc.stop()
+    line = next(r.getMessage() for r in caplog.records if "same id" in r.getMessage())
+    assert "'pt-shared'" in line and "give each its own" in line
 
 
 def test_numerical_failure_publishes_triv_fallback_then_recovers(

@@ -5,6 +5,7 @@ under a stable client id, a retained last will on the process's status topic."""
 from __future__ import annotations
 
 import logging
+import math
 import sys
 import threading
 import time
@@ -70,6 +71,46 @@ def make_client(broker: BrokerConfig, client_id: str, status_topic: str,
     c.max_inflight_messages_set(MAX_INFLIGHT)
     c.on_connect_fail = log_connect_failures(broker)
     return c
+
+
+#: Disconnects within this long of the connect that count towards a session taken over [s],
+#: and how many of them in TAKEOVER_WINDOW_S make the warning.
+TAKEOVER_AFTER_S = 5.0
+TAKEOVER_COUNT = 3
+TAKEOVER_WINDOW_S = 120.0
+
+
+def watch_takeover(client: mqtt.Client, client_id: str) -> None:
+    """Warn when the broker keeps dropping ``client`` right after it connects: another
+    client with the same id (a second daemon, recorder or bridge on one ``client_id``) takes
+    the session over each time, and the log said only "disconnected; reconnecting".
+    Call once the client's on_connect and on_disconnect are set: it wraps them."""
+    on_connect, on_disconnect = client.on_connect, client.on_disconnect
+    state: dict[str, Any] = {"up": None, "quick": [], "warned": -math.inf}
+
+    def connected(*args: Any) -> None:
+        state["up"] = time.monotonic()
+        if on_connect is not None:
+            on_connect(*args)
+
+    def disconnected(*args: Any) -> None:
+        now, up = time.monotonic(), state["up"]
+        state["up"] = None
+        if up is not None and now - up < TAKEOVER_AFTER_S:
+            state["quick"] = [t for t in state["quick"] if now - t < TAKEOVER_WINDOW_S] + [now]
+            if (len(state["quick"]) >= TAKEOVER_COUNT
+                    and now - state["warned"] >= TAKEOVER_WINDOW_S):
+                state["warned"] = now
+                log.warning("the broker dropped client id %r %d times within %g s of "
+                            "connecting: another client with the same id probably takes the "
+                            "session over each time (two processes on one broker.client_id? "
+                            "give each its own)", client_id, len(state["quick"]),
+                            TAKEOVER_AFTER_S)
+        if on_disconnect is not None:
+            on_disconnect(*args)
+
+    client.on_connect = connected
+    client.on_disconnect = disconnected
 
 
 class Subscription:

@@ -27,7 +27,12 @@ from pseudotwin.core import series
 from pseudotwin.core.series import write_history
 from pseudotwin.edge import readinglines
 from pseudotwin.edge.clock import Clock, SystemClock
-from pseudotwin.edge.mqttconn import Subscription, make_client, refused_fatally
+from pseudotwin.edge.mqttconn import (
+    Subscription,
+    make_client,
+    refused_fatally,
+    watch_takeover,
+)
 from pseudotwin.edge.prometheus import RecorderMetrics
 from pseudotwin.edge.sdnotify import notify
 from pseudotwin.edge.statelock import StateLock
@@ -128,6 +133,7 @@ class Recorder:
                                   self.status_topic)
         self.client.on_connect = self._on_connect
         self.client.on_disconnect = lambda *a: self.connected.clear()
+        watch_takeover(self.client, f"{cfg.broker.client_id}-recorder")
         self.client.on_message = self._on_message
         self._subscription = Subscription([(s.topic, 1) for s in cfg.sensors.values()],
                                           self.connected)

@@ -38,7 +38,12 @@ from pseudotwin.edge.clock import Clock, SystemClock
 from pseudotwin.edge.fleet import FleetMember
 from pseudotwin.edge.health import Health
 from pseudotwin.edge.journal import Journal
-from pseudotwin.edge.mqttconn import Subscription, make_client, refused_fatally
+from pseudotwin.edge.mqttconn import (
+    Subscription,
+    make_client,
+    refused_fatally,
+    watch_takeover,
+)
 from pseudotwin.edge.outputs import estimate_payload, monitor_payload
 from pseudotwin.edge.prometheus import DaemonMetrics
 from pseudotwin.edge.sdnotify import notify, watchdog_interval
@@ -242,6 +247,7 @@ class Service:
         c.max_inflight_messages_set(0)
         c.on_connect = self._on_connect
         c.on_disconnect = self._on_disconnect
+        watch_takeover(c, self.cfg.broker.client_id)
         c.on_message = self._on_message
         c.on_publish = self._on_publish
         c.on_subscribe = self._subscription.on_subscribe

@@ -64,7 +64,7 @@ from pseudotwin.edge.bridge.config import (
     SymbolConfig,
 )
 from pseudotwin.edge.clock import Clock, SystemClock
-from pseudotwin.edge.mqttconn import log_connect_failures, refused_fatally
+from pseudotwin.edge.mqttconn import log_connect_failures, refused_fatally, watch_takeover
 from pseudotwin.edge.replay import payload_for
 from pseudotwin.edge.sdnotify import notify, watchdog_interval
 
@@ -216,6 +216,7 @@ class Bridge:
         c.max_queued_messages_set(self.cfg.queue_size)
         c.on_connect = self._on_connect
         c.on_disconnect = self._on_disconnect
+        watch_takeover(c, self.cfg.client_id)  # e.g. two bridges on the default client id
         c.on_publish = self._on_publish
         c.on_connect_fail = log_connect_failures(b)  # an unreachable broker is said at once
         return c
