@@ -389,6 +389,9 @@ def test_stop_deletes_notifications_and_publishes_offline(
     assert not any(plc.variable(name).notifications for name, *_ in VARIABLES)
     assert inbox.wait(f"{env.base}/bridge/status", lambda p: p == b"offline")
     assert bridge.finished.is_set() and bridge.fatal is None
+    # what a later subscriber finds retained: not the PLC "up" of a bridge that stopped
+    late = _subscribe(mqtt_client, env)
+    assert late.wait(f"{env.base}/bridge/plc") == b"down"
 
 
 def test_filetime_conversion_keeps_microseconds() -> None:

@@ -592,6 +592,8 @@ class Bridge:
                             self.queue.qsize())
             self._publisher_thread.join(timeout)
         if self.mqtt_connected.is_set():
+            # Retained: "up" would stay the PLC's state for every later subscriber.
+            self.client.publish(self.cfg.plc_topic, "down", qos=1, retain=True)
             info = self.client.publish(self.cfg.status_topic, "offline", qos=1, retain=True)
             try:
                 info.wait_for_publish(timeout)
