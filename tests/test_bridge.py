@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import logging
 import signal
 import socket
 import struct
@@ -54,6 +55,7 @@ from pyads import constants as adsc
 from pyads.testserver import AdsTestServer, AdvancedHandler, PLCVariable
 from pyads.testserver.handler import AmsPacket, AmsResponseData
 
+import pseudotwin.edge.bridge.plc as plc_module
 from conftest import MosquittoBroker, MqttClientFactory, TestClient, closed_port
 from pseudotwin.cli.bridge import EX_CONFIG, main
 from pseudotwin.config import ConfigProblems
@@ -679,3 +681,38 @@ def test_refused_credentials_exit_77(plc: Plc, env: Env, password_broker: int,
         encoding="utf-8")
     assert main(["--config", str(path)]) == EX_NOPERM
     assert "the broker refused the credentials" in capsys.readouterr().err
+
+
+def test_a_plc_that_drops_packets_is_said_unreachable_and_a_stop_is_not_held_up(
+    env: Env, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A router dropping the packets to the PLC: pyads' connect blocked in the kernel for
+    about two minutes, the watchdog heartbeat went stale (systemd killed the bridge before it
+    said why) and SIGTERM waited. Stand-in: a listener on the ADS port whose accept queue is
+    full, so the kernel drops further connection attempts, as such a router does."""
+    caplog.set_level(logging.WARNING, logger="pseudotwin.edge.bridge")
+    host = "127.0.0.3"  # all of 127/8 is this host
+    listener = socket.socket()
+    listener.bind((host, plc_module.ADS_TCP_PORT))
+    listener.listen(0)
+    fillers = []
+    for _ in range(3):  # fill the queue; never accepted
+        s = socket.socket()
+        s.setblocking(False)
+        s.connect_ex((host, plc_module.ADS_TCP_PORT))
+        fillers.append(s)
+    bridge = Bridge(env.config(host=host, timeout_seconds=1, reconnect_max_seconds=1))
+    try:
+        bridge.start()
+        t0 = time.monotonic()
+        _wait_for(lambda: "unreachable within 1 s" in caplog.text,
+                  "the unreachable PLC in the log", timeout=20)
+        assert time.monotonic() - t0 < 10  # not the kernel's two minutes
+        assert time.monotonic() - bridge._heartbeat < 5  # the watchdog is still fed
+    finally:
+        t1 = time.monotonic()
+        bridge.stop()
+        assert time.monotonic() - t1 < 8
+        for s in fillers:
+            s.close()
+        listener.close()

@@ -44,6 +44,7 @@ import datetime as dt
 import logging
 import math
 import queue
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -77,6 +78,9 @@ __all__ = [
 
 # One logger for the whole bridge (``pseudotwin.edge.bridge``), whichever module logs.
 log = logging.getLogger(__package__)
+
+#: The TCP port of ADS (AMS/TCP): every PLC's router listens on it.
+ADS_TCP_PORT = 48898
 
 #: ADS error "symbol not found" (0x710): what a TwinCAT runtime answers for an unknown name.
 ADSERR_SYMBOL_NOT_FOUND = 0x710
@@ -398,6 +402,17 @@ class Bridge:
 
     def _connect(self) -> _Link:
         plc = self.cfg.plc
+        # pyads' open() blocks in the OS's TCP connect (~2 min to a host that drops the
+        # packets): the watchdog's heartbeat would go stale and systemd kill the bridge
+        # before it said why, and a stop would wait. A probe bounded by timeout_seconds
+        # first says "unreachable" and comes back to the back-off loop.
+        try:
+            socket.create_connection((plc.ip_address, ADS_TCP_PORT),
+                                     timeout=plc.timeout_seconds).close()
+        except OSError as exc:
+            raise OSError(f"{plc.ip_address}:{ADS_TCP_PORT} unreachable within "
+                          f"{plc.timeout_seconds:g} s ({exc.strerror or exc})") from None
+        self._heartbeat = time.monotonic()
         conn = pyads.Connection(plc.ams_net_id, plc.port, plc.ip_address)
         conn.open()  # adds the route; raises ADSError when the PLC cannot be reached
         self._gen += 1
@@ -620,7 +635,9 @@ class Bridge:
         """Start, wait until ``request_stop()`` or a fatal problem, then stop."""
         self.start()
         try:
-            while not self.finished.wait(1.0) and self.refused is None:
+            # stop_event too: a supervisor stuck in an ADS call must not hold a SIGTERM up
+            while (not self.finished.wait(1.0) and self.refused is None
+                   and not self.stop_event.is_set()):
                 pass
         finally:
             self.stop()
