@@ -716,3 +716,26 @@ def test_a_plc_that_drops_packets_is_said_unreachable_and_a_stop_is_not_held_up(
         for s in fillers:
             s.close()
         listener.close()
+
+
+def test_reads_after_a_reconnect_are_stamped_on_the_plcs_clock(
+    plc: Plc, env: Env, mqtt_client: MqttClientFactory
+) -> None:
+    """Reads were stamped on this host's clock, notifications on the PLC's: with the PLC two
+    minutes behind, its next change came stamped before the read, and the daemon (readings
+    in time order) held the read's value for two minutes after every reconnect."""
+    inbox = _subscribe(mqtt_client, env)
+    host = dt.datetime.now(dt.UTC) + dt.timedelta(minutes=2)  # the PLC runs 2 min behind
+    with running(Bridge(env.config(), clock=FixedClock(host))):
+        assert _ts(inbox.wait(env.topics["hmi/temp"])) == host  # nothing known of the PLC
+        plc.write("MAIN.fRoomTemp", 22.25)
+        change = _ts(inbox.wait(env.topics["hmi/temp"], _is(22.25)))
+        assert change < host - dt.timedelta(minutes=1)  # the PLC's stamp
+        plc.stop()
+        inbox.wait(f"{env.base}/bridge/plc", lambda p: p == b"down")
+        plc.variable("MAIN.fRoomTemp").value = struct.pack("<d", 19.75)
+        plc.start()
+        read = _ts(inbox.wait(env.topics["hmi/temp"], _is(19.75)))
+        assert read - change < dt.timedelta(minutes=1)  # on the PLC's clock, not 2 min on
+        plc.write("MAIN.fRoomTemp", 20.5)
+        assert _ts(inbox.wait(env.topics["hmi/temp"], _is(20.5))) >= read  # in order

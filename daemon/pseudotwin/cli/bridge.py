@@ -28,7 +28,8 @@ def build_parser() -> argparse.ArgumentParser:
         description=(
             "Publish PLC variables as sensor readings: ADS device notifications (on change) "
             "of the symbols in [[plc.symbols]] go to their sensors' MQTT topics, QoS 1, "
-            "time-stamped by the PLC. Reconnects by itself when the PLC, the route or the "
+            "time-stamped by the PLC (the values read at each connect: on the PLC's clock as "
+            "its notifications showed it). Reconnects by itself when the PLC, the route or the "
             "broker drops; the PLC state is polled every plc.poll_seconds because ADS has no "
             "heartbeat. Runs until SIGTERM/SIGINT/SIGHUP."
         ),

@@ -185,6 +185,9 @@ class Bridge:
         self._down_logged = False
         self._down_since: float | None = None
         self._skew_warned_gen = -1
+        # The PLC's clock minus this host's, as the latest stamped notification showed it
+        # (its delivery delay included): reads are stamped on the PLC's clock with it.
+        self._plc_offset = dt.timedelta(0)
         self._heartbeat = time.monotonic()
         self._count_lock = threading.Lock()  # counters are bumped from several threads
         # Readings handed to paho whose PUBACK has not come (by mid), and PUBACKs that came
@@ -328,6 +331,8 @@ class Bridge:
             arrival = self.clock.now()
             # A zero stamp means the server did not set one; arrival time is then the best.
             ts = filetime_to_utc(filetime) if filetime > 0 else arrival
+            if filetime > 0:
+                self._plc_offset = ts - arrival
             self._accept(r, raw, ts, arrival, "notification")
 
         def guarded(notification: Any, data: Any) -> None:
@@ -435,11 +440,14 @@ class Bridge:
                 )
                 if handles is not None:
                     link.handles.append(handles)
-            # A fresh value right away: the symbols may not change for hours.
+            # A fresh value right away: the symbols may not change for hours. Stamped on the
+            # PLC's clock as far as notifications have shown it: on this host's, a PLC
+            # running behind would stamp its next change before the read, and the daemon,
+            # taking readings in time order, would hold the read's value until then.
             now = self.clock.now()
             for r in link.symbols:
                 raw = conn.read_by_name(r.cfg.symbol, r.cfg.type.ctype)
-                self._accept(r, raw, now, now, "read")
+                self._accept(r, raw, now + self._plc_offset, now, "read")
         except BaseException:
             self._gen += 1
             self._teardown(link, alive=False)
