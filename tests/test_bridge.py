@@ -542,6 +542,24 @@ def test_daemon_configuration_file_with_a_plc_section(tmp_path: Path) -> None:
                for p in caught.value.problems)
 
 
+def test_check_config_checks_the_plc_part_of_a_shared_file(tmp_path: Path, capsys) -> None:
+    """check-config let a [plc] table be (the daemon does not read it): a misspelt key and
+    an unknown sensor passed as OK and failed only when the bridge started."""
+    from pseudotwin.cli.check_config import main as check_config_main
+
+    text = (ROOT / "config" / "example.toml").read_text(encoding="utf-8") + "\n".join([
+        "", "[plc]", 'ams_netid = "192.168.10.20.1.1"',
+        _symbols_toml([{"symbol": "MAIN.fRoomTemp", "sensor": "room1/hmi/tmp",
+                        "plc_type": "LREAL"}]), "",
+    ])
+    path = tmp_path / "room1.toml"
+    path.write_text(text, encoding="utf-8")
+    assert check_config_main([str(path)]) == 1
+    err = capsys.readouterr().err
+    assert "plc.ams_netid: unknown key (did you mean 'ams_net_id'?)" in err
+    assert "plc.symbols[0].sensor: unknown sensor 'room1/hmi/tmp'" in err
+
+
 def test_sigterm_stops_the_bridge_process_cleanly(
     plc: Plc, env: Env, mqtt_client: MqttClientFactory
 ) -> None:

@@ -4,9 +4,26 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from pseudotwin.config import ArtifactCheck, ConfigProblems, check_config
 from pseudotwin.errors import ConfigError
+
+
+def _bridge_problems(path: str) -> list[str]:
+    """The problems of a [plc] / [bridge] part the file shares with the bridge, as
+    ``pseudotwin bridge --check`` finds them offline (the daemon's loader only lets those
+    tables be, so a broken one passed here and failed only when the bridge started)."""
+    from pseudotwin.config.loader import read_toml
+    from pseudotwin.edge.bridge import load_bridge_config
+
+    if not {"plc", "bridge"} & set(read_toml(Path(path))):
+        return []
+    try:
+        load_bridge_config(path)
+    except ConfigProblems as exc:
+        return [p for p in exc.problems if p.startswith(("plc", "bridge"))]
+    return []
 
 
 def main(argv: list[str] | None = None, *, artifact_check: ArtifactCheck | None = None,
@@ -28,14 +45,18 @@ def main(argv: list[str] | None = None, *, artifact_check: ArtifactCheck | None 
     args = parser.parse_args(argv)
     try:
         config = check_config(args.file, artifact_check=artifact_check)
+        problems: list[str] = []
     except ConfigProblems as exc:
-        for problem in exc.problems:
-            print(f"{args.file}: {problem}", file=sys.stderr)
-        return 1
+        config, problems = None, list(exc.problems)
     except ConfigError as exc:
         # read_toml already prefixes the path.
         print(str(exc), file=sys.stderr)
         return 2
+    problems += _bridge_problems(args.file)
+    if problems or config is None:
+        for problem in problems:
+            print(f"{args.file}: {problem}", file=sys.stderr)
+        return 1
     print(f"{args.file}: OK ({len(config.sensors)} sensors, {len(config.twins)} twins)")
     for note in notes or ():
         print(f"{args.file}: note: {note}")
