@@ -125,7 +125,9 @@ class DaemonMetrics(_Metrics):
         sensors, twins = list(sensors), list(twins)
         r = self.registry
         self.accepted = Counter(
-            "pseudotwin_readings_accepted", "Readings journaled and fed to the twins, by sensor",
+            "pseudotwin_readings_accepted",
+            "Readings journaled and fed to the twins, by sensor (a QoS 1 redelivery or a "
+            "repeat too: the twins keep the first of a sensor and time)",
             ["sensor"], registry=r)
         self.rejected = self._rejected_counter("pseudotwin_readings_rejected")
         self.estimates = Counter(
