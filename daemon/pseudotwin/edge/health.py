@@ -131,8 +131,12 @@ class Health:
                 "(see deploy/mosquitto.conf)", now - self._busy_since, r["in_per_s"],
                 r["done_per_s"], r["lag_s_median"], r["lag_s_max"])
 
-    def snapshot(self) -> dict[str, Any]:
-        """The ``health`` part of the monitor payload."""
+    def snapshot(self, now: float | None = None) -> dict[str, Any]:
+        """The ``health`` part of the monitor payload, its rates over the last full report
+        window (``now`` [monotonic s], default the time): computed here too, since only a
+        message computed them, and with none arriving they stayed those of the last busy
+        minute."""
+        self.maybe_report(time.monotonic() if now is None else now)
         failing = self.journal_failing_since
         return {
             "status": self.status,
