@@ -34,3 +34,26 @@ def test_days_rotate_and_old_days_are_pruned(tmp_path: Path) -> None:
     assert sorted(p.name for p in tmp_path.glob("*.jsonl")) == ["2012-03-19.jsonl",
                                                                "2012-03-20.jsonl"]
     assert [x.value for x in Journal(tmp_path).replay(r(0, 0, 19).ts)] == [19.0, 20.0]
+
+
+def test_readings_straddling_midnight_go_to_their_days_without_rotating_back(
+    tmp_path: Path, monkeypatch
+) -> None:
+    """Two sensors stamping either side of UTC midnight alternated the journal between the
+    two days' files, re-reading the whole of each at every switch (14 ms a reading on a
+    22 MB day). The earlier day's stragglers are appended to its file; the current one
+    stays open, and is read in only when the journal rotates forward."""
+    j = Journal(tmp_path)
+    j.append(r(23, 0.0, 19))
+    j.append(r(0, 0.5, 20))  # the new day: the one rotation forward
+    reads: list[Path] = []
+    real = Path.read_bytes
+    monkeypatch.setattr(Path, "read_bytes", lambda p: reads.append(p) or real(p))
+    for k in range(1, 50):
+        late = Reading("a", dt.datetime(2012, 3, 19, 23, 59, 59, tzinfo=dt.UTC), float(k))
+        j.append_many([late, r(0, float(k), 20)])
+    j.close()
+    assert reads == []
+    got = list(Journal(tmp_path).replay(r(0, 0, 19).ts))
+    assert [x.value for x in got if x.ts.day == 19] == [0.0, *range(1, 50)]
+    assert [x.value for x in got if x.ts.day == 20] == [0.5, *range(1, 50)]

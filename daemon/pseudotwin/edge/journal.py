@@ -64,6 +64,9 @@ class Journal:
             start = end
 
     def _write_day(self, day: dt.date, readings: Sequence[Reading]) -> None:
+        if self._day is not None and self._fh is not None and day < self._day:
+            self._write_earlier(day, readings)
+            return
         if day != self._day or self._fh is None:
             self._rotate(day)
         elif self._vanished():
@@ -79,6 +82,23 @@ class Journal:
             self._abandon()  # the next append reopens (and ends a torn line first)
             raise
         self._lines.extend(lines)
+
+    def _write_earlier(self, day: dt.date, readings: Sequence[Reading]) -> None:
+        """Readings of a UTC day before the current file's (stamped before midnight, arriving
+        after): appended to that day's file as they come, the current file staying open.
+        Rotating back and forth re-read the whole of each file at every switch, which two
+        sensors straddling midnight did at every reading."""
+        lines = readinglines.encode(readings)
+        block = b"".join(lines)
+        with open(self._path(day), "a+b") as fh:
+            if fh.seek(0, os.SEEK_END) > 0:  # a crash cut the last line short: never glue
+                fh.seek(-1, os.SEEK_END)
+                if fh.read(1) != b"\n":
+                    block = b"\n" + block
+            if fh.write(block) != len(block):
+                raise OSError(errno.ENOSPC, "short write to the journal")
+        if self._prev is not None and self._prev[0] == day:
+            self._prev[1].extend(lines)  # rebuildable as yesterday's file
 
     def _vanished(self) -> bool:
         """True when the open file is no longer the one at its path (deleted, replaced)."""
