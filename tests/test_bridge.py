@@ -515,16 +515,23 @@ def test_example_configuration_is_valid() -> None:
     assert main(["--config", str(ROOT / "config" / "bridge-example.toml"), "--check"]) == 0
 
 
+def _shared_file(folder: Path, net_id_line: str, sensor: str) -> Path:
+    """config/example.toml with a [plc] part of one symbol for ``sensor``, as room1.toml."""
+    text = (ROOT / "config" / "example.toml").read_text(encoding="utf-8") + "\n".join([
+        "", "[plc]", net_id_line,
+        _symbols_toml([{"symbol": "MAIN.fRoomTemp", "sensor": sensor, "plc_type": "LREAL"}]),
+        "",
+    ])
+    path = folder / "room1.toml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
 def test_daemon_configuration_file_with_a_plc_section(tmp_path: Path) -> None:
     # One file for daemon and bridge: the daemon's part is validated as the daemon does
     # (artifacts aside), the bridge's defaults come from it.
-    text = (ROOT / "config" / "example.toml").read_text(encoding="utf-8") + "\n".join([
-        "", "[plc]", 'ams_net_id = "192.168.10.20.1.1"',
-        _symbols_toml([{"symbol": "MAIN.fRoomTemp", "sensor": "dining/temp",
-                        "plc_type": "LREAL"}]), "",
-    ])
-    path = tmp_path / "room1.toml"
-    path.write_text(text, encoding="utf-8")
+    path = _shared_file(tmp_path, 'ams_net_id = "192.168.10.20.1.1"', "dining/temp")
+    text = path.read_text(encoding="utf-8")
     cfg = load_bridge_config(path)
     assert cfg.client_id == "pseudotwin-room1-bridge"
     assert cfg.base_topic == "pseudotwin"
@@ -547,13 +554,7 @@ def test_check_config_checks_the_plc_part_of_a_shared_file(tmp_path: Path, capsy
     an unknown sensor passed as OK and failed only when the bridge started."""
     from pseudotwin.cli.check_config import main as check_config_main
 
-    text = (ROOT / "config" / "example.toml").read_text(encoding="utf-8") + "\n".join([
-        "", "[plc]", 'ams_netid = "192.168.10.20.1.1"',
-        _symbols_toml([{"symbol": "MAIN.fRoomTemp", "sensor": "room1/hmi/tmp",
-                        "plc_type": "LREAL"}]), "",
-    ])
-    path = tmp_path / "room1.toml"
-    path.write_text(text, encoding="utf-8")
+    path = _shared_file(tmp_path, 'ams_netid = "192.168.10.20.1.1"', "room1/hmi/tmp")
     assert check_config_main([str(path)]) == 1
     err = capsys.readouterr().err
     assert "plc.ams_netid: unknown key (did you mean 'ams_net_id'?)" in err

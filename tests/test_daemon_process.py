@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -32,6 +34,24 @@ def start_daemon(cfg: Path, log: Path, env: dict | None = None) -> subprocess.Po
         stdout=open(log, "a"), stderr=subprocess.STDOUT,  # noqa: SIM115
         env={**os.environ, **(env or {})},
     )
+
+
+@contextlib.contextmanager
+def notified_daemon(cfg: Path, log: Path, env: dict | None = None
+                    ) -> Iterator[tuple[subprocess.Popen, socket.socket]]:
+    """``pseudotwin run`` with a systemd notify socket of our own beside ``log``: (the
+    process, the socket to read its READY=1/WATCHDOG=1/STOPPING=1); killed if still alive."""
+    path = log.parent / "notify.sock"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(path))
+    sock.settimeout(20)
+    d = start_daemon(cfg, log, {"NOTIFY_SOCKET": str(path), **(env or {})})
+    try:
+        yield d, sock
+    finally:
+        if d.poll() is None:
+            d.kill()
+        sock.close()
 
 
 def test_sigkill_mid_day_then_resume_publishes_what_a_daemon_that_never_stopped_would(
@@ -87,13 +107,8 @@ def test_sigterm_stops_cleanly_with_systemd_notify_and_watchdog(
     mosquitto, desk_artifact, tmp_path: Path
 ) -> None:
     cfg = write_config(tmp_path, mosquitto.port, desk_artifact)
-    sock_path = tmp_path / "notify.sock"
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    sock.bind(str(sock_path))
-    sock.settimeout(20)
     log = tmp_path / "daemon.log"
-    d = start_daemon(cfg, log, {"NOTIFY_SOCKET": str(sock_path), "WATCHDOG_USEC": "1000000"})
-    try:
+    with notified_daemon(cfg, log, {"WATCHDOG_USEC": "1000000"}) as (d, sock):
         got: list[str] = []
         while "WATCHDOG=1" not in got:
             got.append(sock.recv(256).decode())
@@ -108,10 +123,6 @@ def test_sigterm_stops_cleanly_with_systemd_notify_and_watchdog(
         while got[-1] != "STOPPING=1":
             got.append(sock.recv(256).decode())
         assert d.wait(30) == 0
-    finally:
-        if d.poll() is None:
-            d.kill()
-        sock.close()
     text = log.read_text()
     assert "received SIGTERM; stopping" in text and "stopped:" in text
     viewer = Viewer(mosquitto.port, "pt/status")  # the retained status
@@ -160,19 +171,10 @@ def test_sighup_stops_the_daemon_cleanly_and_says_it_reloads_nothing(
     """A terminal closed under a foreground run sent SIGHUP, which killed the daemon without
     a log line, a clean stop or its retained offline status."""
     cfg = write_config(tmp_path, mosquitto.port, desk_artifact)
-    sock_path = tmp_path / "notify.sock"
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    sock.bind(str(sock_path))
-    sock.settimeout(20)
     log = tmp_path / "daemon.log"
-    d = start_daemon(cfg, log, {"NOTIFY_SOCKET": str(sock_path)})
-    try:
+    with notified_daemon(cfg, log) as (d, sock):
         assert sock.recv(256).decode() == "READY=1"
         d.send_signal(signal.SIGHUP)
         assert d.wait(30) == 0
-    finally:
-        if d.poll() is None:
-            d.kill()
-        sock.close()
     text = log.read_text()
     assert "received SIGHUP; stopping (SIGHUP reloads nothing" in text and "stopped:" in text
