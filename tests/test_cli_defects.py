@@ -62,9 +62,25 @@ def test_plot_day_without_data_is_an_error(sml: Path, tmp_path: Path, capsys) ->
     rc = _evaluate(sml, tmp_path / "o", "--plot-day", "2012-05-02")
     err = capsys.readouterr().err
     assert rc == 2
-    assert "--plot-day 2012-05-02: no readings of room/temp on that day" in err
+    assert "--plot-day 2012-05-02: no readings of room/temp in that day's operating hours" in err
     assert "Traceback" not in err
     assert not list(tmp_path.glob("o/*.png"))
+
+
+def test_plot_day_with_desk_readings_only_at_night_fails_before_training(
+        sml: Path, tmp_path: Path, capsys) -> None:
+    """The day had desk readings, none scored: it failed only after every output was
+    written."""
+    from pseudotwin.core.series import read_history, write_history
+
+    df = read_history(sml)
+    local = df["ts"].dt.tz_convert("Europe/Madrid")
+    night = ~((df["sensor"] == "room/temp") & (local.dt.day == 20) & (local.dt.hour.between(7, 20)))
+    write_history(df[night], tmp_path / "night.csv")
+    rc = _evaluate(tmp_path / "night.csv", tmp_path / "o", "--plot-day", "2012-03-20")
+    assert rc == 2
+    assert "no readings of room/temp in that day's operating hours" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
 
 
 def test_plot_day_in_the_training_period_is_an_error(sml: Path, tmp_path: Path, capsys) -> None:

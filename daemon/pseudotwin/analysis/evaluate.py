@@ -113,10 +113,10 @@ def evaluate(
     target, hours = spec.target, spec.hours
     require_sensors(history, list(spec.sensors))
     if plot_day is not None:  # fail before training, not with an empty plot
-        days, _ = hours.day_and_hours(history.loc[history["sensor"] == target, "ts"])
-        if not np.any(days == np.datetime64(plot_day)):
-            raise DataError(f"--plot-day {plot_day}: no readings of {target} on that day "
-                            f"({hours.timezone}), nothing to plot")
+        days, h = hours.day_and_hours(history.loc[history["sensor"] == target, "ts"])
+        if not np.any((days == np.datetime64(plot_day)) & hours.in_operating_hours(h)):
+            raise DataError(f"--plot-day {plot_day}: no readings of {target} in that day's "
+                            f"operating hours ({hours.describe()}), nothing to plot")
     artifact = train_twin(history, spec, train_start, train_days, models, options, primary,
                           thinning=thinning, skip_days=skip_days)
     test_start = first_scored_day(artifact)
