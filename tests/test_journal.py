@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
+import shutil
 from pathlib import Path
 
 from pseudotwin.edge.journal import Journal
@@ -57,3 +58,20 @@ def test_readings_straddling_midnight_go_to_their_days_without_rotating_back(
     got = list(Journal(tmp_path).replay(r(0, 0, 19).ts))
     assert [x.value for x in got if x.ts.day == 19] == [0.0, *range(1, 50)]
     assert [x.value for x in got if x.ts.day == 20] == [0.5, *range(1, 50)]
+
+
+def test_a_straggler_after_the_state_dir_was_deleted_rebuilds_the_journal(
+    tmp_path: Path
+) -> None:
+    """A reading of the day before, the first after the folder went: it must not fail for
+    good (the daemon holds it and retries, oldest first, so it held everything after)."""
+    folder = tmp_path / "journal"
+    j = Journal(folder)
+    j.append(r(23, 1.0, 19))
+    j.append(r(0, 2.0, 20))
+    shutil.rmtree(folder)
+    late = Reading("a", dt.datetime(2012, 3, 19, 23, 59, 30, tzinfo=dt.UTC), 3.0)
+    j.append(late)
+    j.append(r(1, 4.0, 20))
+    j.close()
+    assert [x.value for x in Journal(folder).replay(r(0, 0, 19).ts)] == [1.0, 3.0, 2.0, 4.0]

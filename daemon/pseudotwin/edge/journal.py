@@ -88,6 +88,11 @@ class Journal:
         after): appended to that day's file as they come, the current file staying open.
         Rotating back and forth re-read the whole of each file at every switch, which two
         sensors straddling midnight did at every reading."""
+        if self._vanished():  # the state dir went: rebuild the files from memory first
+            current = self._day
+            assert current is not None
+            self._abandon()
+            self._rotate(current)
         lines = readinglines.encode(readings)
         block = b"".join(lines)
         with open(self._path(day), "a+b") as fh:
