@@ -447,3 +447,6 @@ def test_an_offset_of_hours_alone_is_iso_8601_too(tmp_path: Path) -> None:
     path = _csv(tmp_path, "short.csv", "a,2012-03-14T10:00:00+01,1\na,2012-03-14T10:00:00-0230,2\n")
     assert [t.isoformat() for t in read_history(path)["ts"]] == [
         "2012-03-14T09:00:00+00:00", "2012-03-14T12:30:00+00:00"]
+    # a date alone ends in what looks like an offset: it is no instant
+    with pytest.raises(DataError, match="'2012-03-14' has no UTC offset"):
+        read_history(_csv(tmp_path, "date.csv", "a,2012-03-14,1\n"))

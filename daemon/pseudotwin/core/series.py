@@ -88,7 +88,9 @@ def parse_timestamps(raw: pd.Series, where: str) -> pd.Series:
                 f"{where}: {iso[~dated].iloc[0]!r} in data row {_row(~numeric & ~dated)} is "
                 "not a timestamp (use ISO 8601 with a UTC offset, or epoch seconds / ms)"
             )
-        aware = iso.str.contains(r"(?:Z|[+-]\d\d(?::?\d\d)?)$", regex=True)
+        # a time, then Z or an offset (±hh, ±hhmm, ±hh:mm): a date alone ends in "-14" too
+        aware = iso.str.contains(r"[T ]\d\d:\d\d", regex=True) & iso.str.contains(
+            r"(?:Z|[+-]\d\d(?::?\d\d)?)$", regex=True)
         if not aware.all():
             bad = iso[~aware].iloc[0]
             raise DataError(
