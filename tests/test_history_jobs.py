@@ -311,6 +311,24 @@ def test_train_from_the_store_equals_train_from_a_file_of_the_same_readings(
     assert a["validation"]["scores"] == b["validation"]["scores"]
 
 
+def test_a_file_whose_other_sensors_begin_earlier_skips_the_twins_partial_first_day(
+        tmp_path: Path, capsys) -> None:
+    """Without --train-start the first full day was judged on every sensor of the file: an
+    export whose outdoor sensor began the day before made the twin's partly covered first
+    day (2012-03-13 from 11:45) a training day, which the store skips."""
+    df = sml()
+    df = df[df["ts"] < "2012-03-24T23:00Z"]
+    early = pd.DataFrame({"sensor": "outdoor/else", "ts": pd.date_range(
+        "2012-03-12T00:00Z", "2012-03-13T00:00Z", freq="1h"), "value": 10.0})
+    csv = tmp_path / "h.csv"
+    write_history(pd.concat([df, early], ignore_index=True), csv)
+    out = tmp_path / "a.json"
+    assert main(["--log-level", "WARNING", "train", "--history", str(csv), "--references",
+                 REF, "--target", TARGET, "--quantity", "temperature", "--timezone",
+                 "Europe/Madrid", "--models", "ref,triv", "--out", str(out)]) == 0
+    assert json.loads(out.read_text())["training"]["days"][0] == "2012-03-14"
+
+
 def test_train_from_the_store_picks_full_days_itself(sml_store: Path, tmp_path: Path,
                                                       capsys) -> None:
     out = tmp_path / "a.json"

@@ -243,7 +243,9 @@ def _training_history(a: argparse.Namespace, hours: OperatingHours,
     if a.history is not None:
         df = read_history(a.history)
         if a.train_start is None:  # as from the store: a day the data begins in is not full
-            return df, first_full_day(df["ts"].min().to_pydatetime(), hours)
+            own = df.loc[df["sensor"].isin([*a.references, a.target]), "ts"]
+            first = (own if len(own) else df["ts"]).min().to_pydatetime()
+            return df, first_full_day(first, hours)
         return df, a.train_start
     from pseudotwin.analysis.training import history_from_store
     from pseudotwin.history.store import open_store

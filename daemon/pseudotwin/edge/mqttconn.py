@@ -89,7 +89,10 @@ def watch_takeover(client: mqtt.Client, client_id: str) -> None:
     state: dict[str, Any] = {"up": None, "quick": [], "warned": -math.inf}
 
     def connected(*args: Any) -> None:
-        state["up"] = time.monotonic()
+        # (client, userdata, flags, reason_code, properties): a refused CONNACK is followed
+        # by on_disconnect at once, and is no session taken over
+        refused = len(args) > 3 and getattr(args[3], "is_failure", False)
+        state["up"] = None if refused else time.monotonic()
         if on_connect is not None:
             on_connect(*args)
 
