@@ -86,6 +86,7 @@ def test_rows_the_store_refuses_one_by_one_go_to_a_file_and_block_nothing(
     server can run here.)"""
     ts = [HOURS.at(DAY, 8 + i / 60) for i in range(30)]
     bad = {to_ms(ts[3]), to_ms(ts[25])}
+    value = {i: 20 + i / 100 + 1e-9 for i in range(30)}  # more digits than %.6g keeps
     with FakeCrateDB() as crate:
         crate.fail_row = lambda stmt, row: ("ColumnValidationException[refused]"
                                             if row[1] in bad else None)
@@ -94,11 +95,11 @@ def test_rows_the_store_refuses_one_by_one_go_to_a_file_and_block_nothing(
         rec.start(wait_connected=15)
         pub = publisher(mosquitto.port, "rec-crate")
         for i, t in enumerate(ts[:20]):
-            pub.publish("house/dining/temp", reading(t, 20 + i / 100), qos=1)
+            pub.publish("house/dining/temp", reading(t, value[i]), qos=1)
         wait_for(lambda: rec.written == 19 and rec.refused == 1,
                  what=lambda: f"19 written, 1 refused (now {rec.written}, {rec.refused})")
         for i, t in enumerate(ts[20:], start=20):
-            pub.publish("house/dining/temp", reading(t, 20 + i / 100), qos=1)
+            pub.publish("house/dining/temp", reading(t, value[i]), qos=1)
         wait_for(lambda: rec.written == 28 and rec.refused == 2, what="later readings stored")
         rec.stop()
         pub.loop_stop()
@@ -108,7 +109,7 @@ def test_rows_the_store_refuses_one_by_one_go_to_a_file_and_block_nothing(
             assert len(stored) == 28
             refused = read_history(rec.refused_path)
             assert [t.to_pydatetime() for t in refused["ts"]] == [ts[3], ts[25]]
-            assert refused["value"].tolist() == [20.03, 20.25]
+            assert refused["value"].tolist() == [value[3], value[25]]
             crate.fail_row = None  # the cause fixed
             assert main(["import", str(rec.refused_path), "--store", crate.url]) == 0
             assert [t.to_pydatetime() for t in store.read_readings([REF])["ts"]] == ts

@@ -239,10 +239,13 @@ def iso_utc(ts: pd.Series | pd.DatetimeIndex) -> pd.Index:
     return text.str.replace(r"\.?0+$", "", regex=True).str.rstrip(".") + "+00:00"
 
 
-def write_history(df: pd.DataFrame, path: str | Path, append: bool = False) -> None:
+def write_history(df: pd.DataFrame, path: str | Path, append: bool = False,
+                  exact: bool = False) -> None:
     """Write a long frame as canonical CSV (ISO 8601 UTC timestamps), or as Parquet (aware
     UTC timestamps) when ``path`` ends in .parquet or .pq, as :func:`read_history` reads.
-    append: add the rows to the CSV at ``path`` (its header written when it is new)."""
+    append: add the rows to the CSV at ``path`` (its header written when it is new).
+    exact: every value as it is (else 6 significant digits, which a converted dataset's
+    sensors never exceed): for raw readings that are to be imported later."""
     if Path(path).suffix.lower() in (".parquet", ".pq"):
         if append:
             raise ValueError("write_history: append is for CSV files only")
@@ -255,8 +258,8 @@ def write_history(df: pd.DataFrame, path: str | Path, append: bool = False) -> N
     out["ts"] = iso_utc(out["ts"])
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fresh = not append or not Path(path).exists() or Path(path).stat().st_size == 0
-    out.to_csv(path, index=False, float_format="%.6g", mode="w" if not append else "a",
-               header=fresh)
+    out.to_csv(path, index=False, float_format=None if exact else "%.6g",
+               mode="w" if not append else "a", header=fresh)
 
 
 def require_sensors(df: pd.DataFrame, sensors: list[str], where: str = "history") -> None:

@@ -251,7 +251,8 @@ class Recorder:
         frame = pd.DataFrame({"sensor": [r.sensor for r in readings],
                               "ts": pd.DatetimeIndex([r.ts for r in readings]).tz_convert("UTC"),
                               "value": [r.value for r in readings]})
-        write_history(frame, self.refused_path, append=True)  # OSError: the batch is retried
+        # exact: raw readings are never modified (OSError: the batch is retried)
+        write_history(frame, self.refused_path, append=True, exact=True)
         self.refused += len(readings)
         self.metrics.refused.inc(len(readings))
         log.error("the history store refused %d readings and took the others (%s); they are "
