@@ -247,6 +247,36 @@ def test_backfill_and_warm_start_leave_out_stored_readings_the_daemon_would_reje
     pd.testing.assert_frame_equal(rows["wild"], rows["clean"])
 
 
+def test_backfill_seeds_the_carry_over_with_the_last_reading_in_range(
+    mosquitto, desk_artifact, tmp_path: Path
+) -> None:
+    """A reference silent overnight: a fresh backfill twin takes its carry-over from the day
+    before. When that last stored reading lies outside the sensor's range, the daemon would
+    hold the one before it; the backfill held none, and had nothing to publish until then."""
+    df = sml()
+    before = day_readings(df, DAY - dt.timedelta(days=1))
+    today = day_readings(df)
+    today = today[today["ts"] >= HOURS.at(DAY, 9.0)]  # silent until 09:00
+    last = before["ts"] == before["ts"].max()
+    stores = {"wild": pd.concat([before.assign(value=before["value"].where(~last, 85.0)),
+                                 today]),
+              "clean": pd.concat([before[~last], today])}
+    rows = {}
+    for name, frame in stores.items():
+        (tmp_path / name).mkdir()
+        db = tmp_path / name / "history.db"
+        with open_store(str(db)) as store:
+            store.write_readings(frame)
+        cfg = write_config(tmp_path / name, mosquitto.port, desk_artifact, store=str(db))
+        assert main(["backfill", "--config", str(cfg), "--twin", "desk", "--from", str(DAY),
+                     "--to", str(DAY), "--quiet"]) == 0
+        with open_store(str(db)) as store:
+            rows[name] = store.read_estimates("desk").drop(columns="written_at")
+    # before the day's first reading the carry-over answers (stale, with a value)
+    assert (rows["clean"]["ts"] < HOURS.at(DAY, 9.0)).any()
+    pd.testing.assert_frame_equal(rows["wild"], rows["clean"])
+
+
 def test_backfill_redo_estimates_a_day_again_once_its_readings_are_imported(
     mosquitto, desk_artifact, tmp_path: Path, capsys
 ) -> None:

@@ -44,7 +44,7 @@ from pseudotwin.errors import ConfigError, PseudotwinError
 from pseudotwin.history.store import EstimateRow, Store
 from pseudotwin.live.artifact import Artifact, artifact_hash, check_artifact
 from pseudotwin.live.readings import in_range
-from pseudotwin.live.twin import Twin, TwinEstimate
+from pseudotwin.live.twin import MAX_CARRY, Twin, TwinEstimate
 
 log = logging.getLogger(__name__)
 
@@ -314,6 +314,19 @@ def day_rows(cfg: ServiceConfig, job: TwinJob, twin: Twin, day: dt.date,
     return list(rows.values())
 
 
+def _seed(cfg: ServiceConfig, store: Store, sensors: list[str], init: dt.datetime
+          ) -> dict[str, tuple[dt.datetime, float]]:
+    """Each sensor's last stored reading before ``init`` that its configured range takes,
+    within the twin's carry-over (24 h): what a daemon, rejecting the others, would hold."""
+    last = store.last_readings_before(sensors, init)
+    out = {s: x for s, x in last.items() if cfg.sensors[s].accepts(x[1])}
+    if wild := [s for s in last if s not in out]:
+        frame = in_range(store.read_readings(wild, init - MAX_CARRY, init), cfg.sensors)
+        for s, g in frame.groupby("sensor", sort=False):
+            out[str(s)] = (g["ts"].iloc[-1].to_pydatetime(), float(g["value"].iloc[-1]))
+    return out
+
+
 def run_chunk(cfg: ServiceConfig, chunk: Chunk, store: Store, artifact: Artifact,
               stop: StopFlag | None = None) -> ChunkResult:
     """Backfill the days of ``chunk``: write each day's rows, then mark the day done,
@@ -342,10 +355,9 @@ def run_chunk(cfg: ServiceConfig, chunk: Chunk, store: Store, artifact: Artifact
                     # daemon (and a serial backfill's twin) would hold them.
                     twin = Twin(artifact, models=cfg.running_kinds(artifact.primary),
                                 stale_after=cfg.stale_after, thinning=cfg.thinning)
-                    init = hours.at(day, hours.init_start)
-                    for s, (ts, v) in store.last_readings_before(refs, init).items():
-                        if cfg.sensors[s].accepts(v):
-                            twin.observe(s, ts, v)
+                    for s, (ts, v) in _seed(cfg, store, refs,
+                                            hours.at(day, hours.init_start)).items():
+                        twin.observe(s, ts, v)
                 prev = day
                 # The store holds what import took unchecked (it has no configuration):
                 # the daemon rejects a reading outside its sensor's range, and so does this.

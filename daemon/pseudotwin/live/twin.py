@@ -36,6 +36,10 @@ from pseudotwin.models.base import DayEstimator, Estimate, TwinModel
 log = logging.getLogger(__name__)
 
 
+#: How old a reading before the day may be to give the day's carry-over.
+MAX_CARRY = dt.timedelta(hours=24)
+
+
 class Quality(StrEnum):
     """How far to trust a published estimate (the payload's ``quality``).
 
@@ -121,7 +125,7 @@ class Twin:
         artifact: Artifact,
         models: Sequence[str] | None = None,
         stale_after: dt.timedelta | None = None,
-        max_carry: dt.timedelta = dt.timedelta(hours=24),
+        max_carry: dt.timedelta = MAX_CARRY,
         thinning: Thinning | None = None,
         record_unlike: bool = False,
     ) -> None:
