@@ -214,6 +214,21 @@ def test_backfill_reports_days_without_readings(
     assert rc == 2 and "no twin 'nope'" in capsys.readouterr().err
 
 
+def _backfilled_day(folder: Path, readings: pd.DataFrame, port: int, artifact: Path
+                    ) -> pd.DataFrame:
+    """``readings`` in a new store in ``folder``, DAY backfilled for the desk twin by the CLI:
+    the stored estimates (without their written_at)."""
+    folder.mkdir()
+    db = folder / "history.db"
+    with open_store(str(db)) as store:
+        store.write_readings(readings)
+    cfg = write_config(folder, port, artifact, store=str(db))
+    assert main(["backfill", "--config", str(cfg), "--twin", "desk", "--from", str(DAY),
+                 "--to", str(DAY), "--quiet"]) == 0
+    with open_store(str(db)) as store:
+        return store.read_estimates("desk").drop(columns="written_at")
+
+
 def test_backfill_and_warm_start_leave_out_stored_readings_the_daemon_would_reject(
     mosquitto, desk_artifact, tmp_path: Path, capsys
 ) -> None:
@@ -226,18 +241,11 @@ def test_backfill_and_warm_start_leave_out_stored_readings_the_daemon_would_reje
     stores = {"wild": df.assign(value=df["value"].where(~wild, 85.0)), "clean": df[~wild]}
     rows = {}
     for name, frame in stores.items():
-        (tmp_path / name).mkdir()
-        db = tmp_path / name / "history.db"
-        with open_store(str(db)) as store:
-            store.write_readings(frame)
-        cfg = write_config(tmp_path / name, mosquitto.port, desk_artifact, store=str(db))
-        assert main(["backfill", "--config", str(cfg), "--twin", "desk", "--from", str(DAY),
-                     "--to", str(DAY), "--quiet"]) == 0
+        rows[name] = _backfilled_day(tmp_path / name, frame, mosquitto.port, desk_artifact)
         out = capsys.readouterr().out
         assert ("left out 1 stored reading(s) outside their sensor's configured min..max"
                 in out) == (name == "wild")
-        with open_store(str(db)) as store:
-            rows[name] = store.read_estimates("desk").drop(columns="written_at")
+        db = tmp_path / name / "history.db"
         svc = Service(config(tmp_path / name, mosquitto.port, desk_artifact, store=str(db)),
                       ReplayClock(HOURS.at(DAY, 12.0), 1.0))
         svc.restore()
@@ -261,17 +269,8 @@ def test_backfill_seeds_the_carry_over_with_the_last_reading_in_range(
     stores = {"wild": pd.concat([before.assign(value=before["value"].where(~last, 85.0)),
                                  today]),
               "clean": pd.concat([before[~last], today])}
-    rows = {}
-    for name, frame in stores.items():
-        (tmp_path / name).mkdir()
-        db = tmp_path / name / "history.db"
-        with open_store(str(db)) as store:
-            store.write_readings(frame)
-        cfg = write_config(tmp_path / name, mosquitto.port, desk_artifact, store=str(db))
-        assert main(["backfill", "--config", str(cfg), "--twin", "desk", "--from", str(DAY),
-                     "--to", str(DAY), "--quiet"]) == 0
-        with open_store(str(db)) as store:
-            rows[name] = store.read_estimates("desk").drop(columns="written_at")
+    rows = {name: _backfilled_day(tmp_path / name, frame, mosquitto.port, desk_artifact)
+            for name, frame in stores.items()}
     # before the day's first reading the carry-over answers (stale, with a value)
     assert (rows["clean"]["ts"] < HOURS.at(DAY, 9.0)).any()
     pd.testing.assert_frame_equal(rows["wild"], rows["clean"])
