@@ -93,15 +93,7 @@ class Journal:
             assert current is not None
             self._abandon()
             self._rotate(current)
-        lines = readinglines.encode(readings)
-        block = b"".join(lines)
-        with open(self._path(day), "a+b") as fh:
-            if fh.seek(0, os.SEEK_END) > 0:  # a crash cut the last line short: never glue
-                fh.seek(-1, os.SEEK_END)
-                if fh.read(1) != b"\n":
-                    block = b"\n" + block
-            if fh.write(block) != len(block):
-                raise OSError(errno.ENOSPC, "short write to the journal")
+        lines = readinglines.append(self._path(day), readings)
         if self._prev is not None and self._prev[0] == day:
             self._prev[1].extend(lines)  # rebuildable as yesterday's file
 

@@ -4,8 +4,11 @@ spool (``{"sensor": …, "ts": ISO 8601 with offset, "value": …}``)."""
 from __future__ import annotations
 
 import datetime as dt
+import errno
 import json
+import os
 from collections.abc import Iterable
+from pathlib import Path
 
 from pseudotwin.live.readings import Reading
 
@@ -24,3 +27,19 @@ def decode(line: bytes) -> Reading:
         return Reading(o["sensor"], dt.datetime.fromisoformat(o["ts"]), float(o["value"]))
     except (ValueError, KeyError, TypeError) as exc:  # UnicodeDecodeError is a ValueError
         raise ValueError(f"not a reading line ({exc})") from None
+
+
+def append(path: Path, readings: Iterable[Reading]) -> list[bytes]:
+    """Append one line per reading to the file at ``path`` (created if need be) and return
+    the lines. A last line cut short by a crash or a full disk is ended first: the next
+    reading is never glued onto it and lost with it. OSError when the write falls short."""
+    lines = encode(readings)
+    block = b"".join(lines)
+    with open(path, "a+b") as fh:
+        if fh.seek(0, os.SEEK_END) > 0:
+            fh.seek(-1, os.SEEK_END)
+            if fh.read(1) != b"\n":
+                block = b"\n" + block
+        if fh.write(block) != len(block):
+            raise OSError(errno.ENOSPC, f"short write to {path}")
+    return lines

@@ -64,16 +64,7 @@ class Spool:
         path.parent.mkdir(parents=True, exist_ok=True)
 
     def add(self, readings: list[Reading]) -> None:
-        block = b"".join(readinglines.encode(readings))
-        with open(self.path, "a+b") as fh:
-            # A crash or a full disk may have cut the last line short: never glue the next
-            # reading onto it, or that acknowledged reading goes down with the torn line.
-            if fh.seek(0, os.SEEK_END) > 0:
-                fh.seek(-1, os.SEEK_END)
-                if fh.read(1) != b"\n":
-                    block = b"\n" + block
-            fh.write(block)
-            fh.flush()
+        readinglines.append(self.path, readings)  # a torn last line is ended first
 
     def load(self) -> list[Reading]:
         if not self.path.exists():
