@@ -41,8 +41,8 @@ def test_readings_straddling_midnight_go_to_their_days_without_rotating_back(
     tmp_path: Path, monkeypatch
 ) -> None:
     """Two sensors stamping either side of UTC midnight alternated the journal between the
-    two days' files, re-reading the whole of each at every switch (14 ms a reading on a
-    22 MB day). The earlier day's stragglers are appended to its file; the current one
+    two days' files, re-reading the whole of each at every switch, a cost growing with the
+    day's file. The earlier day's stragglers are appended to its file; the current one
     stays open, and is read in only when the journal rotates forward."""
     j = Journal(tmp_path)
     j.append(r(23, 0.0, 19))
