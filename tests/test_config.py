@@ -783,3 +783,15 @@ def test_a_duplicate_sensor_id_does_not_shadow_the_first(tmp_path: Path) -> None
     found = problems_of(tmp_path, doc)
     assert has(found, "sensors[3].id", "duplicate id 'r/hmi/temp' (first used by sensors[0])")
     assert not any("ppm" in p for p in found), found
+
+
+def test_every_store_url_the_store_opens_is_a_valid_configuration(tmp_path: Path) -> None:
+    """``crate+http://`` opened in ``import --store`` but was an unknown scheme in the
+    configuration."""
+    doc = base_doc()
+    for url in ("crate://db:4200", "crate+http://db:4200", "crate+https://db:4200",
+                "postgresql://pt@db/history"):
+        doc["service"]["store"] = url
+        assert load_config(write(tmp_path, doc)).store == url
+    doc["service"]["store"] = "mysql://db/history"
+    assert has(problems_of(tmp_path, doc), "service.store", "unknown store URL scheme")

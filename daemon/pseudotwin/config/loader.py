@@ -27,10 +27,12 @@ from pseudotwin.config.model import (
     thinning_of,
 )
 from pseudotwin.config.validate import (
+    PATHLESS_SQLITE,
     ConfigProblems,
     Found,
     expect,
     field_defaults,
+    is_memory_url,
     nonempty,
     suggest,
     type_name,
@@ -232,8 +234,6 @@ class Loader:
         if not isinstance(value, str) or not value.strip():
             self.add("service.store", f"expected a SQLite path or crate:// URL, got {value!r}")
             return None
-        from pseudotwin.history.store import PATHLESS_SQLITE, is_memory_url
-
         if is_memory_url(value) or value.strip() == PATHLESS_SQLITE:
             self.add("service.store", f"{value!r} keeps nothing: the recorder's readings and "
                                       "the backfilled estimates would be gone when it stops "
@@ -247,10 +247,11 @@ class Loader:
                                               "set PGPASSWORD or use ~/.pgpass")
                     return None
                 return value
-            if not value.startswith(("crate://", "crate+https://", "sqlite://")):
+            if not value.startswith(("crate://", "crate+http://", "crate+https://",
+                                      "sqlite://")):
                 self.add("service.store", f"unknown store URL scheme in {value!r} (a SQLite "
-                                          "file path, sqlite:///path, postgresql://host/db or "
-                                          "crate://host:4200)")
+                                          "file path, sqlite:///path, postgresql://host/db, "
+                                          "crate://host:4200 or crate+https://host:4200)")
                 return None
             if "@" in value.split("://", 1)[1].split("/", 1)[0]:
                 self.add("service.store", "credentials do not belong in the store URL; set "

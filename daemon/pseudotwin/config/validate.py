@@ -147,3 +147,13 @@ def base_topic_problem(topic: str) -> str | None:
     if topic.endswith("/"):
         return "must not end with '/' (outputs go to '<base_topic>/<twin>/...')"
     return None
+
+
+# The store URLs (history/store.py opens them; the loader checks them): a SQLite URL with no
+# file path after it, and the forms that name a database in memory.
+PATHLESS_SQLITE = "sqlite:///"
+
+
+def is_memory_url(url: str) -> bool:
+    """Whether ``url`` names a SQLite store in memory, which keeps nothing once closed."""
+    return url.strip() in (":memory:", "sqlite://", "sqlite:///:memory:")

@@ -65,6 +65,7 @@ from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 import numpy as np
 import pandas as pd
 
+from pseudotwin.config.validate import PATHLESS_SQLITE, is_memory_url
 from pseudotwin.core.series import COLUMNS, normalize
 from pseudotwin.errors import ConfigError, PseudotwinError
 from pseudotwin.live.readings import Reading
@@ -870,14 +871,6 @@ def _bulk_count(results: list[dict] | None, sent: int) -> tuple[int, list[tuple[
 
 
 #: ``sqlite:///$DB`` with DB unset: a path forgotten, not a wish for a store in memory.
-PATHLESS_SQLITE = "sqlite:///"
-
-
-def is_memory_url(url: str) -> bool:
-    """Whether ``url`` names a SQLite store in memory, which keeps nothing once closed."""
-    return url.strip() in (":memory:", "sqlite://", "sqlite:///:memory:")
-
-
 def open_store(url: str | os.PathLike[str], existing: bool = False) -> Store:
     """Open (creating tables on first use) the store at ``url``; see the module docstring.
 
