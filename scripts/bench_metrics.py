@@ -4,7 +4,7 @@ Builds the daemon's metric set (edge/prometheus.py) for N twins with two referen
 each, fills every series as a day of operation would, serves it with the same HTTP server
 the daemon uses and times real scrapes over HTTP (urllib) and the parse of the body. No
 models run: the endpoint's cost depends only on the number of series. Not part of the test
-suite.
+suite. Prints the figures and, last, one JSON line.
 
     .venv/bin/python scripts/bench_metrics.py [--twins 1000] [--scrapes 20]
 """
@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import json
 import socket
 import statistics
 import time
@@ -70,6 +71,11 @@ def main() -> None:
     print(f"scrape over HTTP ({a.scrapes}×): median {statistics.median(times) * 1e3:.0f} ms, "
           f"max {max(times) * 1e3:.0f} ms")
     print(f"parse with prometheus_client.parser: {parse * 1e3:.0f} ms")
+    print(json.dumps({"twins": a.twins, "sensors": len(sensors), "samples": series,
+                      "scrape_bytes": len(body), "build_ms": round(build * 1e3, 1),
+                      "scrape_median_ms": round(statistics.median(times) * 1e3, 1),
+                      "scrape_max_ms": round(max(times) * 1e3, 1),
+                      "parse_ms": round(parse * 1e3, 1)}))
 
 
 if __name__ == "__main__":

@@ -755,7 +755,8 @@ def build_parser() -> argparse.ArgumentParser:
     fleet = r.add_mutually_exclusive_group()
     fleet.add_argument("--shard", type=_shard, metavar="I/N",
                        help="fleet: run only shard I of N (0-based), the twins whose "
-                            "sha256(id) mod N is I, and subscribe only to their sensors; "
+                            "SHA-256 of the id (its first 8 bytes, big-endian) mod N is I, and "
+                            "subscribe only to their sensors; "
                             "client id, state_dir subfolder and status topic "
                             "(<base>/status/shard-I-of-N) become this instance's own")
     fleet.add_argument("--twins", type=_csv, metavar="ID,ID",

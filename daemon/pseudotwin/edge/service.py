@@ -85,9 +85,10 @@ TICK_BACKLOG = 20
 TICK_MAX_PAUSE = 0.05
 # The baselines and the monitor go out at QoS 0: they are for monitoring, and the next grid
 # instant replaces one lost with a dropped connection. They are most of a twin's messages
-# per grid step (five of seven with every baseline published), and a QoS 1 message costs
-# paho about twice the CPU of a QoS 0 one (the PUBACK and its bookkeeping): at 1,000 twins
-# this is ~15 % of the daemon's CPU and most of the grid's burst (scripts/bench_daemon.py).
+# per grid step (five of six with every baseline published; the monitor is hourly), and a
+# QoS 1 message costs paho about twice the CPU of a QoS 0 one (the PUBACK and its
+# bookkeeping): at 1,000 twins this is ~15 % of the daemon's CPU and most of the grid's burst
+# (scripts/bench_daemon.py).
 # Estimates and status stay QoS 1.
 MONITORING_QOS = 0
 # A grid instant's estimates are made this long after it (clock time): a reading stamped

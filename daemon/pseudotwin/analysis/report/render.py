@@ -299,6 +299,15 @@ PERFORMANCE = (
      "Backfill over 7 months of 1-minute readings in SQLite: one twin serial and on all "
      "cores, and 8 twins (days per second, CPU per day, peak RSS), and the recorder's "
      "sustained rate into SQLite."),
+    ("bench_store.txt", ".venv/bin/python scripts/bench_store.py",
+     "The history store",
+     "Bulk write, idempotent rewrite and read of 7 months of 1-minute readings of 3 sensors, "
+     "and one twin's estimates for the span: SQLite against PostgreSQL (a throwaway local "
+     "cluster, fsync off: the CPU and protocol cost, not the disk's)."),
+    ("bench_metrics.txt", ".venv/bin/python scripts/bench_metrics.py",
+     "The Prometheus endpoint with 1,000 twins",
+     "The daemon's metric set for 1,000 twins with two references each, filled as by a day "
+     "of operation: samples and bytes per scrape, and the time of a real scrape over HTTP."),
     ("failover.txt", ".venv/bin/python scripts/failover.py",
      "Reference failover",
      "Each reference of the two-reference runs silenced for every test day: the estimate's "
