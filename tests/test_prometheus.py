@@ -109,6 +109,19 @@ def metered(mosquitto, desk_artifact: Path, tmp_path: Path) -> Iterator[tuple[Se
         svc.stop()
 
 
+def test_the_time_of_the_last_estimate_never_goes_back() -> None:
+    """A late reading's estimate goes out with its own, older ts; the gauge followed it back,
+    and an alert on the estimate's age fired on a live twin."""
+    m = DaemonMetrics([REF], ["desk"])
+    grid, late = HOURS.at(DAY, 8.25), HOURS.at(DAY, 8.1)
+    m.published("desk", "ok", grid)
+    m.published("desk", "ok", late)
+    assert m.registry.get_sample_value("pseudotwin_last_estimate_timestamp_seconds",
+                                       {"twin": "desk"}) == grid.timestamp()
+    assert m.registry.get_sample_value("pseudotwin_estimates_published_total",
+                                       {"twin": "desk", "quality": "ok"}) == 2
+
+
 def test_daemon_endpoint_counts_what_went_through_the_broker(metered, mosquitto) -> None:
     svc, port = metered
     viewer = Viewer(mosquitto.port, "pt/desk/estimate")

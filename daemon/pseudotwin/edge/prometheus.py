@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import datetime as dt
 import logging
+import math
 import os
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
@@ -173,6 +174,7 @@ class DaemonMetrics(_Metrics):
                            for t in twins for q in Quality
                            if q != Quality.INIT}  # never published
         self._last_estimate: dict[str, Gauge] = {}
+        self._last_stamp: dict[str, float] = {}
 
     def watch(self, *, queue_size: Callable[[], int], queue_bound: int,
               connected: Callable[[], bool], journal_dir: Path,
@@ -203,7 +205,12 @@ class DaemonMetrics(_Metrics):
         gauge = self._last_estimate.get(twin)
         if gauge is None:  # created with the first estimate: no series before one exists
             gauge = self._last_estimate[twin] = self.last_estimate.labels(twin)
-        gauge.set(ts.timestamp())
+        # A late reading's estimate goes out with its own, older ts: the time of the last
+        # estimate never goes back (an alert on its age would fire on a live twin).
+        stamp = ts.timestamp()
+        if stamp > self._last_stamp.get(twin, -math.inf):
+            self._last_stamp[twin] = stamp
+            gauge.set(stamp)
 
 
 class _FallbackCollector(Collector):
