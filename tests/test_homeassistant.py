@@ -10,6 +10,7 @@ import re
 import shutil
 from pathlib import Path
 
+import jinja2
 import pytest
 
 from daemon_support import DAY, HOURS, off_grid, write_config
@@ -17,7 +18,9 @@ from pseudotwin.config import ConfigProblems, load_config
 from pseudotwin.config.model import HomeAssistantConfig
 from pseudotwin.edge import homeassistant as ha
 from pseudotwin.edge.clock import ReplayClock
+from pseudotwin.edge.outputs import estimate_payload
 from pseudotwin.edge.service import Service
+from pseudotwin.live.twin import Quality, TwinEstimate
 from test_daemon import reading
 
 # Options of an MQTT sensor in Home Assistant's documentation (full names; the payloads use
@@ -40,18 +43,17 @@ TOPIC_LEVEL = re.compile(r"[A-Za-z0-9_-]+")
 
 
 def render_value(template: str, payload: bytes) -> str:
-    """Home Assistant's rendering of the one template form used, ``{{ value_json.KEY }}``
-    (Jinja renders Python's None as 'None', which the MQTT sensor takes as unknown)."""
-    m = re.fullmatch(r"\{\{\s*value_json\.(\w+)\s*\}\}", template)
-    assert m, template
-    return str(json.loads(payload)[m.group(1)])
+    """Home Assistant's rendering of a value template: Jinja2, its template engine, with the
+    payload as ``value`` and its JSON as ``value_json`` (Jinja renders None as 'None', which
+    the MQTT sensor takes as unknown)."""
+    env = jinja2.Environment(undefined=jinja2.StrictUndefined)
+    return env.from_string(template).render(value=payload.decode(),
+                                            value_json=json.loads(payload))
 
 
 def render_availability(template: str, value: str) -> str:
-    m = re.fullmatch(r"\{\{ '(\w+)' if value == '(\w+)' else '(\w+)' \}\}", template)
-    assert m, template
-    then, test, other = m.groups()
-    return then if value == test else other
+    return jinja2.Environment(undefined=jinja2.StrictUndefined).from_string(template).render(
+        value=value)
 
 
 def check_sensor_config(topic: str, body: dict, prefix: str) -> None:
@@ -302,3 +304,16 @@ def test_a_twin_leaving_the_config_is_removed_from_home_assistant(
         assert retained(mqtt_client, f"{prefix}/#") == {}
     finally:
         svc.stop()
+
+
+@pytest.mark.parametrize(("quality", "shown"), [
+    (Quality.OK, "21.5"), (Quality.FALLBACK, "21.5"), (Quality.UNCERTAIN, "21.5"),
+    (Quality.STALE, "None"),
+])
+def test_a_stale_estimate_is_unknown_in_home_assistant(quality: Quality, shown: str) -> None:
+    """A stale estimate keeps its last value in the payload (with quality ``stale``), and the
+    entity showed it as a current reading."""
+    twin = ha.TwinEntities("desk", "temperature", "°C", "triv")
+    body = ha.entity_config(twin, ha.ESTIMATE, base_topic="pt", expire_after=1800)
+    e = TwinEstimate(HOURS.at(DAY, 9.0), 21.5, 0.3, "triv", quality)
+    assert render_value(body["value_template"], estimate_payload(e, "°C")) == shown

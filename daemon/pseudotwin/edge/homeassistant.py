@@ -4,8 +4,9 @@ One Home Assistant *device* per twin (a twin is what a user places, trains and r
 room with two twins shows as two devices), holding a ``sensor`` entity for the estimate
 (``<base>/<twin>/estimate``) and, with ``baselines = true``, one per published baseline
 (``<base>/<twin>/baseline/<kind>``). Every entity reads the daemon's own JSON payloads:
-``value_template`` takes ``value`` (a ``null`` value renders ``None``, which Home Assistant
-shows as unknown) and ``json_attributes_topic`` is the same topic, so ``std`` (σ),
+``value_template`` takes ``value``, except that a ``stale`` estimate (a reference silent and
+no failover: the payload keeps the last value) and a ``null`` value render ``None``, which
+Home Assistant shows as unknown; ``json_attributes_topic`` is the same topic, so ``std`` (σ),
 ``quality``, ``model``, ``ts`` and ``refs`` become attributes.
 
 Availability comes from ``<base>/status``. The daemon publishes ``online``, ``offline`` (last
@@ -62,7 +63,9 @@ COMPONENT = "sensor"
 MANUFACTURER = "pseudotwin"
 STATE_FILE = "homeassistant.json"
 ESTIMATE = "estimate"
-VALUE_TEMPLATE = "{{ value_json.value }}"
+# A stale estimate keeps its last value in the payload (for the MPC, with quality ``stale``);
+# Home Assistant has no quality, so its state becomes unknown (Jinja's none renders "None").
+VALUE_TEMPLATE = "{{ value_json.value if value_json.quality != 'stale' else none }}"
 # ``degraded`` (journal failing, estimates still published) counts as available.
 AVAILABILITY_TEMPLATE = "{{ 'offline' if value == 'offline' else 'online' }}"
 
