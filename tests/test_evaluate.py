@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 
 from daemon_support import sml_csv
-from pseudotwin.analysis.evaluate import replay_estimates
+from pseudotwin.analysis.evaluate import median_day, replay_estimates
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.cli import main
 from pseudotwin.core.horizon import OperatingHours
@@ -137,3 +137,39 @@ def test_bad_arguments_are_usage_errors(capsys) -> None:
             "--quantity", "humidity", "--train-start", "2020-01-01", "--out", "o")
     assert exc.value.code == 2
     assert "invalid choice" in capsys.readouterr().err
+
+
+def test_days_the_reference_is_silent_are_left_out_of_every_row_and_named(
+        sml: Path, tmp_path: Path, caplog) -> None:
+    """The reference dead after 2012-03-20: the models' rows stopped there, while its raw
+    `ref:` row held its last value for every later day and was scored on other days than
+    the twin it is compared with."""
+    df = pd.read_csv(sml)
+    ts = pd.to_datetime(df["ts"], utc=True)
+    dead = ts >= pd.Timestamp("2012-03-20T23:00Z")  # 2012-03-21 00:00 Madrid
+    cut = df[~(dead & (df["sensor"] == "dining/temp"))]
+    path = tmp_path / "dies.csv"
+    cut.to_csv(path, index=False)
+    with caplog.at_level("WARNING", logger="pseudotwin.analysis.evaluate"):
+        rc = run("evaluate", "--history", str(path), "--references", "dining/temp",
+                 "--target", "room/temp", "--quantity", "temperature", "--train-start",
+                 "2012-03-14", "--timezone", "Europe/Madrid", "--models", "ref,triv",
+                 "--out", str(tmp_path / "ev"))
+    assert rc == 0
+    daily = pd.read_csv(tmp_path / "ev" / "daily.csv")
+    by_model = {m: set(g["day"]) for m, g in daily.groupby("model")}
+    assert by_model["ref:dining/temp"] == by_model["estimate"] == by_model["triv"]
+    assert "2012-03-22" not in by_model["estimate"] and "2012-03-19" in by_model["estimate"]
+    said = " ".join(r.getMessage() for r in caplog.records)
+    assert "but no estimate" in said and "2012-03-22" in said
+
+
+def test_the_typical_day_plotted_is_not_a_day_cut_short() -> None:
+    """The median day by NRMSE was a day with three readings before a gap in the data: its
+    plot spanned half an hour."""
+    daily = pd.DataFrame({"day": ["2012-04-09", "2012-04-10", "2012-04-11"],
+                          "model": "triv", "nrmse_pct": [1.0, 3.0, 2.0], "n": [45, 44, 3]})
+    assert median_day(daily, "triv") == dt.date(2012, 4, 10)
+    whole = daily.assign(n=45)  # every day whole: the median by NRMSE
+    assert median_day(whole, "triv") == dt.date(2012, 4, 11)
+    assert median_day(daily, "ref") is None

@@ -131,12 +131,31 @@ def evaluate(
             f"no target readings of {target} in operating hours after the training period "
             f"(from {test_start} on): nothing to evaluate"
         )
+    _name_unanswered_days(est, history, spec, test_start)
     daily = daily_scores(est, hours)
     monthly = monthly_scores(daily)
     ev = Evaluation(artifact, est, daily, monthly, time.perf_counter() - t0)
     if out is not None:
         write_outputs(ev, history, out, plot_day)
     return ev
+
+
+def _name_unanswered_days(est: pd.DataFrame, history: pd.DataFrame, spec: TwinSpec,
+                          start: dt.date) -> None:
+    """Log the scored days on which the desk reported but the twin never answered (its
+    references silent): they are in no row, so every model's mean leaves them out."""
+    hours = spec.hours
+    days, h = hours.day_and_hours(history.loc[history["sensor"] == spec.target, "ts"])
+    wanted = {dt.date.fromisoformat(str(d)[:10])
+              for d in np.unique(days[hours.in_operating_hours(h)])}
+    answered = {dt.date.fromisoformat(str(d)[:10])
+                for d in np.unique(hours.day_and_hours(est["ts"])[0])}
+    missing = sorted(d for d in wanted - answered if d >= start)
+    if missing:
+        shown = ", ".join(str(d) for d in missing[:10])
+        log.warning("%d day(s) with readings of %s but no estimate, as the references did not "
+                    "report (left out of every score): %s%s", len(missing), spec.target,
+                    shown, f" and {len(missing) - 10} more" if len(missing) > 10 else "")
 
 
 def write_outputs(
@@ -152,16 +171,19 @@ def write_outputs(
     from pseudotwin.analysis.plots import plot_daily_nrmse, plot_day_estimate
 
     plot_daily_nrmse(ev.daily, out / "daily_nrmse.png", ev.artifact)
-    day = plot_day or _median_day(ev)
+    day = plot_day or median_day(ev.daily, ev.artifact.primary)
     if day is not None:
         plot_day_estimate(ev, history, day, out / f"day_{day}.png")
 
 
-def _median_day(ev: Evaluation) -> dt.date | None:
-    """The day whose primary-model NRMSE is the median: a typical day, not the best."""
-    d = ev.daily[ev.daily["model"] == ev.artifact.primary].sort_values("nrmse_pct")
+def median_day(daily: pd.DataFrame, primary: str) -> dt.date | None:
+    """The day whose primary-model NRMSE is the median: a typical day, not the best, among
+    the days with at least half the usual number of scored readings (a day cut short by a
+    gap in the data is not typical, and its plot spans an hour)."""
+    d = daily[daily["model"] == primary]
     if d.empty:
         return None
+    d = d[d["n"] >= 0.5 * d["n"].median()].sort_values("nrmse_pct")
     return dt.date.fromisoformat(d["day"].iloc[len(d) // 2])
 
 

@@ -44,8 +44,9 @@ def replay_estimates(
     Rows (ts, model, value, std, truth, quality, slope): one per model that answered; rows of
     model ``estimate``, exactly what the daemon would publish on ``<twin>/estimate`` (the
     primary, with its fallbacks and quality flags; nothing in the init phase); and, as
-    pseudo-models ``ref:<sensor>``, the raw reference value held at that time (its daily
-    Pearson r with the target is the evidence of how much a reference can tell). slope: the
+    pseudo-models ``ref:<sensor>``, the raw reference value held at that time, at the instants
+    where some model answered (its daily Pearson r with the target is the evidence of how
+    much a reference can tell). slope: the
     references' |slope| [unit/h] the model's σ saw. thinning: the window's policy, as the
     daemon's configuration sets it (default one point per sensor and minute). stale_after:
     the daemon's, to score what it publishes while a reference is silent (quality ``stale``,
@@ -96,16 +97,20 @@ def replay_estimates(
         if not sc:
             continue
         h = hours.hours_of(t)
+        answered = False
         for kind, e in twin.estimate(t).items():
             if not e.finite:
                 continue
+            answered = True
             slope = twin.slope(artifact.models[kind].references_, h)
             fired = (UNLIKE_SEP.join(e.unlike),) if criteria else ()
             rows.append((t, kind, e.value, e.std, truth, e.quality.value, slope, *fired))
             if kind == primary and e.publishable:
                 rows.append((t, ESTIMATE, e.value, e.std, truth, e.quality.value, slope,
                              *fired))
-        for r in refs:
+        # "Just use the reference" is scored where the twin could answer: a reference
+        # silent for days has no value today for the twin, nor for the desk.
+        for r in refs if answered else ():
             if r in held:
                 rows.append((t, REF_PREFIX + r, held[r], np.nan, truth, "ok", np.nan,
                              *(("",) if criteria else ())))

@@ -738,7 +738,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "reference silent longer makes the estimate stale, or a failover "
                         "answers without it (default: a silent reference's last value is held; "
                         "only a reference that never reported makes the estimate stale)")
-    e.add_argument("--plot-day", type=_date, help="day to plot in detail (default: median day)")
+    e.add_argument("--plot-day", type=_date,
+                   help="day to plot in detail (default: the primary's median day by NRMSE, "
+                        "among days with at least half the usual scored readings)")
     e.set_defaults(func=cmd_evaluate, check=functools.partial(_check_training, e))
 
     r = sub.add_parser("run", help="run the live daemon (MQTT in, pseudo-measurements out)",
