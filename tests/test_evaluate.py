@@ -173,3 +173,43 @@ def test_the_typical_day_plotted_is_not_a_day_cut_short() -> None:
     whole = daily.assign(n=45)  # every day whole: the median by NRMSE
     assert median_day(whole, "triv") == dt.date(2012, 4, 11)
     assert median_day(daily, "ref") is None
+
+
+def test_outputs_never_overwrite_the_inputs_and_primary_is_checked_first(
+        sml: Path, tmp_path: Path, capsys) -> None:
+    """`train --out` equal to `--history` replaced the readings by the artifact; a --primary
+    not among --models was refused only after every model had been fitted."""
+    history = tmp_path / "h.csv"
+    history.write_bytes(sml.read_bytes())
+    common = ["--references", "dining/temp", "--target", "room/temp", "--quantity",
+              "temperature", "--train-start", "2012-03-14", "--timezone", "Europe/Madrid"]
+    with pytest.raises(SystemExit) as exc:
+        run("train", "--history", str(history), *common, "--models", "ref,triv",
+            "--out", str(history))
+    assert exc.value.code == 2
+    assert "would overwrite the --history file" in capsys.readouterr().err
+    assert history.read_bytes() == sml.read_bytes()
+    renamed = tmp_path / "o" / "estimates.csv"
+    renamed.parent.mkdir()
+    renamed.write_bytes(sml.read_bytes())
+    with pytest.raises(SystemExit) as exc:
+        run("evaluate", "--history", str(renamed), *common, "--models", "ref,triv",
+            "--out", str(renamed.parent))
+    assert exc.value.code == 2 and "would overwrite the --history file" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        run("train", "--history", str(history), *common, "--models", "ref,triv",
+            "--primary", "corrgp-lcm", "--out", str(tmp_path / "p.json"))
+    assert exc.value.code == 2 and "--primary corrgp-lcm is not among --models" in \
+        capsys.readouterr().err
+    assert not (tmp_path / "p.json").exists()
+
+
+def test_a_second_evaluation_into_a_folder_leaves_only_its_own_day_plot(
+        sml: Path, tmp_path: Path) -> None:
+    out = tmp_path / "ev"
+    args = ["evaluate", "--history", str(sml), "--references", "dining/temp", "--target",
+            "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
+            "--timezone", "Europe/Madrid", "--models", "ref,triv", "--out", str(out)]
+    assert run(*args, "--plot-day", "2012-03-19") == 0
+    assert run(*args, "--plot-day", "2012-03-20") == 0
+    assert sorted(p.name for p in out.glob("day_*.png")) == ["day_2012-03-20.png"]

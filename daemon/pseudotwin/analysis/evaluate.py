@@ -158,22 +158,35 @@ def _name_unanswered_days(est: pd.DataFrame, history: pd.DataFrame, spec: TwinSp
                     shown, f" and {len(missing) - 10} more" if len(missing) > 10 else "")
 
 
+# What evaluate writes into its output folder, besides the plot of one day (DAY_PLOT).
+ARTIFACT_FILE, ESTIMATES_FILE, DAILY_FILE, MONTHLY_FILE, NRMSE_PLOT = (
+    "artifact.json", "estimates.csv", "daily.csv", "monthly.csv", "daily_nrmse.png")
+OUTPUT_FILES = (ARTIFACT_FILE, ESTIMATES_FILE, DAILY_FILE, MONTHLY_FILE, NRMSE_PLOT)
+DAY_PLOT = "day_{day}.png"
+
+
 def write_outputs(
     ev: Evaluation, history: pd.DataFrame, out: Path, plot_day: dt.date | None = None
 ) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    ev.artifact.save(out / "artifact.json")
+    ev.artifact.save(out / ARTIFACT_FILE)
     est = ev.estimates.copy()
     est["ts"] = iso_utc(est["ts"])  # a sub-second reading keeps its stamp: it joins back
-    est.to_csv(out / "estimates.csv", index=False, float_format="%.6g")
-    ev.daily.to_csv(out / "daily.csv", index=False, float_format="%.4f")
-    ev.monthly.to_csv(out / "monthly.csv", index=False, float_format="%.4f")
+    est.to_csv(out / ESTIMATES_FILE, index=False, float_format="%.6g")
+    ev.daily.to_csv(out / DAILY_FILE, index=False, float_format="%.4f")
+    ev.monthly.to_csv(out / MONTHLY_FILE, index=False, float_format="%.4f")
     from pseudotwin.analysis.plots import plot_daily_nrmse, plot_day_estimate
 
-    plot_daily_nrmse(ev.daily, out / "daily_nrmse.png", ev.artifact)
+    plot_daily_nrmse(ev.daily, out / NRMSE_PLOT, ev.artifact)
     day = plot_day or median_day(ev.daily, ev.artifact.primary)
-    if day is not None:
-        plot_day_estimate(ev, history, day, out / f"day_{day}.png")
+    plot = out / DAY_PLOT.format(day=day) if day is not None else None
+    # An earlier run's day plot would sit beside this run's tables as if it were of them.
+    for old in out.glob(DAY_PLOT.format(day="*")):
+        if old != plot:
+            old.unlink()
+            log.info("removed %s, the plot of an earlier evaluation into %s", old.name, out)
+    if day is not None and plot is not None:
+        plot_day_estimate(ev, history, day, plot)
 
 
 def median_day(daily: pd.DataFrame, primary: str) -> dt.date | None:

@@ -464,7 +464,16 @@ def _folder_out(text: str) -> Path:
     return path
 
 
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether ``a`` and ``b`` name one file (links and relative paths included)."""
+    try:
+        return a.resolve() == b.resolve() or (a.exists() and b.exists() and a.samefile(b))
+    except OSError:
+        return False
+
+
 def _check_training(p: argparse.ArgumentParser, a: argparse.Namespace) -> None:
+    from pseudotwin.analysis.evaluate import OUTPUT_FILES
     from pseudotwin.analysis.validation import MIN_DAYS
 
     if a.command == "train" and a.history is None and a.store is None and a.config is None:
@@ -474,6 +483,13 @@ def _check_training(p: argparse.ArgumentParser, a: argparse.Namespace) -> None:
         p.error(f"--covariates {','.join(a.covariates)}: none of the models asked for reads "
                 f"covariates (only {', '.join(readers)} does): add it to --models, or leave "
                 "--covariates out (the twin would have to be fed sensors nothing reads)")
+    if a.primary is not None and a.primary not in a.models:
+        p.error(f"--primary {a.primary} is not among --models ({','.join(a.models)}): add it, "
+                "or leave --primary out and let validation choose")
+    written = [a.out] if a.command == "train" else [a.out / n for n in OUTPUT_FILES]
+    for option, path in (("--history", a.history), ("--config", getattr(a, "config", None))):
+        if path is not None and any(_same_file(path, w) for w in written):
+            p.error(f"--out would overwrite the {option} file {path}")
     if 0 < a.train_days < MIN_DAYS and not a.allow_unvalidated:
         p.error(f"--train-days {a.train_days}: validation holds out each training day in turn "
                 f"and needs at least {MIN_DAYS}; with fewer, σ is not calibrated and nothing "
