@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import datetime as dt
+import os
 import re
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +15,7 @@ import pandas as pd
 import pytest
 
 from pseudotwin.cli import convert as cc  # the command; cv is the converters
-from pseudotwin.core.series import read_history
+from pseudotwin.core.series import read_history, write_history
 from pseudotwin.errors import ConfigError, DataError
 from pseudotwin.history import convert as cv
 
@@ -873,3 +877,55 @@ def test_raw_is_refused_where_nothing_is_averaged(tmp_path: Path, capsys) -> Non
     assert cc.main(["sml2010", "--raw", "--out", str(tmp_path / "h.csv")]) == 2
     assert "--raw: sml2010 has no samples to keep" in capsys.readouterr().err
     assert not (tmp_path / "h.csv").exists()
+
+
+@needs_data
+def test_main_never_writes_into_its_own_dataset(tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """``--out`` the source file replaced the raw dataset by the converted one."""
+    src = tmp_path / "sml"
+    shutil.copytree(cv.default_source("sml2010"), src)
+    before = {p.name: p.read_bytes() for p in src.iterdir()}
+    for out in (src / next(iter(before)), src / "converted.csv"):
+        assert cc.main(["sml2010", "--source", str(src), "--out", str(out)]) == 2
+        assert "into the dataset itself" in one_error_line(capsys)
+    assert {p.name: p.read_bytes() for p in src.iterdir()} == before
+
+
+def test_an_interrupted_write_leaves_the_earlier_file_whole(tmp_path: Path) -> None:
+    """A converted file overwritten by a run that failed (or was interrupted) part-way was
+    left truncated at a whole row: shorter history that read and imported without a word."""
+    class Unwritable:
+        def __str__(self) -> str:
+            raise RuntimeError("the write fails here")
+
+    path = tmp_path / "h.csv"
+    earlier = pd.DataFrame({"sensor": "a", "value": [1.0, 2.0],
+                            "ts": pd.to_datetime(["2012-03-14T10:00Z", "2012-03-14T10:01Z"])})
+    write_history(earlier, path)
+    kept = path.read_bytes()
+    n = 300_000  # more rows than pandas writes in one chunk: the first chunks reach the file
+    later = pd.DataFrame({"sensor": "a", "ts": pd.date_range("2012-03-15", periods=n,
+                                                              freq="s", tz="UTC"),
+                          "value": np.r_[np.ones(n - 1), np.nan].astype(object)})
+    later.loc[n - 1, "value"] = Unwritable()
+    with pytest.raises(RuntimeError, match="fails here"):
+        write_history(later, path)
+    assert path.read_bytes() == kept
+    assert [p.name for p in tmp_path.iterdir()] == ["h.csv"]  # no temporary file left
+
+
+@needs_data
+def test_parquet_without_its_engine_is_one_error_line(tmp_path: Path) -> None:
+    """pandas' Parquet engine missing (pyarrow; here a stand-in module that fails to import,
+    as a broken or absent install does): convert printed pandas' traceback."""
+    stub = tmp_path / "stub"
+    stub.mkdir()
+    (stub / "pyarrow.py").write_text('raise ImportError("no pyarrow here")\n')
+    out = tmp_path / "sml.parquet"
+    p = subprocess.run([sys.executable, "-m", "pseudotwin.cli", "convert", "sml2010",
+                        "--out", str(out)], capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "PYTHONPATH": str(stub)})
+    assert p.returncode == 2, p.stderr
+    assert "Traceback" not in p.stderr and "cannot write Parquet" in p.stderr
+    assert not out.exists()

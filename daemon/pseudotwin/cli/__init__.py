@@ -853,7 +853,11 @@ def _main(argv: Sequence[str] | None) -> int:
         # --log-level is its usage error, as for the other subcommands).
         head = build_parser().parse_args(args[:first])
         setup_logging(head.log_level or "INFO")
-        return DELEGATED[args[first]](args[first + 1:])
+        try:
+            return DELEGATED[args[first]](args[first + 1:])
+        except KeyboardInterrupt:  # what was written so far stays whole (convert, import)
+            print(f"pseudotwin {args[first]}: interrupted", file=sys.stderr)
+            return 130
     parser = build_parser()
     a = parser.parse_args(args)
     if check := getattr(a, "check", None):

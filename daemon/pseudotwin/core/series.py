@@ -10,7 +10,9 @@ from __future__ import annotations
 import csv
 import datetime as dt
 import logging
+import os
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -246,20 +248,40 @@ def write_history(df: pd.DataFrame, path: str | Path, append: bool = False,
     append: add the rows to the CSV at ``path`` (its header written when it is new).
     exact: every value as it is (else 6 significant digits, which a converted dataset's
     sensors never exceed): for raw readings that are to be imported later."""
-    if Path(path).suffix.lower() in (".parquet", ".pq"):
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix.lower() in (".parquet", ".pq"):
         if append:
             raise ValueError("write_history: append is for CSV files only")
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
         frame = df.loc[:, list(COLUMNS)].reset_index(drop=True)
         frame["ts"] = pd.DatetimeIndex(frame["ts"]).tz_convert("UTC")
-        frame.to_parquet(path, index=False)
+        try:
+            _replace(path, lambda tmp: frame.to_parquet(tmp, index=False))
+        except ImportError as exc:  # pandas' Parquet engine is pyarrow
+            raise DataError(f"{path}: cannot write Parquet ({' '.join(str(exc).split())}); "
+                            "write .csv instead") from None
         return
     out = df.loc[:, list(COLUMNS)].copy()
     out["ts"] = iso_utc(out["ts"])
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fresh = not append or not Path(path).exists() or Path(path).stat().st_size == 0
-    out.to_csv(path, index=False, float_format=None if exact else "%.6g",
-               mode="w" if not append else "a", header=fresh)
+    fmt = None if exact else "%.6g"
+    if append:
+        fresh = not path.exists() or path.stat().st_size == 0
+        out.to_csv(path, index=False, float_format=fmt, mode="a", header=fresh)
+    else:
+        _replace(path, lambda tmp: out.to_csv(tmp, index=False, float_format=fmt))
+
+
+def _replace(path: Path, write: Callable[[Path], object]) -> None:
+    """``write`` a temporary file beside ``path``, then rename it over ``path``: an
+    interrupted write leaves the earlier file whole, never a truncated one that reads as
+    shorter history."""
+    # Ending in path's own name, so pandas infers the same compression (.csv.gz) from it.
+    tmp = path.with_name(f".tmp{os.getpid()}.{path.name}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def require_sensors(df: pd.DataFrame, sensors: list[str], where: str = "history") -> None:

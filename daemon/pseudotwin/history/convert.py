@@ -590,17 +590,26 @@ def load(dataset: str, source: Path | None = None, raw: bool = False) -> pd.Data
     """Convert ``dataset`` into a canonical frame without writing it; ``raw``: every sample
     where the converter would average."""
     spec = find_dataset(dataset)
-    src = Path(source) if source is not None else default_source(dataset)
-    if not src.exists():
-        raise DataError(f"{src}: no such file or directory")
+    src = _source(dataset, source)
     read = spec.read_raw if raw and spec.read_raw is not None else spec.read
     return read(src)
 
 
+def _source(dataset: str, source: Path | None) -> Path:
+    """The dataset's file or folder: ``source``, else its shared-data folder."""
+    src = Path(source) if source is not None else default_source(dataset)
+    if not src.exists():
+        raise DataError(f"{src}: no such file or directory")
+    return src
+
+
 def convert(dataset: str, source: Path | None, out: Path, raw: bool = False) -> ConvertSummary:
     """Convert ``dataset`` (``source`` or its shared-data folder) into canonical CSV ``out``."""
+    src, out = _source(dataset, source).resolve(), Path(out)
+    if out.resolve() == src or src in out.resolve().parents:
+        raise DataError(f"{out}: the output would be written into the dataset itself ({src}); "
+                        "give a path outside it")
     df = load(dataset, source, raw)
-    out = Path(out)
     write_history(df, out)
     present = set(df["sensor"].unique())
     spec = DATASETS[dataset]
