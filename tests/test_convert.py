@@ -886,9 +886,13 @@ def test_main_never_writes_into_its_own_dataset(tmp_path: Path,
     src = tmp_path / "sml"
     shutil.copytree(cv.default_source("sml2010"), src)
     before = {p.name: p.read_bytes() for p in src.iterdir()}
-    for out in (src / next(iter(before)), src / "converted.csv"):
+    for name in before:
+        out = src / name
         assert cc.main(["sml2010", "--source", str(src), "--out", str(out)]) == 2
-        assert "into the dataset itself" in one_error_line(capsys)
+        assert "would overwrite a file of the dataset itself" in one_error_line(capsys)
+    assert cc.main(["sml2010", "--source", str(src / "NEW-DATA-1.T15.txt"),
+                    "--out", str(src / "NEW-DATA-1.T15.txt")]) == 2
+    assert "would overwrite" in one_error_line(capsys)
     assert {p.name: p.read_bytes() for p in src.iterdir()} == before
 
 
