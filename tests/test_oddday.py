@@ -160,3 +160,21 @@ def test_a_skip_day_that_would_not_have_been_trained_on_is_named(
     assert saved["training"]["skipped"] == ["2012-03-16"]
     assert saved["training"]["days"] == ["2012-03-14", "2012-03-15", "2012-03-17",
                                          "2012-03-18", "2012-03-19"]
+
+
+def test_every_day_training_passes_over_is_named_with_its_reason(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """SML2010 from Apr 9: the warning named Apr 11 "without data of every sensor" (both
+    had a few readings) and left out Apr 12–17, which had none at all."""
+    history = sml_csv(tmp_path, dt.date(2012, 4, 21))
+    rc = main(["--log-level", "WARNING", "train", "--history", str(history),
+               "--references", "dining/temp", "--target", "room/temp", "--quantity",
+               "temperature", "--train-start", "2012-04-09", "--timezone", "Europe/Madrid",
+               "--models", "ref,triv", "--out", str(tmp_path / "x.json")])
+    assert rc == 0
+    warned = " ".join(r.getMessage() for r in caplog.records if "skips" in r.getMessage())
+    assert "2012-04-11 (dining/temp 3, room/temp 3 reading(s) in operating hours)" in warned
+    assert "2012-04-12 … 2012-04-17 (no readings)" in warned
+    saved = json.loads((tmp_path / "x.json").read_text())
+    assert saved["training"]["days"] == ["2012-04-09", "2012-04-10", "2012-04-18",
+                                         "2012-04-19", "2012-04-20"]

@@ -35,13 +35,53 @@ MIN_READINGS_PER_DAY = 4
 
 def day_is_usable(day: DayReadings, sensors: Sequence[str], hours: OperatingHours) -> bool:
     """All sensors report (at least a few readings) within the operating hours."""
+    return not _short_of(day, sensors, hours)
+
+
+def _short_of(day: DayReadings, sensors: Sequence[str], hours: OperatingHours) -> list[str]:
+    """What keeps ``day`` from training: each sensor with fewer than MIN_READINGS_PER_DAY
+    readings in operating hours, and how many it has."""
+    short = []
     for s in sensors:
-        if not day.has(s):
-            return False
-        h = day.series[s][0]
-        if int(np.sum(hours.in_operating_hours(h))) < MIN_READINGS_PER_DAY:
-            return False
-    return True
+        n = (int(np.sum(hours.in_operating_hours(day.series[s][0]))) if day.has(s) else 0)
+        if n < MIN_READINGS_PER_DAY:
+            short.append(f"{s} {n}")
+    return short
+
+
+def _skipped_days(days: Sequence[DayReadings], chosen: Sequence[DayReadings],
+                  sensors: Sequence[str], hours: OperatingHours,
+                  skip_days: Collection[dt.date]) -> list[str]:
+    """Every calendar day from the first with readings to the last chosen that training
+    passes over, and why: the sensors short of readings in operating hours (with their
+    count), or no readings at all (consecutive such days as one range)."""
+    if not days:
+        return []
+    by_day = {d.day: d for d in days}
+    taken = {d.day for d in chosen}
+    out: list[str] = []
+    silent: list[dt.date] = []
+
+    def flush() -> None:
+        if silent:
+            span = (f"{silent[0]}" if len(silent) == 1 else f"{silent[0]} … {silent[-1]}")
+            out.append(f"{span} (no readings)")
+            silent.clear()
+
+    day = days[0].day
+    while day <= chosen[-1].day:
+        if day not in taken and day not in skip_days:
+            if day in by_day:
+                flush()
+                short = _short_of(by_day[day], sensors, hours)
+                out.append(f"{day} ({', '.join(short)} reading(s) in operating hours)")
+            else:
+                silent.append(day)
+        else:
+            flush()
+        day += dt.timedelta(days=1)
+    flush()
+    return out
 
 
 PLAUSIBLE = {Quantity.TEMPERATURE: (-40.0, 80.0), Quantity.CO2: (0.0, 10000.0)}
@@ -139,11 +179,9 @@ def choose_training_days(
             f"{n_days} needed"
         )
     chosen = usable[:n_days]
-    skipped = [d.day for d in days if d.day <= chosen[-1].day and d not in chosen
-               and d.day not in skip_days]
-    if skipped:
-        log.warning("training skips days without data of every sensor: %s",
-                    ", ".join(map(str, skipped)))
+    if skipped := _skipped_days(days, chosen, sensors, hours, skip_days):
+        log.warning("training skips days without %d readings of every sensor in operating "
+                    "hours: %s", MIN_READINGS_PER_DAY, "; ".join(skipped))
     left_out = [d for d in left_out if d <= chosen[-1].day]
     if left_out:
         log.info("training leaves out %s, as asked", ", ".join(map(str, left_out)))
