@@ -317,3 +317,38 @@ def test_a_stale_estimate_is_unknown_in_home_assistant(quality: Quality, shown: 
     body = ha.entity_config(twin, ha.ESTIMATE, base_topic="pt", expire_after=1800)
     e = TwinEstimate(HOURS.at(DAY, 9.0), 21.5, 0.3, "triv", quality)
     assert render_value(body["value_template"], estimate_payload(e, "°C")) == shown
+
+
+def test_a_twin_leaving_the_config_takes_its_retained_estimates_with_it(
+    tmp_path, mosquitto, mqtt_client, desk_artifact
+) -> None:
+    """A twin renamed or removed left its last estimate and baselines retained, quality `ok`,
+    with `<base>/status` online: a controller still on the old id took them as current."""
+    other = tmp_path / "two.json"
+    shutil.copy(desk_artifact, other)
+    off = "[homeassistant]\nenabled = false"
+    svc = start(ha_config(tmp_path, mosquitto.port, desk_artifact, off, other))
+    try:
+        viewer = mqtt_client()
+        viewer.subscribe("pt/+/estimate")
+        mqtt_client().publish("house/dining/temp", reading(HOURS.at(DAY, 8.5), 17.5))
+        seen: set[str] = set()
+        while seen != {"pt/desk/estimate", "pt/desk.two/estimate"}:
+            m = viewer.get(timeout=20)
+            if m.payload:
+                seen.add(m.topic)
+    finally:
+        svc.stop()
+    kinds = [k for k in svc.twins["desk.two"].twin.kinds
+             if k != svc.twins["desk.two"].twin.artifact.primary]
+    assert kinds and "pt/desk.two/estimate" in retained(mqtt_client, "pt/desk.two/#")
+
+    svc = start(ha_config(tmp_path, mosquitto.port, desk_artifact, off))  # desk.two gone
+    try:
+        # its baselines too (they go out on the grid, which this test does not wait for)
+        assert set(svc.unretain) == {"pt/desk.two/estimate",
+                                     *(f"pt/desk.two/baseline/{k}" for k in kinds)}
+        assert retained(mqtt_client, "pt/desk.two/#") == {}
+        assert "pt/desk/estimate" in retained(mqtt_client, "pt/desk/#")
+    finally:
+        svc.stop()

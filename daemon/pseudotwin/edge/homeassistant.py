@@ -183,20 +183,22 @@ def _twin_slug(topic: str) -> str:
     return levels[-2].rsplit("_", 1)[0] if len(levels) >= 2 else ""
 
 
-def load_published(state_dir: Path) -> set[str]:
-    """The config topics remembered in ``state_dir`` (empty when none or unreadable)."""
+def load_published(state_dir: Path, name: str = STATE_FILE) -> set[str]:
+    """The topics remembered in ``state_dir`` (empty when none or unreadable); ``name``: the
+    file (default the discovery config topics; the daemon keeps its retained outputs in
+    another)."""
     try:
-        data = json.loads((state_dir / STATE_FILE).read_text(encoding="utf-8"))
+        data = json.loads((state_dir / name).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return set()
     topics = data.get("published") if isinstance(data, dict) else None
     return {t for t in topics if isinstance(t, str)} if isinstance(topics, list) else set()
 
 
-def save_published(state_dir: Path, topics: Iterable[str]) -> None:
+def save_published(state_dir: Path, topics: Iterable[str], name: str = STATE_FILE) -> None:
     """Remember ``topics`` (written to a temporary file, then renamed: never half a file)."""
     state_dir.mkdir(parents=True, exist_ok=True)
-    path = state_dir / STATE_FILE
+    path = state_dir / name
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps({"published": sorted(set(topics))}, indent=1) + "\n",
                    encoding="utf-8")

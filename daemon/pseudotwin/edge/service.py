@@ -91,6 +91,8 @@ TICK_MAX_PAUSE = 0.05
 # (scripts/bench_daemon.py).
 # Estimates and status stay QoS 1.
 MONITORING_QOS = 0
+# state_dir's record of the retained output topics published (Service._plan_outputs).
+OUTPUTS_FILE = "outputs.json"
 # A grid instant's estimates are made this long after it (clock time): a reading stamped
 # exactly at the instant (a bridge polling on the quarter hour) reaches the daemon a little
 # after it, and evaluate and backfill count it in. A reading stamped past the instant
@@ -238,6 +240,7 @@ class Service:
         self.client = self._make_client()
         self.wakeups = WakeCoalescer(self.client)
         self.discovery, self.undiscovery = self._plan_discovery()
+        self.outputs, self.unretain = self._plan_outputs()
 
     # -- MQTT (network thread: no model work here) -----------------------------------------
     def _make_client(self) -> mqtt.Client:
@@ -269,6 +272,8 @@ class Service:
         self._send(self.status_topic, self.health.status)
         for topic in self.undiscovery:  # Home Assistant entities of twins no longer configured
             self._send(topic, b"")
+        for topic in self.unretain:  # their last estimates, so no one takes them as current
+            self._send(topic, b"")
         for topic, body in self.discovery.items():
             self._send(topic, body)
         log.info("connected to %s:%d (session present: %s); subscribing to %d sensor topics",
@@ -293,6 +298,21 @@ class Service:
         # Twins of other fleet instances are not gone: their owners announce them.
         others = self.member.others if self.member else ()
         return current, ha.removals(published, current, others)
+
+    def _plan_outputs(self) -> tuple[list[str], list[str]]:
+        """The retained output topics of the configured twins (estimate, published
+        baselines), and those an earlier run published that no twin publishes now (a twin
+        removed or renamed, a baseline withheld or turned off): an empty retained payload
+        clears each, else a controller still subscribed to an old id gets the last estimate
+        as if it were current (``status`` stays ``online``)."""
+        current = [topic for rt in self.twins.values()
+                   for topic in (rt.estimate_topic, *rt.baseline_topics.values())]
+        # Twins of other fleet instances are not gone: their owners publish them.
+        theirs = tuple(self.cfg.twin_topic(t, "") for t in
+                       (self.member.others if self.member else ()))
+        remembered = ha.load_published(Path(self.cfg.state_dir), OUTPUTS_FILE)
+        gone = sorted(t for t in remembered - set(current) if not t.startswith(theirs))
+        return current, gone
 
     def _set_status(self, status: str) -> None:
         """``<base>/status`` (a fleet instance's own: ``<base>/status/<instance>``):
@@ -885,6 +905,14 @@ class Service:
                 ha.save_published(Path(self.cfg.state_dir), [*self.discovery, *self.undiscovery])
             except OSError as exc:  # published all the same; only a later removal needs it
                 log.warning("cannot remember the Home Assistant discovery topics (%s)", exc)
+        try:
+            ha.save_published(Path(self.cfg.state_dir), [*self.outputs, *self.unretain],
+                              OUTPUTS_FILE)
+        except OSError as exc:
+            log.warning("cannot remember the retained output topics (%s)", exc)
+        if self.unretain:
+            log.info("clearing the retained outputs of %d topic(s) no twin publishes now: %s",
+                     len(self.unretain), ", ".join(self.unretain[:10]))
         b = self.cfg.broker
         self.client.connect_async(b.host, b.port, keepalive=b.keepalive)
         self.client.loop_start()
