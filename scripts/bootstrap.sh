@@ -13,10 +13,11 @@ if [ ! -x .venv/bin/python ]; then
     "$PY" -m venv .venv
 fi
 stamp=.venv/.pseudotwin-installed
-if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ deploy/constraints.txt -nt "$stamp" ]; then
     echo "bootstrap: installing pseudotwin and its dependencies into .venv" >&2
     .venv/bin/python -m pip install -q --upgrade pip >/dev/null
-    .venv/bin/python -m pip install -q -e '.[test]'
+    # The dependencies at the versions the daemon image is built with (test tools float).
+    .venv/bin/python -m pip install -q -e '.[test]' -c deploy/constraints.txt
     touch "$stamp"
 fi
 

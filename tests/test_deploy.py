@@ -494,3 +494,28 @@ def test_the_systemd_units_verify_and_wait_for_readiness_however_long(tmp_path: 
     done = subprocess.run(["systemd-analyze", "verify", *map(str, sorted(tmp_path.iterdir()))],
                           capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 0 and not done.stderr.strip(), done.stderr
+
+
+def test_the_image_and_the_tests_share_one_pinned_set_of_dependencies() -> None:
+    """The image's build took whatever PyPI held that day (pyproject has lower bounds only):
+    a numerical stack no test had run, for a daemon whose σ is meant to be reproducible."""
+    from importlib.metadata import version
+
+    from packaging.requirements import Requirement
+    from packaging.utils import canonicalize_name
+
+    pins = {}
+    for line in (DEPLOY / "constraints.txt").read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            name, _, pinned = line.partition("==")
+            pins[canonicalize_name(name)] = pinned
+    project = tomllib.loads((DEPLOY.parent / "pyproject.toml").read_text())["project"]
+    for dep in map(Requirement, project["dependencies"]):
+        name = canonicalize_name(dep.name)
+        assert name in pins, f"{dep.name} is not pinned in deploy/constraints.txt"
+        assert dep.specifier.contains(pins[name]), (dep, pins[name])
+    for name, pinned in pins.items():  # what the suite runs with (bootstrap.sh uses them)
+        assert version(name) == pinned, name
+    docker = (DEPLOY / "Dockerfile").read_text()
+    assert "COPY deploy/constraints.txt" in docker and "-c deploy/constraints.txt ." in docker
+    assert "-c deploy/constraints.txt" in (DEPLOY.parent / "scripts/bootstrap.sh").read_text()
