@@ -164,6 +164,25 @@ def test_days_the_reference_is_silent_are_left_out_of_every_row_and_named(
     assert "but no estimate" in said and "2012-03-22" in said
 
 
+def test_a_second_reference_silent_for_days_is_not_scored_on_them(room_a: Path) -> None:
+    """With two references the twin answers from the one alive, and the dead one's `ref:`
+    row held its days-old value on every later day."""
+    from pseudotwin.core.series import normalize
+
+    df = normalize(pd.read_csv(room_a))
+    hours = OperatingHours(timezone="Europe/Berlin")
+    art = train_twin(df, TwinSpec(("A1/temp", "A3/temp"), "A4/temp", Quantity.TEMPERATURE,
+                                  hours), dt.date(2016, 3, 15), 3, ["ref", "triv"])
+    start = dt.date.fromisoformat(art.training["end"]) + dt.timedelta(days=1)
+    dead = hours.at(start + dt.timedelta(days=1), 0.0)
+    cut = df[~((df["sensor"] == "A3/temp") & (df["ts"] >= dead))]
+    est = replay_estimates(art, cut, start)
+    days = {m: set(g["ts"].map(lambda t: hours.day_of(t)))
+            for m, g in est.groupby("model")}
+    assert start in days["ref:A3/temp"] and days["ref:A3/temp"] == {start}
+    assert days["ref:A1/temp"] == days["estimate"] and len(days["estimate"]) > 1
+
+
 def test_the_typical_day_plotted_is_not_a_day_cut_short() -> None:
     """The median day by NRMSE was a day with three readings before a gap in the data: its
     plot spanned half an hour."""

@@ -45,8 +45,8 @@ def replay_estimates(
     model ``estimate``, exactly what the daemon would publish on ``<twin>/estimate`` (the
     primary, with its fallbacks and quality flags; nothing in the init phase); and, as
     pseudo-models ``ref:<sensor>``, the raw reference value held at that time, at the instants
-    where some model answered (its daily Pearson r with the target is the evidence of how
-    much a reference can tell). slope: the
+    where some model answered and the reference is in today's window (its daily Pearson r
+    with the target is the evidence of how much a reference can tell). slope: the
     references' |slope| [unit/h] the model's σ saw. thinning: the window's policy, as the
     daemon's configuration sets it (default one point per sensor and minute). stale_after:
     the daemon's, to score what it publishes while a reference is silent (quality ``stale``,
@@ -108,10 +108,11 @@ def replay_estimates(
             if kind == primary and e.publishable:
                 rows.append((t, ESTIMATE, e.value, e.std, truth, e.quality.value, slope,
                              *fired))
-        # "Just use the reference" is scored where the twin could answer: a reference
-        # silent for days has no value today for the twin, nor for the desk.
+        # "Just use the reference" is scored where the twin could answer and the reference
+        # is in today's window: one silent for days has no value today for the twin, nor
+        # for the desk.
         for r in refs if answered else ():
-            if r in held:
+            if r in held and twin.latest(r, h) is not None:
                 rows.append((t, REF_PREFIX + r, held[r], np.nan, truth, "ok", np.nan,
                              *(("",) if criteria else ())))
     return pd.DataFrame(rows, columns=[*COLUMNS, *(["unlike"] if criteria else [])])

@@ -502,7 +502,7 @@ class Twin:
         for s in sensors:
             if s in cache or s not in env.refs:
                 continue
-            value = self._latest(s, h)
+            value = self.latest(s, h)
             cache[s] = [] if value is None else env.refs[s].unlike(s, self.hours, h, value,
                                                                    self.slope([s], h))
         found = [kw for s in sensors for kw in cache.get(s, [])]
@@ -510,7 +510,7 @@ class Twin:
             if pair.a not in sensors or pair.b not in sensors:
                 continue
             if pair.key not in cache:
-                va, vb = self._latest(pair.a, h), self._latest(pair.b, h)
+                va, vb = self.latest(pair.a, h), self.latest(pair.b, h)
                 slot = self.hours.window_slot_index(h)
                 cache[pair.key] = [] if va is None or vb is None else pair.unlike(
                     va - env.refs[pair.a].profile[slot], vb - env.refs[pair.b].profile[slot])
@@ -518,8 +518,9 @@ class Twin:
         return (tuple(k for k, _ in found),
                 tuple(w for k, w in found if env.acts(k)))
 
-    def _latest(self, sensor: str, h: float) -> float | None:
-        """``sensor``'s latest value at or before ``h`` [h] today (None: none yet)."""
+    def latest(self, sensor: str, h: float) -> float | None:
+        """``sensor``'s latest value in today's window at or before ``h`` [h], the carried-over
+        one included (None: none yet)."""
         hs, vs = self._series.get(sensor, ([], []))
         i = bisect.bisect_right(hs, h) - 1
         return vs[i] if i >= 0 else None
