@@ -8,6 +8,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from daemon_support import sml_csv
@@ -162,12 +163,17 @@ def test_a_skip_day_that_would_not_have_been_trained_on_is_named(
                                          "2012-03-18", "2012-03-19"]
 
 
+@pytest.mark.parametrize("source", ["--history", "--store"])
 def test_every_day_training_passes_over_is_named_with_its_reason(
-        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+        tmp_path: Path, caplog: pytest.LogCaptureFixture, source: str) -> None:
     """SML2010 from Apr 9: the warning named Apr 11 "without data of every sensor" (both
-    had a few readings) and left out Apr 12–17, which had none at all."""
+    had a few readings) and left out Apr 12–17, which had none at all; from the store it
+    would have called Apr 11 a day without readings (only usable days were loaded)."""
     history = sml_csv(tmp_path, dt.date(2012, 4, 21))
-    rc = main(["--log-level", "WARNING", "train", "--history", str(history),
+    if source == "--store":
+        assert main(["import", str(history), "--store", str(tmp_path / "h.db")]) == 0
+        history = tmp_path / "h.db"
+    rc = main(["--log-level", "WARNING", "train", source, str(history),
                "--references", "dining/temp", "--target", "room/temp", "--quantity",
                "temperature", "--train-start", "2012-04-09", "--timezone", "Europe/Madrid",
                "--models", "ref,triv", "--out", str(tmp_path / "x.json")])
@@ -178,3 +184,21 @@ def test_every_day_training_passes_over_is_named_with_its_reason(
     saved = json.loads((tmp_path / "x.json").read_text())
     assert saved["training"]["days"] == ["2012-04-09", "2012-04-10", "2012-04-18",
                                          "2012-04-19", "2012-04-20"]
+
+
+def test_days_passed_over_for_one_reason_are_one_range(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """References recorded for weeks before the desk sensor came: each of those days was
+    named on its own, one line of dozens of days."""
+    history = sml_csv(tmp_path, dt.date(2012, 4, 10))
+    df = pd.read_csv(history)
+    early = pd.to_datetime(df["ts"], utc=True) < pd.Timestamp("2012-03-31T22:00Z")
+    df[~(early & (df["sensor"] == "room/temp"))].to_csv(history, index=False)
+    rc = main(["--log-level", "WARNING", "train", "--history", str(history),
+               "--references", "dining/temp", "--target", "room/temp", "--quantity",
+               "temperature", "--train-start", "2012-03-14", "--timezone", "Europe/Madrid",
+               "--models", "ref,triv", "--out", str(tmp_path / "x.json")])
+    assert rc == 0
+    warned = " ".join(r.getMessage() for r in caplog.records if "skips" in r.getMessage())
+    assert "2012-03-14 … 2012-03-31 (room/temp 0 reading(s) in operating hours)" in warned
+    assert warned.count("2012-03-2") == 0  # no day of the range named on its own

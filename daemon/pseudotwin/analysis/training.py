@@ -31,6 +31,7 @@ from pseudotwin.models.registry import ALL_MODELS, build, model_class
 log = logging.getLogger(__name__)
 
 MIN_READINGS_PER_DAY = 4
+SKIPPED_SHOWN = 10  # passed-over days (or runs of them) named in training's warning
 
 
 def day_is_usable(day: DayReadings, sensors: Sequence[str], hours: OperatingHours) -> bool:
@@ -54,34 +55,23 @@ def _skipped_days(days: Sequence[DayReadings], chosen: Sequence[DayReadings],
                   skip_days: Collection[dt.date]) -> list[str]:
     """Every calendar day from the first with readings to the last chosen that training
     passes over, and why: the sensors short of readings in operating hours (with their
-    count), or no readings at all (consecutive such days as one range)."""
+    count), or no readings at all; consecutive days with the same reason as one range."""
     if not days:
         return []
     by_day = {d.day: d for d in days}
     taken = {d.day for d in chosen}
-    out: list[str] = []
-    silent: list[dt.date] = []
-
-    def flush() -> None:
-        if silent:
-            span = (f"{silent[0]}" if len(silent) == 1 else f"{silent[0]} … {silent[-1]}")
-            out.append(f"{span} (no readings)")
-            silent.clear()
-
+    runs: list[tuple[dt.date, dt.date, str]] = []
     day = days[0].day
     while day <= chosen[-1].day:
         if day not in taken and day not in skip_days:
-            if day in by_day:
-                flush()
-                short = _short_of(by_day[day], sensors, hours)
-                out.append(f"{day} ({', '.join(short)} reading(s) in operating hours)")
+            why = (f"{', '.join(_short_of(by_day[day], sensors, hours))} reading(s) in "
+                   "operating hours" if day in by_day else "no readings")
+            if runs and runs[-1][2] == why and runs[-1][1] == day - dt.timedelta(days=1):
+                runs[-1] = (runs[-1][0], day, why)
             else:
-                silent.append(day)
-        else:
-            flush()
+                runs.append((day, day, why))
         day += dt.timedelta(days=1)
-    flush()
-    return out
+    return [f"{a}{'' if a == b else f' … {b}'} ({why})" for a, b, why in runs]
 
 
 PLAUSIBLE = {Quantity.TEMPERATURE: (-40.0, 80.0), Quantity.CO2: (0.0, 10000.0)}
@@ -180,8 +170,10 @@ def choose_training_days(
         )
     chosen = usable[:n_days]
     if skipped := _skipped_days(days, chosen, sensors, hours, skip_days):
+        more = f"; and {len(skipped) - SKIPPED_SHOWN} more" if len(skipped) > SKIPPED_SHOWN else ""
         log.warning("training skips days without %d readings of every sensor in operating "
-                    "hours: %s", MIN_READINGS_PER_DAY, "; ".join(skipped))
+                    "hours: %s%s", MIN_READINGS_PER_DAY, "; ".join(skipped[:SKIPPED_SHOWN]),
+                    more)
     left_out = [d for d in left_out if d <= chosen[-1].day]
     if left_out:
         log.info("training leaves out %s, as asked", ", ".join(map(str, left_out)))
@@ -393,7 +385,8 @@ def history_from_store(
 
     Streams the store one day at a time from ``start`` (default: the first full day of the
     sensors' readings) and keeps only the usable days and the day before each (its
-    carry-over, the day before the first included), so a year of history is never loaded.
+    carry-over, the day before the first included), and the days between them (so that
+    training can say why it passed them over), so a year of history is never loaded.
     A usable day of ``skip_days`` is kept too, so that training can say it left it out.
     Returns the frame and the first usable day, a left-out one included.
     """
@@ -419,6 +412,8 @@ def history_from_store(
             (left_out if day in skip_days else chosen).append(day)
             if len(chosen) == n_days:
                 break
+        elif kept:  # a day passed over among the training days: why it was, as from a file
+            kept.append(frame)
         prev = frame
     if len(chosen) < n_days:
         raise DataError(
