@@ -208,6 +208,15 @@ def test_outputs_never_overwrite_the_inputs_and_primary_is_checked_first(
     assert exc.value.code == 2
     assert "would overwrite the --history file" in capsys.readouterr().err
     assert history.read_bytes() == sml.read_bytes()
+    store = tmp_path / "h.db"
+    assert main(["import", str(history), "--store", str(store)]) == 0
+    kept = store.read_bytes()
+    for url in (str(store), f"sqlite:///{store}"):
+        with pytest.raises(SystemExit) as exc:
+            run("train", "--store", url, *common, "--models", "ref,triv", "--out", str(store))
+        assert exc.value.code == 2
+        assert "would overwrite the --store file" in capsys.readouterr().err
+    assert store.read_bytes() == kept
     renamed = tmp_path / "o" / "estimates.csv"
     renamed.parent.mkdir()
     renamed.write_bytes(sml.read_bytes())

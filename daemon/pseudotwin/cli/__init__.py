@@ -487,7 +487,11 @@ def _check_training(p: argparse.ArgumentParser, a: argparse.Namespace) -> None:
         p.error(f"--primary {a.primary} is not among --models ({','.join(a.models)}): add it, "
                 "or leave --primary out and let validation choose")
     written = [a.out] if a.command == "train" else [a.out / n for n in OUTPUT_FILES]
-    for option, path in (("--history", a.history), ("--config", getattr(a, "config", None))):
+    inputs = [("--history", a.history), ("--config", getattr(a, "config", None))]
+    if (store := getattr(a, "store", None)) and ("://" not in store
+                                                 or store.startswith("sqlite:///")):
+        inputs.append(("--store", Path(store.removeprefix("sqlite:///"))))  # a SQLite file
+    for option, path in inputs:
         if path is not None and any(_same_file(path, w) for w in written):
             p.error(f"--out would overwrite the {option} file {path}")
     if 0 < a.train_days < MIN_DAYS and not a.allow_unvalidated:
