@@ -8,6 +8,7 @@ import re
 import shutil
 import subprocess
 import sys
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -805,8 +806,10 @@ def test_main_missing_source(tmp_path: Path, capsys: pytest.CaptureFixture[str])
 
 
 def test_main_malformed_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    (tmp_path / "energydata_complete.csv").write_text("date,T1\n11-01-2016 17:00,20\n")
-    assert cc.main(["appliances", "--source", str(tmp_path), "--out", str(tmp_path / "o.csv")]) == 2
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "energydata_complete.csv").write_text("date,T1\n11-01-2016 17:00,20\n")
+    assert cc.main(["appliances", "--source", str(src), "--out", str(tmp_path / "o.csv")]) == 2
     assert "missing column(s) T2" in one_error_line(capsys)
 
 
@@ -862,11 +865,13 @@ def test_room_climate_raw_keeps_every_sample_and_its_minute_means_are_the_defaul
 
 def test_convert_to_parquet_reads_back_as_the_csv(tmp_path: Path) -> None:
     """--out x.parquet wrote CSV text into a .parquet file that read_history then refused."""
-    src = tmp_path / "NEW-DATA-9.T15.txt"
+    (tmp_path / "src").mkdir()
+    src = tmp_path / "src" / "NEW-DATA-9.T15.txt"
     src.write_text("\n".join([SML_HEADER, *(sml_row("13/03/2012", f"{h:02d}:00")
                                              for h in range(6))]) + "\n")
     for out in ("h.csv", "h.parquet"):
-        assert cc.main(["sml2010", "--source", str(tmp_path), "--out", str(tmp_path / out)]) == 0
+        assert cc.main(["sml2010", "--source", str(src.parent),
+                        "--out", str(tmp_path / out)]) == 0
     csv, parquet = read_history(tmp_path / "h.csv"), read_history(tmp_path / "h.parquet")
     assert len(parquet) == len(csv) > 0
     pd.testing.assert_frame_equal(parquet[["sensor", "ts"]], csv[["sensor", "ts"]])
@@ -886,13 +891,14 @@ def test_main_never_writes_into_its_own_dataset(tmp_path: Path,
     src = tmp_path / "sml"
     shutil.copytree(cv.default_source("sml2010"), src)
     before = {p.name: p.read_bytes() for p in src.iterdir()}
-    for name in before:
-        out = src / name
+    # a new file in its folder too: a converter reading the folder's *.csv (Room Climate)
+    # would take it for data the next time
+    for out in (*(src / name for name in before), src / "converted.csv"):
         assert cc.main(["sml2010", "--source", str(src), "--out", str(out)]) == 2
-        assert "would overwrite a file of the dataset itself" in one_error_line(capsys)
+        assert "would be written into the dataset" in one_error_line(capsys)
     assert cc.main(["sml2010", "--source", str(src / "NEW-DATA-1.T15.txt"),
                     "--out", str(src / "NEW-DATA-1.T15.txt")]) == 2
-    assert "would overwrite" in one_error_line(capsys)
+    assert "would be written into the dataset" in one_error_line(capsys)
     assert {p.name: p.read_bytes() for p in src.iterdir()} == before
 
 
@@ -933,3 +939,18 @@ def test_parquet_without_its_engine_is_one_error_line(tmp_path: Path) -> None:
     assert p.returncode == 2, p.stderr
     assert "Traceback" not in p.stderr and "cannot write Parquet" in p.stderr
     assert not out.exists()
+
+
+def test_a_history_archive_holds_the_file_under_its_own_name(tmp_path: Path) -> None:
+    """Written through a temporary file, a .csv.zip held a member named after it."""
+    df = pd.DataFrame({"sensor": "a", "value": [1.0, 2.0],
+                       "ts": pd.to_datetime(["2012-03-14T10:00Z", "2012-03-14T10:01Z"])})
+    write_history(df, tmp_path / "h.csv.zip")
+    with zipfile.ZipFile(tmp_path / "h.csv.zip") as z:
+        assert z.namelist() == ["h.csv"]
+    assert len(read_history(tmp_path / "h.csv.zip")) == 2
+    link = tmp_path / "link.csv"
+    link.symlink_to(tmp_path / "real.csv")
+    write_history(df, link)
+    assert link.is_symlink() and len(read_history(tmp_path / "real.csv")) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["h.csv.zip", "link.csv", "real.csv"]

@@ -275,13 +275,19 @@ def _replace(path: Path, write: Callable[[Path], object]) -> None:
     """``write`` a temporary file beside ``path``, then rename it over ``path``: an
     interrupted write leaves the earlier file whole, never a truncated one that reads as
     shorter history."""
-    # Ending in path's own name, so pandas infers the same compression (.csv.gz) from it.
-    tmp = path.with_name(f".tmp{os.getpid()}.{path.name}")
+    if path.is_symlink():  # written through, as a plain write would
+        path = path.resolve()
+    # path's own name in a folder of its own: pandas infers the compression (.csv.gz) and
+    # an archive's member name (.csv.zip) from the name.
+    folder = path.with_name(f".tmp{os.getpid()}.{path.name}")
+    folder.mkdir(exist_ok=True)
+    tmp = folder / path.name
     try:
         write(tmp)
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+        folder.rmdir()
 
 
 def require_sensors(df: pd.DataFrame, sensors: list[str], where: str = "history") -> None:

@@ -606,11 +606,12 @@ def _source(dataset: str, source: Path | None) -> Path:
 def convert(dataset: str, source: Path | None, out: Path, raw: bool = False) -> ConvertSummary:
     """Convert ``dataset`` (``source`` or its shared-data folder) into canonical CSV ``out``."""
     src, out = _source(dataset, source).resolve(), Path(out)
-    # A new file beside the dataset's is harmless; one of its own files must not be replaced.
-    if out.resolve() == src or (src in out.resolve().parents and out.exists()):
-        raise DataError(f"{out}: the output would overwrite a file of the dataset itself "
-                        f"({src}); give another path")
-    df = load(dataset, source, raw)
+    # Not even a new file in its folder: a converter that reads the folder's files (Room
+    # Climate's *.csv) would take it for data the next time.
+    if out.resolve() == src or src in out.resolve().parents:
+        raise DataError(f"{out}: the output would be written into the dataset ({src}); "
+                        "give a path outside it")
+    df = load(dataset, src, raw)
     write_history(df, out)
     present = set(df["sensor"].unique())
     spec = DATASETS[dataset]
