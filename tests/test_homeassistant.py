@@ -352,3 +352,12 @@ def test_a_twin_leaving_the_config_takes_its_retained_estimates_with_it(
         assert "pt/desk/estimate" in retained(mqtt_client, "pt/desk/#")
     finally:
         svc.stop()
+    # cleared once, then forgotten: another daemon may publish under that id later
+    assert ha.load_published(tmp_path / "state", "outputs.json") == set(svc.outputs)
+    mqtt_client().publish("pt/desk.two/estimate", b'{"value": 1}', retain=True)
+    svc = start(ha_config(tmp_path, mosquitto.port, desk_artifact, off))
+    try:
+        assert svc.unretain == []
+        assert "pt/desk.two/estimate" in retained(mqtt_client, "pt/desk.two/#")
+    finally:
+        svc.stop()

@@ -241,6 +241,7 @@ class Service:
         self.wakeups = WakeCoalescer(self.client)
         self.discovery, self.undiscovery = self._plan_discovery()
         self.outputs, self.unretain = self._plan_outputs()
+        self._unretained = False  # the topics of unretain cleared (at the first connect)
 
     # -- MQTT (network thread: no model work here) -----------------------------------------
     def _make_client(self) -> mqtt.Client:
@@ -272,8 +273,10 @@ class Service:
         self._send(self.status_topic, self.health.status)
         for topic in self.undiscovery:  # Home Assistant entities of twins no longer configured
             self._send(topic, b"")
-        for topic in self.unretain:  # their last estimates, so no one takes them as current
-            self._send(topic, b"")
+        if not self._unretained:  # their last estimates, so no one takes them as current
+            for topic in self.unretain:
+                self._send(topic, b"")
+            self._forget_unretained()
         for topic, body in self.discovery.items():
             self._send(topic, body)
         log.info("connected to %s:%d (session present: %s); subscribing to %d sensor topics",
@@ -313,6 +316,17 @@ class Service:
         remembered = ha.load_published(Path(self.cfg.state_dir), OUTPUTS_FILE)
         gone = sorted(t for t in remembered - set(current) if not t.startswith(theirs))
         return current, gone
+
+    def _forget_unretained(self) -> None:
+        """Once cleared, the topics are forgotten: cleared at every connect, they would wipe
+        the estimate of a twin another daemon now publishes under that id."""
+        self._unretained = True
+        if not self.unretain:
+            return
+        try:
+            ha.save_published(Path(self.cfg.state_dir), self.outputs, OUTPUTS_FILE)
+        except OSError as exc:  # cleared again at the next start: harmless
+            log.warning("cannot update the retained output topics (%s)", exc)
 
     def _set_status(self, status: str) -> None:
         """``<base>/status`` (a fleet instance's own: ``<base>/status/<instance>``):
