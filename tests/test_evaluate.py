@@ -239,5 +239,7 @@ def test_a_second_evaluation_into_a_folder_leaves_only_its_own_day_plot(
             "room/temp", "--quantity", "temperature", "--train-start", "2012-03-14",
             "--timezone", "Europe/Madrid", "--models", "ref,triv", "--out", str(out)]
     assert run(*args, "--plot-day", "2012-03-19") == 0
+    (out / "day_summary.png").write_bytes(b"the user's own")
     assert run(*args, "--plot-day", "2012-03-20") == 0
-    assert sorted(p.name for p in out.glob("day_*.png")) == ["day_2012-03-20.png"]
+    assert sorted(p.name for p in out.glob("day_*.png")) == ["day_2012-03-20.png",
+                                                             "day_summary.png"]

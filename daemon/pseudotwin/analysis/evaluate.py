@@ -180,13 +180,13 @@ def write_outputs(
     plot_daily_nrmse(ev.daily, out / NRMSE_PLOT, ev.artifact)
     day = plot_day or median_day(ev.daily, ev.artifact.primary)
     plot = out / DAY_PLOT.format(day=day) if day is not None else None
+    if day is not None and plot is not None:
+        plot_day_estimate(ev, history, day, plot)
     # An earlier run's day plot would sit beside this run's tables as if it were of them.
-    for old in out.glob(DAY_PLOT.format(day="*")):
+    for old in out.glob(DAY_PLOT.format(day="[0-9][0-9][0-9][0-9]-[0-9][0-9]-[0-9][0-9]")):
         if old != plot:
             old.unlink()
             log.info("removed %s, the plot of an earlier evaluation into %s", old.name, out)
-    if day is not None and plot is not None:
-        plot_day_estimate(ev, history, day, plot)
 
 
 def median_day(daily: pd.DataFrame, primary: str) -> dt.date | None:
