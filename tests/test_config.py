@@ -790,7 +790,7 @@ def test_every_store_url_the_store_opens_is_a_valid_configuration(tmp_path: Path
     configuration."""
     doc = base_doc()
     for url in ("crate://db:4200", "crate+http://db:4200", "crate+https://db:4200",
-                "postgresql://pt@db/history"):
+                "CRATE://db:4200", "postgresql://pt@db/history"):
         doc["service"]["store"] = url
         assert load_config(write(tmp_path, doc)).store == url
     doc["service"]["store"] = "mysql://db/history"

@@ -112,11 +112,10 @@ def evaluate(
     t0 = time.perf_counter()
     target, hours = spec.target, spec.hours
     require_sensors(history, list(spec.sensors))
-    if plot_day is not None:  # fail before training, not with an empty plot
-        days, h = hours.day_and_hours(history.loc[history["sensor"] == target, "ts"])
-        if not np.any((days == np.datetime64(plot_day)) & hours.in_operating_hours(h)):
-            raise DataError(f"--plot-day {plot_day}: no readings of {target} in that day's "
-                            f"operating hours ({hours.describe()}), nothing to plot")
+    # fail before training, not with an empty plot
+    if plot_day is not None and plot_day not in _desk_days(history, spec):
+        raise DataError(f"--plot-day {plot_day}: no readings of {target} in that day's "
+                        f"operating hours ({hours.describe()}), nothing to plot")
     artifact = train_twin(history, spec, train_start, train_days, models, options, primary,
                           thinning=thinning, skip_days=skip_days)
     test_start = first_scored_day(artifact)
@@ -140,17 +139,21 @@ def evaluate(
     return ev
 
 
+def _desk_days(history: pd.DataFrame, spec: TwinSpec) -> set[dt.date]:
+    """The local days with readings of the desk sensor in operating hours."""
+    hours = spec.hours
+    days, h = hours.day_and_hours(history.loc[history["sensor"] == spec.target, "ts"])
+    return {dt.date.fromisoformat(str(d)[:10])
+            for d in np.unique(days[hours.in_operating_hours(h)])}
+
+
 def _name_unanswered_days(est: pd.DataFrame, history: pd.DataFrame, spec: TwinSpec,
                           start: dt.date) -> None:
     """Log the scored days on which the desk reported but the twin never answered (its
     references silent): they are in no row, so every model's mean leaves them out."""
-    hours = spec.hours
-    days, h = hours.day_and_hours(history.loc[history["sensor"] == spec.target, "ts"])
-    wanted = {dt.date.fromisoformat(str(d)[:10])
-              for d in np.unique(days[hours.in_operating_hours(h)])}
     answered = {dt.date.fromisoformat(str(d)[:10])
-                for d in np.unique(hours.day_and_hours(est["ts"])[0])}
-    missing = sorted(d for d in wanted - answered if d >= start)
+                for d in np.unique(spec.hours.day_and_hours(est["ts"])[0])}
+    missing = sorted(d for d in _desk_days(history, spec) - answered if d >= start)
     if missing:
         shown = ", ".join(str(d) for d in missing[:10])
         log.warning("%d day(s) with readings of %s but no estimate, as the references did not "

@@ -240,18 +240,19 @@ class Loader:
                                       "(give a SQLite file path or a database URL)")
             return None
         if "://" in value:
-            if value.startswith(("postgresql://", "postgres://")):
+            scheme = value.split("://", 1)[0].lower()  # as history/store.py reads it
+            if scheme in ("postgresql", "postgres"):
                 # A user name may be given, a password never (PGPASSWORD or ~/.pgpass).
                 if ":" in value.split("://", 1)[1].split("/", 1)[0].rpartition("@")[0]:
                     self.add("service.store", "a password does not belong in the store URL; "
                                               "set PGPASSWORD or use ~/.pgpass")
                     return None
                 return value
-            if not value.startswith(("crate://", "crate+http://", "crate+https://",
-                                      "sqlite://")):
+            if scheme not in ("crate", "crate+http", "crate+https", "sqlite"):
                 self.add("service.store", f"unknown store URL scheme in {value!r} (a SQLite "
                                           "file path, sqlite:///path, postgresql://host/db, "
-                                          "crate://host:4200 or crate+https://host:4200)")
+                                          "crate://host:4200, crate+http:// or "
+                                          "crate+https://host:4200)")
                 return None
             if "@" in value.split("://", 1)[1].split("/", 1)[0]:
                 self.add("service.store", "credentials do not belong in the store URL; set "

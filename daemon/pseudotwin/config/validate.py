@@ -150,7 +150,8 @@ def base_topic_problem(topic: str) -> str | None:
 
 
 # The store URLs (history/store.py opens them; the loader checks them): a SQLite URL with no
-# file path after it, and the forms that name a database in memory.
+# file path after it (``sqlite:///$DB`` with DB unset: a path forgotten, not a wish for a
+# store in memory), and the forms that name a database in memory.
 PATHLESS_SQLITE = "sqlite:///"
 
 

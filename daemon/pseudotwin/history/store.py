@@ -870,7 +870,6 @@ def _bulk_count(results: list[dict] | None, sent: int) -> tuple[int, list[tuple[
 # ------------------------------------------------------------------------------ factory
 
 
-#: ``sqlite:///$DB`` with DB unset: a path forgotten, not a wish for a store in memory.
 def open_store(url: str | os.PathLike[str], existing: bool = False) -> Store:
     """Open (creating tables on first use) the store at ``url``; see the module docstring.
 
