@@ -163,6 +163,17 @@ def test_a_skip_day_that_would_not_have_been_trained_on_is_named(
                                          "2012-03-18", "2012-03-19"]
 
 
+def skipped_warning(caplog: pytest.LogCaptureFixture, source: str, history: Path,
+                    start: str, out: Path) -> str:
+    """Train SML2010's temperature twin from ``start``; the warning about days passed over."""
+    rc = main(["--log-level", "WARNING", "train", source, str(history),
+               "--references", "dining/temp", "--target", "room/temp", "--quantity",
+               "temperature", "--train-start", start, "--timezone", "Europe/Madrid",
+               "--models", "ref,triv", "--out", str(out)])
+    assert rc == 0
+    return " ".join(r.getMessage() for r in caplog.records if "skips" in r.getMessage())
+
+
 @pytest.mark.parametrize("source", ["--history", "--store"])
 def test_every_day_training_passes_over_is_named_with_its_reason(
         tmp_path: Path, caplog: pytest.LogCaptureFixture, source: str) -> None:
@@ -173,12 +184,7 @@ def test_every_day_training_passes_over_is_named_with_its_reason(
     if source == "--store":
         assert main(["import", str(history), "--store", str(tmp_path / "h.db")]) == 0
         history = tmp_path / "h.db"
-    rc = main(["--log-level", "WARNING", "train", source, str(history),
-               "--references", "dining/temp", "--target", "room/temp", "--quantity",
-               "temperature", "--train-start", "2012-04-09", "--timezone", "Europe/Madrid",
-               "--models", "ref,triv", "--out", str(tmp_path / "x.json")])
-    assert rc == 0
-    warned = " ".join(r.getMessage() for r in caplog.records if "skips" in r.getMessage())
+    warned = skipped_warning(caplog, source, history, "2012-04-09", tmp_path / "x.json")
     assert "2012-04-11 (dining/temp 3, room/temp 3 reading(s) in operating hours)" in warned
     assert "2012-04-12 … 2012-04-17 (no readings)" in warned
     saved = json.loads((tmp_path / "x.json").read_text())
@@ -194,11 +200,6 @@ def test_days_passed_over_for_one_reason_are_one_range(
     df = pd.read_csv(history)
     early = pd.to_datetime(df["ts"], utc=True) < pd.Timestamp("2012-03-31T22:00Z")
     df[~(early & (df["sensor"] == "room/temp"))].to_csv(history, index=False)
-    rc = main(["--log-level", "WARNING", "train", "--history", str(history),
-               "--references", "dining/temp", "--target", "room/temp", "--quantity",
-               "temperature", "--train-start", "2012-03-14", "--timezone", "Europe/Madrid",
-               "--models", "ref,triv", "--out", str(tmp_path / "x.json")])
-    assert rc == 0
-    warned = " ".join(r.getMessage() for r in caplog.records if "skips" in r.getMessage())
+    warned = skipped_warning(caplog, "--history", history, "2012-03-14", tmp_path / "x.json")
     assert "2012-03-14 … 2012-03-31 (room/temp 0 reading(s) in operating hours)" in warned
     assert warned.count("2012-03-2") == 0  # no day of the range named on its own
