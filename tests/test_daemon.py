@@ -769,3 +769,15 @@ def test_a_batch_held_up_by_its_journal_write_is_logged_with_where_the_time_went
     assert took_ms == journal_ms == 1e3 * long
     assert cpu_ms < took_ms  # the worker was held, not computing
     assert "for 1 reading(s)" in caplog.text
+
+
+def test_replay_holds_until_its_end_so_the_daemon_finishes_the_span(
+        mosquitto, desk_artifact, tmp_path: Path) -> None:
+    """`replay` returned at the last reading (18:58), though asked to 19:30: the README's
+    recipe then stopped the daemon before the day's last grid estimate and monitor."""
+    cfg = load_config(write_config(tmp_path, mosquitto.port, desk_artifact))
+    df = sml()
+    start, end = HOURS.at(DAY, 18.5), HOURS.at(DAY, 21.1)  # the last reading at 21:00
+    clock = ReplayClock(start, 36000.0)  # the 2.6 h in 0.26 s
+    n = replay(cfg, df[df["sensor"] == REF], start, end, 36000.0, clock=clock, hold=True)
+    assert n > 0 and clock.now() >= end

@@ -625,7 +625,7 @@ def cmd_replay(a: argparse.Namespace) -> int:
 
     cfg = load_named_config(a.config)
     df = read_history(a.history)
-    n = replay(cfg, df, a.start, a.end, a.speed)
+    n = replay(cfg, df, a.start, a.end, a.speed, hold=True)
     print(f"published {n} readings")
     return 0
 

@@ -44,8 +44,12 @@ def replay(
     stop: threading.Event | None = None,
     client_id: str | None = None,
     clock: Clock | None = None,
+    hold: bool = False,
 ) -> int:
     """Publish readings with start ≤ ts < end; returns how many were published.
+
+    hold: return only when the clock reaches ``end``, not at the last reading, so that a
+    daemon on the same time line has done the span's grid work by then (the CLI's way).
 
     client_id: default the configuration's with ``-replay-<pid>-<random>``: a second
     replay, or the daemon itself, must not take over this one's session.
@@ -96,6 +100,9 @@ def replay(
                     f"with --start {t.isoformat()} (readings at that instant may go twice; "
                     "the daemon drops repeats)")
             n += 1
+        else:
+            if hold:
+                clock.wait_until(end, stop)
     finally:
         c.disconnect()
         c.loop_stop()
