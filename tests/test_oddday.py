@@ -203,3 +203,22 @@ def test_days_passed_over_for_one_reason_are_one_range(
     warned = skipped_warning(caplog, "--history", history, "2012-03-14", tmp_path / "x.json")
     assert "2012-03-14 … 2012-03-31 (room/temp 0 reading(s) in operating hours)" in warned
     assert warned.count("2012-03-2") == 0  # no day of the range named on its own
+
+
+def test_a_first_day_cut_short_and_a_missing_time_zone_are_said(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Data beginning mid-morning: training began the next day without a word (the day was
+    often the richest); and without --timezone the hours were silently UTC."""
+    history = sml_csv(tmp_path, dt.date(2012, 3, 21))
+    df = pd.read_csv(history)
+    df[pd.to_datetime(df["ts"], utc=True) >= pd.Timestamp("2012-03-14T09:00Z")].to_csv(
+        history, index=False)
+    with caplog.at_level("INFO"):
+        rc = main(["train", "--history", str(history), "--references", "dining/temp",
+                   "--target", "room/temp", "--quantity", "temperature", "--models",
+                   "ref,triv", "--out", str(tmp_path / "x.json")])
+    assert rc == 0
+    said = " ".join(r.getMessage() for r in caplog.records)
+    assert "no --timezone: the operating hours and the days are in UTC" in said
+    assert ("training begins on 2012-03-15: the data begins on 2012-03-14 at 09:00 local "
+            "time, after the init phase (--train-start 2012-03-14") in said

@@ -15,7 +15,7 @@ from pseudotwin.analysis import validation
 from pseudotwin.analysis.criteria import select
 from pseudotwin.analysis.failover import train_failover
 from pseudotwin.analysis.validation import MIN_DAYS
-from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.horizon import OperatingHours, format_hhmm
 from pseudotwin.core.series import DayReadings, require_sensors, split_days
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.core.thinning import Thinning, thin_history
@@ -366,7 +366,12 @@ def first_full_day(first: dt.datetime, hours: OperatingHours) -> dt.date:
     """The first local day whose data, beginning at ``first``, covers its init phase: the
     day of ``first``, or the next when the data begins mid-day."""
     day = hours.day_of(first)
-    return day + dt.timedelta(days=1) if hours.hours_of(first) > hours.init_start else day
+    if hours.hours_of(first) <= hours.init_start:
+        return day
+    log.info("training begins on %s: the data begins on %s at %s local time, after the "
+             "init phase (--train-start %s trains on that day too)", day + dt.timedelta(days=1),
+             day, format_hhmm(hours.hours_of(first)), day)
+    return day + dt.timedelta(days=1)
 
 
 def history_from_store(

@@ -185,7 +185,12 @@ def _hours(a: argparse.Namespace) -> OperatingHours:
         "timezone": a.timezone}
     given = {k: v for k, v in given.items() if v is not None}
     if getattr(a, "config", None) is None:
-        return dataclasses.replace(OperatingHours(), **given)
+        hours = dataclasses.replace(OperatingHours(), **given)
+        if a.timezone is None:  # a building is rarely on UTC: hours and days would shift
+            log.warning("no --timezone: the operating hours and the days are in %s (%s); "
+                        "give the building's IANA time zone, e.g. Europe/Berlin",
+                        hours.timezone, hours.describe())
+        return hours
     hours = load_named_config(a.config).hours
     for key, value in given.items():
         if value != getattr(hours, key):
