@@ -83,7 +83,22 @@ def test_the_publish_grid_is_anchored_at_local_midnight(
 def test_nonexistent_wall_time_steps_over_the_gap() -> None:
     h = OperatingHours(timezone=BERLIN)
     t = h.at(dt.date(2016, 3, 27), 2.5)  # 02:30 does not exist that night
-    assert t.astimezone(ZoneInfo(BERLIN)).hour == 3
+    # the gap's end, not 03:30: a window opening at 02:30 opens at 03:00, where its
+    # readings begin
+    assert t.astimezone(ZoneInfo(BERLIN)).replace(tzinfo=None) == dt.datetime(2016, 3, 27, 3)
+
+
+def test_a_grid_over_a_dst_gap_skips_the_lost_instants_in_order() -> None:
+    """Hours 01:00–23:00 on the spring-forward day: the grid held 03:00–03:45 twice, out of
+    order, so backfill estimated those instants after the 03:45 reading and the daemon's
+    ticker skipped 03:00 and 03:15."""
+    h = OperatingHours.from_strings("01:00", "23:00", timezone=BERLIN)
+    grid = h.grid(dt.date(2016, 3, 27), 0.25)
+    assert grid == sorted(set(grid)) and len(grid) == 89 - 4
+    walls = [t.astimezone(ZoneInfo(BERLIN)).strftime("%H:%M") for t in grid]
+    assert walls[3:6] == ["01:45", "03:00", "03:15"]
+    fall = h.grid(dt.date(2016, 10, 30), 0.25)  # 02:00–02:59 twice: each once, the first
+    assert fall == sorted(set(fall)) and len(fall) == 89
 
 
 def test_split_days_carries_last_value_and_keeps_silent_cov_sensor() -> None:

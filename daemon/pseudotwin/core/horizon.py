@@ -19,6 +19,8 @@ import pandas as pd
 
 from pseudotwin.errors import ConfigError
 
+_MINUTE = dt.timedelta(minutes=1)
+
 _HHMM = re.compile(r"(\d{1,2}):(\d{2})")
 
 
@@ -183,27 +185,37 @@ class OperatingHours:
     def at(self, day: dt.date, hours: float) -> dt.datetime:
         """The aware instant of wall-clock ``hours`` on local ``day``.
 
-        Wall-clock times inside a DST gap are shifted forward (they do not exist); in a fold
-        the first occurrence is taken.
+        A wall-clock time inside a DST gap does not exist: it is the gap's end, the first
+        instant after it (02:15 on a spring-forward night is 03:00, not 03:15, which a window
+        opening then would have missed); in a fold the first occurrence is taken.
         """
         base = dt.datetime.combine(day, dt.time(0), tzinfo=self.tz)
         secs = round(hours * 3600.0, 6)
         naive = dt.datetime.combine(day, dt.time(0)) + dt.timedelta(seconds=secs)
         aware = naive.replace(tzinfo=self.tz, fold=0)
-        # A non-existent wall time round-trips to a different wall time: step over the gap.
-        back = aware.astimezone(dt.UTC).astimezone(self.tz)
-        if back.replace(tzinfo=None) != naive:
-            aware = back
+        if not self._exists(aware):
+            # Gaps end on a whole minute: the first existing one after the time.
+            wall = naive.replace(second=0, microsecond=0)
+            while not self._exists(aware := (wall := wall + _MINUTE).replace(tzinfo=self.tz)):
+                pass
         return aware if aware >= base else base
+
+    def _exists(self, aware: dt.datetime) -> bool:
+        """Whether ``aware``'s wall time exists in the zone (a time in a DST gap round-trips
+        through UTC to another wall time)."""
+        return aware.astimezone(dt.UTC).astimezone(self.tz).replace(tzinfo=None) \
+            == aware.replace(tzinfo=None)
 
     def grid(self, day: dt.date, step_hours: float) -> list[dt.datetime]:
         """The publish grid of one local day: the multiples of ``step_hours`` since local
         midnight from day start to day end, before the next midnight (wall clock, so a DST
         day has the same instants on the clock). Anchored at midnight, a 15-min grid is on
-        the quarter hours whatever the day start: what an MPC samples."""
+        the quarter hours whatever the day start: what an MPC samples). The instants a DST
+        gap swallows are not on it: the clock never shows them."""
         first = math.ceil(self.day_start / step_hours - 1e-9)
         last = math.floor(min(self.day_end, 24.0 - 1e-6) / step_hours + 1e-9)
-        return [self.at(day, k * step_hours) for k in range(first, last + 1)]
+        instants = [(k * step_hours, self.at(day, k * step_hours)) for k in range(first, last + 1)]
+        return [t for h, t in instants if abs(self.hours_of(t) - h) < 1e-6]
 
     def in_operating_hours(self, hours: np.ndarray | float) -> np.ndarray:
         h = np.asarray(hours, dtype=float)
