@@ -24,6 +24,7 @@ from pseudotwin.config import load_config
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.series import write_history
 from pseudotwin.core.spec import Quantity, TwinSpec
+from pseudotwin.edge.outputs import estimate_payload
 from pseudotwin.edge.replay import replay
 from pseudotwin.edge.service import Service
 from pseudotwin.errors import ArtifactError
@@ -146,6 +147,10 @@ def test_single_reference_twin_still_goes_stale(history: pd.DataFrame,
     feed(twin, today, t)
     e = twin.estimate(t + dt.timedelta(hours=1))[art.primary]
     assert e.quality is Quality.STALE and e.lost == ()
+    # made from an hour-old reading: its value, but no σ (the calibrated one, smallest when
+    # the references do not move, was the day's most confident)
+    assert math.isfinite(e.value) and math.isnan(e.std)
+    assert json.loads(estimate_payload(e, "°C"))["std"] is None
 
 
 def test_artifact_round_trip_keeps_failover(artifact: Artifact, today: pd.DataFrame,

@@ -42,6 +42,11 @@ def test_a_live_desk_sensor_checks_sigma_too(desk_artifact: Path) -> None:
     # the next day starts afresh
     mon.roll(DAY + dt.timedelta(days=1))
     assert "target" not in mon.snapshot(now + dt.timedelta(days=1))
+    # a stale estimate has no σ: the day's mean σ is that of the others, not NaN
+    for s in (0.2, float("nan"), 0.4):
+        mon.record_estimate(s)
+    snap = json.loads(monitor_payload(mon.snapshot(now + dt.timedelta(days=1))))
+    assert snap["mean_std"] == pytest.approx(0.3)
 
 
 def test_the_monitor_says_how_old_the_training_days_are(desk_artifact: Path) -> None:

@@ -5,7 +5,7 @@ room with two twins shows as two devices), holding a ``sensor`` entity for the e
 (``<base>/<twin>/estimate``) and, with ``baselines = true``, one per published baseline
 (``<base>/<twin>/baseline/<kind>``). Every entity reads the daemon's own JSON payloads:
 ``value_template`` takes ``value``, except that a ``stale`` estimate (a reference silent and
-no failover: the payload keeps the last value) and a ``null`` value render ``None``, which
+no failover: made from its last value, without σ) and a ``null`` value render ``None``, which
 Home Assistant shows as unknown; ``json_attributes_topic`` is the same topic, so ``std`` (σ),
 ``quality``, ``model``, ``ts`` and ``refs`` become attributes.
 
@@ -63,8 +63,9 @@ COMPONENT = "sensor"
 MANUFACTURER = "pseudotwin"
 STATE_FILE = "homeassistant.json"
 ESTIMATE = "estimate"
-# A stale estimate keeps its last value in the payload (for the MPC, with quality ``stale``);
-# Home Assistant has no quality, so its state becomes unknown (Jinja's none renders "None").
+# A stale estimate is made from a silent reference's last value (for the MPC, with quality
+# ``stale`` and no σ); Home Assistant has no quality, so its state becomes unknown (Jinja's
+# none renders "None").
 VALUE_TEMPLATE = "{{ value_json.value if value_json.quality != 'stale' else none }}"
 # ``degraded`` (journal failing, estimates still published) counts as available.
 AVAILABILITY_TEMPLATE = "{{ 'offline' if value == 'offline' else 'online' }}"

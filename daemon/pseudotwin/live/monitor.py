@@ -7,6 +7,7 @@ and renders the day's figures. Scores come from :mod:`pseudotwin.live.metrics`, 
 from __future__ import annotations
 
 import datetime as dt
+import math
 from collections.abc import Collection, Mapping
 from typing import Any
 
@@ -39,8 +40,10 @@ class TwinMonitor:
             self.day, self.stds, self.pairs = day, [], []
 
     def record_estimate(self, std: float) -> None:
-        """A published primary estimate's σ (call :meth:`roll` for its day first)."""
-        self.stds.append(std)
+        """A published primary estimate's σ (call :meth:`roll` for its day first); a stale
+        one has none."""
+        if math.isfinite(std):
+            self.stds.append(std)
 
     def record_truth(self, truth: float, estimate: float, std: float) -> None:
         """A live target reading, and the primary estimate and its σ at its time."""

@@ -438,6 +438,11 @@ class Twin:
                                                                                      slopes)):
                     value, std, name, lost = answer
                     quality = Quality.FALLBACK
+                else:
+                    # Made from a silent reference's last value: how far the desk has moved
+                    # since is not known, and the calibrated σ (smallest when nothing moves)
+                    # would say the opposite. No σ: an honest "I don't know".
+                    std = math.nan
             elif quality is Quality.OK:
                 fired, why = self._unlike_training(self._needs(kind), h, unlike)
                 if why and (env := self.artifact.envelope) is not None:
