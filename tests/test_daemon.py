@@ -781,3 +781,22 @@ def test_replay_holds_until_its_end_so_the_daemon_finishes_the_span(
     clock = ReplayClock(start, 36000.0)  # the 2.6 h in 0.26 s
     n = replay(cfg, df[df["sensor"] == REF], start, end, 36000.0, clock=clock, hold=True)
     assert n > 0 and clock.now() >= end
+
+
+def test_readings_arriving_hours_after_their_stamp_are_named(
+        service_factory, mosquitto, caplog) -> None:
+    """A bridge on the wrong time zone (stamps 2 h behind): every reading was taken without
+    a word, while the log said the sensor was silent and then reported again, every 15 min."""
+    svc = service_factory(HOURS.at(DAY, 10.0) + dt.timedelta(seconds=7), 1200.0)
+    assert svc.up_since is not None
+    wait_for(lambda: svc.clock.now() - svc.up_since > svc.cfg.stale_after,
+             what="the start's backlog window over")
+    pub = publisher(mosquitto.port, "late-bridge")
+    with caplog.at_level("WARNING"):
+        for k in range(2):
+            behind = svc.clock.now() - dt.timedelta(hours=2, minutes=-k)
+            pub.publish("house/dining/temp", reading(behind, 17.0 + k), qos=1).wait_for_publish(10)
+        wait_for(lambda: svc.accepted >= 2, what="both readings taken")
+    said = [r.getMessage() for r in caplog.records if "after its stamp" in r.getMessage()]
+    assert len(said) == 1 and "reading of dining/temp arrived 12" in said[0]
+    pub.disconnect()

@@ -648,6 +648,12 @@ class Service:
             log.exception("payload on %s could not be processed", topic)
             self.rejections.add_reason(sensor.id, UNPROCESSABLE, repr(exc)[:200], day)
             return None
+        # Late past stale_after, once the start's backlog (readings queued while the daemon
+        # was down) is through: a clock behind, or a bridge on another time zone.
+        lag = arrival - r.ts
+        if lag > self.cfg.stale_after and self.up_since is not None \
+                and arrival - self.up_since > self.cfg.stale_after:
+            self.rejections.behind(sensor.id, lag.total_seconds(), day)
         self.health.processed_one((arrival - r.ts).total_seconds(), backlog)
         return r
 

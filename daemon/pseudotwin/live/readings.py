@@ -286,6 +286,7 @@ class RejectionCounter:
         self.on_reject = on_reject
         self._counts: dict[date, Counter[tuple[str, str]]] = {}
         self._ahead: dict[date, set[str]] = {}  # sensors whose clock ran ahead, per day
+        self._behind: dict[date, set[str]] = {}  # sensors whose readings came late, per day
         self.run_total = 0  # since the start, every day
 
     @property
@@ -322,6 +323,17 @@ class RejectionCounter:
                              "bridge's) runs ahead of this process's, or this one's behind; "
                              "kept at its stamp, within max_skew (said once a day per sensor)",
                              sensor, seconds)
+
+    def behind(self, sensor: str, seconds: float, day: date) -> None:
+        """A reading of ``sensor`` that arrived ``seconds`` after its stamp, later than the
+        silence that makes an estimate stale: logged once per sensor and day."""
+        noted = _of_day(self._behind, day, set, self.KEEP_DAYS)
+        if sensor not in noted:
+            noted.add(sensor)
+            self.log.warning("reading of %s arrived %.0f min after its stamp: its clock (or its "
+                             "bridge's) runs behind or is set to another time zone, or it was "
+                             "held up on its way; until such readings come, the sensor looks "
+                             "silent (said once a day per sensor)", sensor, seconds / 60.0)
 
     def of_day(self, day: date) -> Mapping[tuple[str, str], int]:
         """Readings rejected on local ``day`` by (sensor, reason) (none: no rejection that
