@@ -104,6 +104,9 @@ def test_evaluate_room_climate_with_two_references(room_a: Path, tmp_path: Path)
     [
         (["--references", "nope/temp"], "sensor(s) nope/temp not found"),
         (["--train-start", "2012-03-21"], "too little training data"),
+        # three readings a day in half an hour: the rule they miss is named
+        (["--day-end", "08:30"], "have at least 4 readings of each of dining/temp, room/temp "
+                                 "in operating hours (08:00–08:30"),
         (["--references", "room/temp"], "also listed as a reference"),
     ],
 )

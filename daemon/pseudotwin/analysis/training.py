@@ -164,9 +164,9 @@ def choose_training_days(
     usable = [d for d in usable if d.day not in skip_days]
     if len(usable) < n_days:
         raise DataError(
-            f"too little training data: {len(usable)} day(s) from {start} on have readings of "
-            f"all of {', '.join(sensors)} in operating hours{_not_counting(left_out)}, "
-            f"{n_days} needed"
+            f"too little training data: {len(usable)} day(s) from {start} on have at least "
+            f"{MIN_READINGS_PER_DAY} readings of each of {', '.join(sensors)} in operating "
+            f"hours ({hours.describe()}){_not_counting(left_out)}, {n_days} needed"
         )
     chosen = usable[:n_days]
     if skipped := _skipped_days(days, chosen, sensors, hours, skip_days):
@@ -423,8 +423,9 @@ def history_from_store(
     if len(chosen) < n_days:
         raise DataError(
             f"too little training data in the store: {len(chosen)} day(s) from {first} on "
-            f"have readings of all of {', '.join(sensors)} in operating hours"
-            f"{_not_counting(left_out)}, {n_days} needed"
+            f"have at least {MIN_READINGS_PER_DAY} readings of each of {', '.join(sensors)} "
+            f"in operating hours ({hours.describe()}){_not_counting(left_out)}, "
+            f"{n_days} needed"
         )
     df = pd.concat(kept, ignore_index=True).drop_duplicates(["sensor", "ts"])
     return df.sort_values("ts", kind="stable").reset_index(drop=True), min([*chosen, *left_out])
