@@ -278,3 +278,25 @@ def test_the_pages_sigma_on_a_held_out_day_was_calibrated_without_it() -> None:
         assert not np.allclose(page, published)  # not the in-sample σ
         cover = metrics.coverage_pct(rows.loc[mine, "truth"], rows.loc[mine, "value"], page, 2.0)
         assert cover == pytest.approx(art.validation["scores"][kind]["cover2_pct"])
+
+
+def test_a_twin_trained_from_the_store_gets_that_store_in_its_configuration(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Trained with --store, the suggested TOML had no store: backfill then said "no store
+    configured" and record refused to start."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["import", str(sml_csv(tmp_path, dt.date(2012, 3, 20))), "--store",
+                 "history.db"]) == 0
+    rc = main(["--log-level", "WARNING", "train", "--store", "history.db", "--references", REF,
+               "--target", TARGET, "--quantity", "temperature", "--timezone", "Europe/Madrid",
+               "--models", "ref,triv", "--out", "art/room1-desk-temp.json",
+               "--report", "report"])
+    assert rc == 0
+    found = re.search(r'<pre id="config"><code>(.*?)</code></pre>',
+                      (tmp_path / "report" / "room1-desk-temp.html").read_text(), re.S)
+    assert found
+    (tmp_path / "etc").mkdir()  # elsewhere than the working directory training ran in
+    path = tmp_path / "etc" / "twin.toml"
+    path.write_text(html.unescape(found.group(1)), encoding="utf-8")
+    cfg = check_config(path, artifact_check=_artifact_check)
+    assert cfg.store == str(tmp_path / "history.db")

@@ -306,6 +306,19 @@ def _say_odd_day(art: Artifact) -> None:
         print(f"training days: {odd.advice(art.unit, len(art.references))}")
 
 
+def _store_read(a: argparse.Namespace, cfg: ServiceConfig | None) -> str | None:
+    """The history store ``train`` read (None: a file), as the configuration names it: a
+    SQLite file's absolute path (a relative one was from the working directory), else the
+    URL as given."""
+    if a.history is not None:
+        return None
+    if a.store is None:
+        return cfg.store if cfg is not None else None  # the loader made a path absolute
+    if "://" not in a.store or a.store.startswith("sqlite:///"):
+        return str(Path(a.store.removeprefix("sqlite:///")).resolve())
+    return str(a.store)
+
+
 def cmd_train(a: argparse.Namespace) -> int:
     from pseudotwin.analysis.training import train_validated
     from pseudotwin.core.twinlog import twin_context
@@ -353,7 +366,7 @@ def cmd_train(a: argparse.Namespace) -> int:
         from pseudotwin.analysis.commissioning import write_report
 
         t0 = time.perf_counter()
-        page = write_report(a.report, art, checked, df, start, path)
+        page = write_report(a.report, art, checked, df, start, path, _store_read(a, cfg))
         print(f"commissioning report written to {page} ({page.stat().st_size / 1e3:.0f} kB, "
               f"{time.perf_counter() - t0:.1f} s)")
     return 0

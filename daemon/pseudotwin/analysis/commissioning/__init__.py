@@ -26,18 +26,20 @@ __all__ = ["config_snippet", "twin_id", "write_report"]
 
 
 def write_report(out_dir: Path, artifact: Artifact, validation: Validation | None,
-                 history: pd.DataFrame, first_day: dt.date, artifact_path: Path) -> Path:
+                 history: pd.DataFrame, first_day: dt.date, artifact_path: Path,
+                 store: str | None = None) -> Path:
     """Write ``<out_dir>/<twin id>.html`` and return its path.
 
     history: the readings ``train`` was given; first_day: its first candidate training day;
-    validation: what ``train_validated`` returned (None: the page says it was not validated).
+    validation: what ``train_validated`` returned (None: the page says it was not validated);
+    store: the history store they came from, for the configuration (None: a file).
     """
     twin = twin_id(artifact_path)
     data = training_data(history, artifact, first_day)
     ho = held_out(artifact, validation) if validation is not None else None
     page = Page(artifact, twin, artifact_path.resolve(), data, ho,
                 figures(ho, history) if ho is not None else [],
-                config_snippet(artifact, artifact_path, twin))
+                config_snippet(artifact, artifact_path, twin, store))
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / f"{twin}.html"
     tmp = path.with_suffix(".html.tmp")

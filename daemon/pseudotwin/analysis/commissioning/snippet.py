@@ -35,9 +35,11 @@ def _hhmm(h: float) -> str:
     return f"{m // 60:02d}:{m % 60:02d}"
 
 
-def config_snippet(artifact: Artifact, artifact_path: Path, twin: str) -> str:
+def config_snippet(artifact: Artifact, artifact_path: Path, twin: str,
+                   store: str | None = None) -> str:
     """TOML for the twin ``twin`` whose artifact is at ``artifact_path`` (made absolute:
-    the file's future folder is unknown)."""
+    the file's future folder is unknown); ``store``: the history store training read, which
+    ``record``, ``backfill`` and the warm start then use (None: none, training read a file)."""
     hours = artifact.hours
     lo, hi = PLAUSIBLE[artifact.quantity]
     # The window training learnt from: check-config refuses another for a live sensor.
@@ -64,6 +66,9 @@ def config_snippet(artifact: Artifact, artifact_path: Path, twin: str) -> str:
         f"day_end = {_s(_hhmm(hours.day_end))}",
         f"init_minutes = {hours.init_minutes:g}",
         f"slot_minutes = {hours.slot_minutes:g}",
+        *(["# the history store training read: record writes into it, backfill and the",
+           "# daemon's warm start read it",
+           f"store = {_s(store)}"] if store else []),
     ]
     for sensor in artifact.sensors:
         role = "desk sensor (temporary)" if sensor == artifact.target else "reference"
