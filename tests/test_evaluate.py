@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from daemon_support import sml_csv
+from daemon_support import sml_csv, write_config
 from pseudotwin.analysis.evaluate import median_day, replay_estimates
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.cli import main
@@ -219,6 +219,11 @@ def test_outputs_never_overwrite_the_inputs_and_primary_is_checked_first(
             run("train", "--store", url, *common, "--models", "ref,triv", "--out", str(store))
         assert exc.value.code == 2
         assert "would overwrite the --store file" in capsys.readouterr().err
+    cfg = write_config(tmp_path, 1883, tmp_path / "x.json", store="h.db")  # that store
+    assert run("train", "--config", str(cfg), "--references", "dining/temp", "--target",
+               "room/temp", "--quantity", "temperature", "--models", "ref,triv",
+               "--out", str(store)) == 2
+    assert "--out would overwrite the store of" in capsys.readouterr().err
     assert store.read_bytes() == kept
     renamed = tmp_path / "o" / "estimates.csv"
     renamed.parent.mkdir()

@@ -327,6 +327,8 @@ def cmd_train(a: argparse.Namespace) -> int:
     cfg = None if a.config is None else load_named_config(a.config)
     if cfg is not None:  # what contradicts the configuration fails before any reading
         _check_live_sensors(a, cfg)
+        if cfg.store and "://" not in cfg.store and _same_file(Path(cfg.store), a.out):
+            raise ConfigError(f"--out would overwrite the store of {a.config}, {cfg.store}")
     thinning = _train_thinning(a, cfg)
     df, start = _training_history(a, spec.hours, cfg)
     with twin_context(a.out.stem):  # the artifact's name is the twin's id by convention
