@@ -10,15 +10,14 @@ from __future__ import annotations
 import csv
 import datetime as dt
 import logging
-import os
 import warnings
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
+from pseudotwin.core.files import write_replacing
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.errors import DataError
 
@@ -256,7 +255,7 @@ def write_history(df: pd.DataFrame, path: str | Path, append: bool = False,
         frame = df.loc[:, list(COLUMNS)].reset_index(drop=True)
         frame["ts"] = pd.DatetimeIndex(frame["ts"]).tz_convert("UTC")
         try:
-            _replace(path, lambda tmp: frame.to_parquet(tmp, index=False))
+            write_replacing(path, lambda tmp: frame.to_parquet(tmp, index=False))
         except ImportError as exc:  # pandas' Parquet engine is pyarrow
             raise DataError(f"{path}: cannot write Parquet ({' '.join(str(exc).split())}); "
                             "write .csv instead") from None
@@ -268,26 +267,7 @@ def write_history(df: pd.DataFrame, path: str | Path, append: bool = False,
         fresh = not path.exists() or path.stat().st_size == 0
         out.to_csv(path, index=False, float_format=fmt, mode="a", header=fresh)
     else:
-        _replace(path, lambda tmp: out.to_csv(tmp, index=False, float_format=fmt))
-
-
-def _replace(path: Path, write: Callable[[Path], object]) -> None:
-    """``write`` a temporary file beside ``path``, then rename it over ``path``: an
-    interrupted write leaves the earlier file whole, never a truncated one that reads as
-    shorter history."""
-    if path.is_symlink():  # written through, as a plain write would
-        path = path.resolve()
-    # path's own name in a folder of its own: pandas infers the compression (.csv.gz) and
-    # an archive's member name (.csv.zip) from the name.
-    folder = path.with_name(f".tmp{os.getpid()}.{path.name}")
-    folder.mkdir(exist_ok=True)
-    tmp = folder / path.name
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-        folder.rmdir()
+        write_replacing(path, lambda tmp: out.to_csv(tmp, index=False, float_format=fmt))
 
 
 def require_sensors(df: pd.DataFrame, sensors: list[str], where: str = "history") -> None:

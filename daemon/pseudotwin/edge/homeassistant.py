@@ -35,7 +35,6 @@ suggested with ``default_entity_id`` (``sensor.<unique_id>``) instead.
 from __future__ import annotations
 
 import json
-import os
 import re
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -43,6 +42,7 @@ from pathlib import Path
 from typing import Any
 
 from pseudotwin import __version__
+from pseudotwin.core.files import write_replacing
 
 __all__ = [
     "AVAILABILITY_TEMPLATE",
@@ -197,10 +197,6 @@ def load_published(state_dir: Path, name: str = STATE_FILE) -> set[str]:
 
 
 def save_published(state_dir: Path, topics: Iterable[str], name: str = STATE_FILE) -> None:
-    """Remember ``topics`` (written to a temporary file, then renamed: never half a file)."""
-    state_dir.mkdir(parents=True, exist_ok=True)
-    path = state_dir / name
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps({"published": sorted(set(topics))}, indent=1) + "\n",
-                   encoding="utf-8")
-    os.replace(tmp, path)
+    """Remember ``topics`` (never half a file: core/files.py)."""
+    text = json.dumps({"published": sorted(set(topics))}, indent=1) + "\n"
+    write_replacing(state_dir / name, lambda tmp: tmp.write_text(text, encoding="utf-8"))

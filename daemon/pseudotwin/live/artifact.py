@@ -6,7 +6,6 @@ profile and the fit diagnostics with ``less``); arrays are JSON lists.
 
 from __future__ import annotations
 
-import contextlib
 import datetime as dt
 import hashlib
 import json
@@ -16,6 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from pseudotwin import __version__
+from pseudotwin.core.files import write_replacing
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import OfTwin, Quantity, TwinSpec
 from pseudotwin.errors import ArtifactError, ConfigError
@@ -108,20 +108,10 @@ class Artifact(OfTwin):
         })
 
     def save(self, path: str | Path) -> Path:
-        p = Path(path)
-        p.parent.mkdir(parents=True, exist_ok=True)
         text = json.dumps(self.to_dict(), indent=1, ensure_ascii=False)
-        tmp = p.with_suffix(p.suffix + ".tmp")
-        try:
-            tmp.write_text(text + "\n", encoding="utf-8")
-            tmp.replace(p)  # atomic: a daemon never loads half an artifact
-        except OSError as exc:
-            with contextlib.suppress(OSError):
-                tmp.unlink(missing_ok=True)  # no half artifact beside the old one
-            # The artifact's name, not the .tmp's (gone), nor none (a failed write: a full
-            # disk names no file).
-            raise OSError(exc.errno, exc.strerror, str(p)) from exc
-        return p
+        # whole or not at all: a daemon never loads half an artifact
+        return write_replacing(Path(path),
+                               lambda tmp: tmp.write_text(text + "\n", encoding="utf-8"))
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], where: str = "artifact") -> Artifact:

@@ -20,6 +20,7 @@ from pseudotwin.analysis.commissioning.heldout import figures, held_out
 from pseudotwin.analysis.commissioning.page import Page, render
 from pseudotwin.analysis.commissioning.snippet import config_snippet, twin_id
 from pseudotwin.analysis.validation import Validation
+from pseudotwin.core.files import write_replacing
 from pseudotwin.live.artifact import Artifact
 
 __all__ = ["config_snippet", "twin_id", "write_report"]
@@ -40,9 +41,6 @@ def write_report(out_dir: Path, artifact: Artifact, validation: Validation | Non
     page = Page(artifact, twin, artifact_path.resolve(), data, ho,
                 figures(ho, history) if ho is not None else [],
                 config_snippet(artifact, artifact_path, twin, store))
-    out_dir.mkdir(parents=True, exist_ok=True)
-    path = out_dir / f"{twin}.html"
-    tmp = path.with_suffix(".html.tmp")
-    tmp.write_text(render(page), encoding="utf-8")
-    tmp.replace(path)
-    return path
+    text = render(page)
+    return write_replacing(out_dir / f"{twin}.html",
+                           lambda tmp: tmp.write_text(text, encoding="utf-8"))

@@ -1,0 +1,36 @@
+"""Writing a file whole or not at all."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+__all__ = ["write_replacing"]
+
+
+def write_replacing(path: Path, write: Callable[[Path], object]) -> Path:
+    """``write`` a temporary file, then rename it over ``path``: an interrupted or failed
+    write leaves the earlier file whole, never half a file (a daemon loading an artifact, a
+    history that would read as shorter). The temporary file has ``path``'s own name, in a
+    folder of its own beside it, so pandas infers the same compression (.csv.gz) and archive
+    member name (.csv.zip) from it; a symlinked ``path`` is written through. An OSError
+    names ``path``, not the temporary file (gone by then). Returns ``path``."""
+    path = Path(path)
+    if path.is_symlink():
+        path = path.resolve()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    folder = path.with_name(f".tmp{os.getpid()}.{path.name}")
+    tmp = folder / path.name
+    try:
+        folder.mkdir(exist_ok=True)
+        write(tmp)
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise OSError(exc.errno, exc.strerror, str(path)) from exc
+    finally:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+            folder.rmdir()
+    return path
