@@ -336,3 +336,21 @@ def test_daemon_fails_over_on_a_silenced_reference_like_evaluate(
             assert e["quality"] in ("ok", "uncertain") and e["lost"] == []
     assert fallbacks >= 10
     assert all(e["quality"] != "stale" for e in viewer.all())
+
+
+def test_an_estimate_at_an_earlier_instant_does_not_end_the_failover_spell(
+        artifact: Artifact, today: pd.DataFrame) -> None:
+    """The daemon scores a desk reading at its own stamp, a little behind the references':
+    that estimate ended the spell and the next restarted it, moving the monitor's `since`."""
+    twin = Twin(artifact, stale_after=STALE)
+    silent_from = HOURS.at(TEST_DAY, 10.0)
+    t = HOURS.at(TEST_DAY, 11.0 + 2.5 / 60)
+    feed(twin, today, t, skip=R1, after=silent_from)
+    assert twin.estimate(t)["triv"].quality is Quality.FALLBACK
+    since = twin.failover_since
+    assert since == t and twin.failover_lost == (R1,)
+    earlier = twin.estimate(t - dt.timedelta(minutes=40))["triv"]  # R1 fresh back then
+    assert earlier.quality is not Quality.FALLBACK
+    assert twin.failover_since == since and twin.failover_lost == (R1,)
+    twin.estimate(t + dt.timedelta(minutes=3))
+    assert twin.failover_since == since

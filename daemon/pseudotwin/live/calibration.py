@@ -20,7 +20,7 @@ e [unit] are split into
   hour of one day (say a CO2 spike at noon) says that such an hour can come, not that it
   comes at noon: σ keeps the risk, but not its time of day;
 
-σ²(t) = C · (s_b² + a(τ) + k·|ṙ(t)|), with ṙ the references' slope over the last
+σ²(t) = C · (s_b² + a(τ) + k·|ṙ(t)|), with ṙ the references' net change per hour over the last
 ``SLOPE_WINDOW_H`` of today's window [unit/h] and C = (t_ν(Φ(2)) / 2)² the small-sample
 widening of a ±2σ band whose variance was estimated from a few days (ν by
 Welch–Satterthwaite from the day-level and within-day degrees of freedom).

@@ -173,6 +173,7 @@ class Twin:
         # The primary's current failover spell: since when, and which references it lost.
         self.failover_since: dt.datetime | None = None
         self.failover_lost: tuple[str, ...] = ()
+        self._spells_at: dt.datetime | None = None  # the latest instant they were judged at
 
     def _running(self, kind: str, model: TwinModel) -> list[tuple[str, TwinModel]]:
         """The (kind, model) pairs whose day states ``kind`` needs: itself, or a stacked
@@ -198,6 +199,7 @@ class Twin:
                           if self.artifact.primary in self.kinds else {})
         self.uncertain_since, self.uncertain_why = None, ()
         self.failover_since, self.failover_lost = None, ()
+        self._spells_at = None
         init_ts = self._window_start = self.hours.at(day, self.hours.init_start)
         for s in self.inputs:
             last = self.last.get(s)
@@ -365,8 +367,12 @@ class Twin:
         return self.stale_after is not None and ts - last[0] > self.stale_after
 
     def slope(self, sensors: Sequence[str], hours: float) -> float:
-        """Mean |slope| [unit/h] of ``sensors`` over the last ``SLOPE_WINDOW_H`` of today's
-        window up to ``hours`` (held values; 0 with fewer than two readings)."""
+        """|net change| [unit/h] of ``sensors`` over the last ``SLOPE_WINDOW_H`` of today's
+        window up to ``hours``, averaged over the sensors: from the value held at the
+        window's start to the latest (0 with fewer than two readings). A net change, not a
+        mean |slope| within the half hour: a spike that returns within it counts as nothing,
+        and it counts once its start leaves the half hour. Validation sizes σ with the same
+        rule (envelope and calibration), so the two agree."""
         found = []
         for s in sensors:
             hs, vs = self._series.get(s, ([], []))
@@ -447,7 +453,12 @@ class Twin:
                 fired, why = self._unlike_training(self._needs(kind), h, unlike)
                 if why and (env := self.artifact.envelope) is not None:
                     quality, std = Quality.UNCERTAIN, std * env.widen
-            if kind == self.artifact.primary:
+            # The spells move forward in time only: an estimate at an earlier instant (the
+            # daemon's score of a desk reading stamped a little behind) ended and restarted
+            # them, and with them the monitor's `since`.
+            if kind == self.artifact.primary and (self._spells_at is None
+                                                  or ts >= self._spells_at):
+                self._spells_at = ts
                 self.uncertain_why = why
                 self.uncertain_since = (self.uncertain_since or ts) if why else None
                 self.failover_lost = lost
