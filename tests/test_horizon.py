@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
+from pathlib import Path
 from zoneinfo import ZoneInfo
 
 import numpy as np
@@ -162,3 +163,23 @@ def test_history_round_trip_and_errors(tmp_path) -> None:
     (tmp_path / "nan.csv").write_text("sensor,ts,value\na,2020-01-01T08:00Z,warm\n")
     with pytest.raises(DataError, match="not a number"):
         read_history(tmp_path / "nan.csv")
+
+
+def test_epoch_milliseconds_read_as_the_same_instant_as_iso(tmp_path: Path) -> None:
+    """1704880800001 ms was read 256 ns early and stored at …000: a key of another reading,
+    and an import of the same readings in ISO form added them a second time."""
+    millis = [1704880800000 + k for k in range(0, 2000, 7)]
+    epoch = tmp_path / "epoch.csv"
+    epoch.write_text("sensor,ts,value\n" + "".join(f"v/t,{m},{i}\n"
+                                                    for i, m in enumerate(millis)))
+    seconds = tmp_path / "seconds.csv"
+    seconds.write_text("sensor,ts,value\n" + "".join(f"v/t,{m / 1000:.3f},{i}\n"
+                                                      for i, m in enumerate(millis)))
+    iso = tmp_path / "iso.csv"
+    iso.write_text("sensor,ts,value\n" + "".join(
+        f"v/t,{pd.Timestamp(m, unit='ms', tz='UTC').isoformat()},{i}\n"
+        for i, m in enumerate(millis)))
+    want = read_history(iso)["ts"]
+    assert list(want) == [pd.Timestamp(m, unit="ms", tz="UTC") for m in millis]
+    pd.testing.assert_series_equal(read_history(epoch)["ts"], want)
+    pd.testing.assert_series_equal(read_history(seconds)["ts"], want)

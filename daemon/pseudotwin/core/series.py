@@ -38,7 +38,11 @@ def _epoch(num: pd.Series) -> pd.Series:
     # Epoch milliseconds are > 1e11 for any date after 1973; seconds stay below until 5138.
     ms = num.abs() > 1e11
     out = pd.to_datetime(num.where(~ms) * 1e9, unit="ns", utc=True)
-    return out.where(~ms, pd.to_datetime(num.where(ms) * 1e6, unit="ns", utc=True))
+    out = out.where(~ms, pd.to_datetime(num.where(ms) * 1e6, unit="ns", utc=True))
+    # A float holds ~16 digits: ms since 1970 times 1e6 lands up to 256 ns off, and the
+    # store's millisecond then was often one early (…001 stored as …000, a key another
+    # reading had). No epoch number in a file means less than a microsecond.
+    return out.dt.round("us")
 
 
 def _row(mask: pd.Series | np.ndarray) -> int:
