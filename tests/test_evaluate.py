@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
+import json
 from pathlib import Path
 
 import numpy as np
@@ -251,3 +252,29 @@ def test_a_second_evaluation_into_a_folder_leaves_only_its_own_day_plot(
     assert run(*args, "--plot-day", "2012-03-20") == 0
     assert sorted(p.name for p in out.glob("day_*.png")) == ["day_2012-03-20.png",
                                                              "day_summary.png"]
+
+
+def test_train_from_a_configuration_leaves_out_readings_outside_its_ranges(
+        sml: Path, tmp_path: Path, caplog) -> None:
+    """A stored 85 °C (a DS18B20's power-on value) of a -10..50 °C sensor: train --config
+    learnt from it, its held-out error tenfold, without a word."""
+    df = pd.read_csv(sml)
+    glitch = pd.DataFrame({"sensor": "dining/temp", "value": 85.0,
+                           "ts": [f"2012-03-{d}T10:07:00Z" for d in (14, 15, 16)]})
+    clean, dirty = tmp_path / "clean.db", tmp_path / "dirty.db"
+    for path, frame in ((clean, df), (dirty, pd.concat([df, glitch]))):
+        frame.to_csv(tmp_path / "h.csv", index=False)
+        assert main(["import", str(tmp_path / "h.csv"), "--store", str(path)]) == 0
+    scores = {}
+    for path in (clean, dirty):
+        cfg = write_config(tmp_path, 1883, tmp_path / "x.json", store=path.name)
+        out = tmp_path / f"{path.stem}.json"
+        with caplog.at_level("WARNING"):
+            assert run("train", "--config", str(cfg), "--references", "dining/temp",
+                       "--target", "room/temp", "--quantity", "temperature", "--models",
+                       "ref,triv", "--train-start", "2012-03-14", "--out", str(out)) == 0
+        scores[path.stem] = json.loads(out.read_text())["validation"]["scores"]["triv"]
+    said = " ".join(r.getMessage() for r in caplog.records)
+    assert "training leaves out 3 reading(s) outside their sensor's min..max" in said
+    assert "dining/temp: 3" in said
+    assert scores["dirty"] == scores["clean"]

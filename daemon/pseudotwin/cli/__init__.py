@@ -331,6 +331,16 @@ def cmd_train(a: argparse.Namespace) -> int:
             raise ConfigError(f"--out would overwrite the store of {a.config}, {cfg.store}")
     thinning = _train_thinning(a, cfg)
     df, start = _training_history(a, spec.hours, cfg)
+    if cfg is not None:  # as the daemon takes them: a stored 85 °C of a 0..50 °C sensor is not
+        from pseudotwin.live.readings import in_range
+
+        kept = in_range(df, cfg.sensors, others=True)
+        if dropped := len(df) - len(kept):
+            out = df.loc[~df.index.isin(kept.index), "sensor"].value_counts()
+            log.warning("training leaves out %d reading(s) outside their sensor's min..max in "
+                        "%s (%s)", dropped, a.config,
+                        ", ".join(f"{s}: {n}" for s, n in out.items()))
+        df = kept
     with twin_context(a.out.stem):  # the artifact's name is the twin's id by convention
         art, checked = train_validated(df, spec, start, a.train_days, a.models, _options(a),
                                        a.primary, thinning=thinning, skip_days=a.skip_days)

@@ -256,15 +256,19 @@ def parse_payload(
     return Reading(sensor.id, ts, value)
 
 
-def in_range(frame: pd.DataFrame, sensors: Mapping[str, SensorConfig]) -> pd.DataFrame:
+def in_range(frame: pd.DataFrame, sensors: Mapping[str, SensorConfig],
+             others: bool = False) -> pd.DataFrame:
     """The rows of a canonical frame whose sensor is in ``sensors`` and whose value lies in
     that sensor's configured range: stored readings as the daemon would have taken them
-    (the store also holds what ``import`` took, which knows no configuration)."""
+    (the store also holds what ``import`` took, which knows no configuration). others: keep
+    the rows of sensors not in ``sensors`` too (training's desk sensor need not be)."""
     if frame.empty:
         return frame
     lo = frame["sensor"].map({k: s.min for k, s in sensors.items()})
     hi = frame["sensor"].map({k: s.max for k, s in sensors.items()})
     keep = (frame["value"] >= lo) & (frame["value"] <= hi)  # NaN bounds: not configured
+    if others:
+        keep |= lo.isna()
     return frame if bool(keep.all()) else frame[keep.to_numpy()]
 
 
