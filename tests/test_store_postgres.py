@@ -139,6 +139,17 @@ def test_schema_option_and_postgres_alias(postgres: PostgresServer, db: str) -> 
         assert default.count_readings() == 0
 
 
+def test_a_cut_off_server_fails_a_write_in_a_minute_not_the_os_s_fifteen(
+        postgres: PostgresServer, db: str) -> None:
+    """Only connect_timeout was set: a server cut off mid-write (a partition) blocked the
+    recorder's worker until the OS gave up on the socket, and nothing spooled meanwhile.
+    The connection's own libpq parameters (what psycopg reports it was opened with)."""
+    with open_store(postgres.url(db, keepalives_idle="5")) as s:
+        params = s._conn.info.get_parameters()  # the live connection, not a parsed URL
+    assert params["tcp_user_timeout"] == "60000" and params["keepalives"] == "1"
+    assert params["keepalives_idle"] == "5"  # the URL's own value wins
+
+
 @pytest.mark.parametrize(("url", "message"), [
     ("postgresql://pt:secret@db/history", "must not contain a password"),
     ("postgresql://db/history?password=secret", "must not contain a password"),

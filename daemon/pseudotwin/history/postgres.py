@@ -57,6 +57,11 @@ DEFAULT_SCHEMA = "pseudotwin"
 #: Used unless the URL sets connect_timeout: an unreachable server must turn into a
 #: StoreError (and the recorder's spool) within seconds, not the OS's TCP timeout.
 CONNECT_TIMEOUT_S = 10
+#: Used unless the URL sets them: a server cut off mid-write (a network partition, a
+#: rebooted router) must fail the write within a minute, so that the recorder spools, not
+#: block its worker until the OS gives up on the connection (~15 min).
+TCP_DEFAULTS = (("keepalives", "1"), ("keepalives_idle", "30"), ("keepalives_interval", "10"),
+                ("keepalives_count", "3"), ("tcp_user_timeout", "60000"))
 
 Timescale = Literal["auto", "yes", "no"]
 TIMESCALE_CHOICES: tuple[Timescale, ...] = ("auto", "yes", "no")
@@ -337,8 +342,9 @@ def open_postgres(text: str) -> PostgresStore:
     if option not in TIMESCALE_CHOICES:
         raise ConfigError(f"{text!r}: timescaledb={option!r}; expected one of "
                           f"{', '.join(TIMESCALE_CHOICES)}")
-    if not any(k == "connect_timeout" for k, _ in rest):
-        rest.append(("connect_timeout", str(CONNECT_TIMEOUT_S)))
+    given = {k for k, _ in rest}
+    rest += [(k, v) for k, v in (("connect_timeout", str(CONNECT_TIMEOUT_S)), *TCP_DEFAULTS)
+             if k not in given]
     conninfo = urlunsplit(("postgresql", parts.netloc, parts.path, urlencode(rest), ""))
     try:
         conninfo_to_dict(conninfo)  # libpq's own check: unknown parameters, bad syntax
