@@ -90,7 +90,9 @@ def log_long_collections(now: float | None = None) -> None:
     if watch is None:
         return
     now = time.monotonic() if now is None else now
-    if now - watch.thawed_at >= THAW_S:
+    # Not ``now - thawed_at >= THAW_S``: that difference of two large floats can round
+    # below THAW_S when ``now`` is exactly thawed_at + THAW_S (the tests flaked with it).
+    if now >= watch.thawed_at + THAW_S:
         log.info("%d frozen objects handed back to the garbage collector (every %.0f h)",
                  gc.get_freeze_count(), THAW_S / 3600)
         gc.unfreeze()
