@@ -654,7 +654,7 @@ class Service:
         if lag > self.cfg.stale_after and self.up_since is not None \
                 and arrival - self.up_since > self.cfg.stale_after:
             self.rejections.behind(sensor.id, lag.total_seconds(), day)
-        self.health.processed_one((arrival - r.ts).total_seconds(), backlog)
+        self.health.processed_one(lag.total_seconds(), backlog)
         return r
 
     def _apply(self, r: Reading, publish: bool) -> None:

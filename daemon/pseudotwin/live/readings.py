@@ -320,9 +320,7 @@ class RejectionCounter:
     def ahead(self, sensor: str, seconds: float, day: date) -> None:
         """A reading of ``sensor`` stamped ``seconds`` after its arrival (within max_skew):
         logged once per sensor and day."""
-        noted = _of_day(self._ahead, day, set, self.KEEP_DAYS)
-        if sensor not in noted:
-            noted.add(sensor)
+        if self._first_today(self._ahead, sensor, day):
             self.log.warning("reading of %s stamped %.0f s after its arrival: its clock (or its "
                              "bridge's) runs ahead of this process's, or this one's behind; "
                              "kept at its stamp, within max_skew (said once a day per sensor)",
@@ -331,13 +329,18 @@ class RejectionCounter:
     def behind(self, sensor: str, seconds: float, day: date) -> None:
         """A reading of ``sensor`` that arrived ``seconds`` after its stamp, later than the
         silence that makes an estimate stale: logged once per sensor and day."""
-        noted = _of_day(self._behind, day, set, self.KEEP_DAYS)
-        if sensor not in noted:
-            noted.add(sensor)
+        if self._first_today(self._behind, sensor, day):
             self.log.warning("reading of %s arrived %.0f min after its stamp: its clock (or its "
                              "bridge's) runs behind or is set to another time zone, or it was "
                              "held up on its way; until such readings come, the sensor looks "
                              "silent (said once a day per sensor)", sensor, seconds / 60.0)
+
+    def _first_today(self, book: dict[date, set[str]], sensor: str, day: date) -> bool:
+        """Whether ``sensor`` is noted in ``book`` for the first time on ``day`` (and note it)."""
+        noted = _of_day(book, day, set, self.KEEP_DAYS)
+        first = sensor not in noted
+        noted.add(sensor)
+        return first
 
     def of_day(self, day: date) -> Mapping[tuple[str, str], int]:
         """Readings rejected on local ``day`` by (sensor, reason) (none: no rejection that
