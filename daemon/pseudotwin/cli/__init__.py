@@ -25,6 +25,7 @@ from pseudotwin.cli.util import (
     whole_number,
 )
 from pseudotwin.config.model import LOG_LEVELS
+from pseudotwin.config.validate import sqlite_file
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.errors import ConfigError, PseudotwinError, StateInUseError
 from pseudotwin.gp.kernels import KERNEL_REGISTRY
@@ -314,9 +315,8 @@ def _store_read(a: argparse.Namespace, cfg: ServiceConfig | None) -> str | None:
         return None
     if a.store is None:
         return cfg.store if cfg is not None else None  # the loader made a path absolute
-    if "://" not in a.store or a.store.startswith("sqlite:///"):
-        return str(Path(a.store.removeprefix("sqlite:///")).resolve())
-    return str(a.store)
+    file = sqlite_file(a.store)
+    return str(Path(file).resolve()) if file is not None else str(a.store)
 
 
 def cmd_train(a: argparse.Namespace) -> int:
@@ -327,7 +327,7 @@ def cmd_train(a: argparse.Namespace) -> int:
     cfg = None if a.config is None else load_named_config(a.config)
     if cfg is not None:  # what contradicts the configuration fails before any reading
         _check_live_sensors(a, cfg)
-        if cfg.store and "://" not in cfg.store and _same_file(Path(cfg.store), a.out):
+        if cfg.store and (file := sqlite_file(cfg.store)) and _same_file(Path(file), a.out):
             raise ConfigError(f"--out would overwrite the store of {a.config}, {cfg.store}")
     thinning = _train_thinning(a, cfg)
     df, start = _training_history(a, spec.hours, cfg)
@@ -518,9 +518,8 @@ def _check_training(p: argparse.ArgumentParser, a: argparse.Namespace) -> None:
                 "or leave --primary out and let validation choose")
     written = [a.out] if a.command == "train" else [a.out / n for n in OUTPUT_FILES]
     inputs = [("--history", a.history), ("--config", getattr(a, "config", None))]
-    if (store := getattr(a, "store", None)) and ("://" not in store
-                                                 or store.startswith("sqlite:///")):
-        inputs.append(("--store", Path(store.removeprefix("sqlite:///"))))  # a SQLite file
+    if (store := getattr(a, "store", None)) and (file := sqlite_file(store)):
+        inputs.append(("--store", Path(file)))
     for option, path in inputs:
         if path is not None and any(_same_file(path, w) for w in written):
             p.error(f"--out would overwrite the {option} file {path}")

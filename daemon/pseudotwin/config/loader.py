@@ -34,6 +34,7 @@ from pseudotwin.config.validate import (
     field_defaults,
     is_memory_url,
     nonempty,
+    sqlite_file,
     suggest,
     type_name,
 )
@@ -258,13 +259,10 @@ class Loader:
                 self.add("service.store", "credentials do not belong in the store URL; set "
                                           "PSEUDOTWIN_CRATE_USER / PSEUDOTWIN_CRATE_PASSWORD")
                 return None
-            if value.startswith("sqlite:///") and not is_memory_url(value):
-                # The file's path, as a path is taken: a relative one from this file's
-                # folder (not the working directory, / under systemd), its folder checked.
-                value = value[len("sqlite:///"):]
-            else:
-                return value
-        return str(self.base_dir / value)
+        # A SQLite file's path, as a path is taken: a relative one from this file's folder
+        # (not the working directory, / under systemd), its folder checked.
+        file = sqlite_file(value)
+        return str(self.base_dir / file) if file is not None else value
 
     def load_hours(self, table: dict[str, Any]) -> OperatingHours | None:
         """OperatingHours from the keys given; the others keep OperatingHours' defaults."""

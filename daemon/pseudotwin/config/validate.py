@@ -158,3 +158,14 @@ PATHLESS_SQLITE = "sqlite:///"
 def is_memory_url(url: str) -> bool:
     """Whether ``url`` names a SQLite store in memory, which keeps nothing once closed."""
     return url.strip() in (":memory:", "sqlite://", "sqlite:///:memory:")
+
+
+def sqlite_file(url: str) -> str | None:
+    """The file a SQLite store URL names: a path, or ``sqlite:///path`` (relative as given);
+    None for a database server's URL or a store in memory."""
+    text = url.strip()
+    if is_memory_url(text) or text == PATHLESS_SQLITE:
+        return None
+    if text.startswith(PATHLESS_SQLITE):
+        return text[len(PATHLESS_SQLITE):]
+    return None if "://" in text else text
