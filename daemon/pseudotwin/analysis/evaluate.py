@@ -143,16 +143,14 @@ def _desk_days(history: pd.DataFrame, spec: TwinSpec) -> set[dt.date]:
     """The local days with readings of the desk sensor in operating hours."""
     hours = spec.hours
     days, h = hours.day_and_hours(history.loc[history["sensor"] == spec.target, "ts"])
-    return {dt.date.fromisoformat(str(d)[:10])
-            for d in np.unique(days[hours.in_operating_hours(h)])}
+    return set(pd.to_datetime(np.unique(days[hours.in_operating_hours(h)])).date)
 
 
 def _name_unanswered_days(est: pd.DataFrame, history: pd.DataFrame, spec: TwinSpec,
                           start: dt.date) -> None:
     """Log the scored days on which the desk reported but the twin never answered (its
     references silent): they are in no row, so every model's mean leaves them out."""
-    answered = {dt.date.fromisoformat(str(d)[:10])
-                for d in np.unique(spec.hours.day_and_hours(est["ts"])[0])}
+    answered = set(pd.to_datetime(np.unique(spec.hours.day_and_hours(est["ts"])[0])).date)
     missing = sorted(d for d in _desk_days(history, spec) - answered if d >= start)
     if missing:
         shown = ", ".join(str(d) for d in missing[:10])
@@ -182,9 +180,9 @@ def write_outputs(
 
     plot_daily_nrmse(ev.daily, out / NRMSE_PLOT, ev.artifact)
     day = plot_day or median_day(ev.daily, ev.artifact.primary)
-    plot = out / DAY_PLOT.format(day=day) if day is not None else None
-    if day is not None and plot is not None:
-        plot_day_estimate(ev, history, day, plot)
+    plot = None
+    if day is not None:
+        plot_day_estimate(ev, history, day, plot := out / DAY_PLOT.format(day=day))
     # An earlier run's day plot would sit beside this run's tables as if it were of them.
     for old in out.glob(DAY_PLOT.format(day="[0-9][0-9][0-9][0-9]-[0-9][0-9]-[0-9][0-9]")):
         if old != plot:

@@ -100,9 +100,8 @@ def replay(
                     f"with --start {t.isoformat()} (readings at that instant may go twice; "
                     "the daemon drops repeats)")
             n += 1
-        else:
-            if hold:
-                clock.wait_until(end, stop)
+        if hold:  # returns at once when stopped
+            clock.wait_until(end, stop)
     finally:
         c.disconnect()
         c.loop_stop()
