@@ -125,3 +125,31 @@ def test_cli_import_refuses_a_store_that_keeps_nothing(sml_csv: Path, url: str,
     err = capsys.readouterr().err
     assert err.startswith("pseudotwin import: error: ") and "Traceback" not in err
     assert ("no file path" if url == "sqlite:///" else "in memory") in err
+
+
+def test_reimport_with_other_values_names_them_and_keeps_the_stored(
+        sml_frame: pd.DataFrame, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    part = sml_frame.iloc[:3000].reset_index(drop=True)
+    first, corrected = tmp_path / "first.csv", tmp_path / "corrected.csv"
+    write_history(part, first)
+    changed = part.copy()
+    rows = [500, 2100]  # a corrected export: two values differ, the rest are the same
+    changed.loc[rows, "value"] += 1.5
+    write_history(changed, corrected)
+    db = tmp_path / "history.db"
+    assert main([str(first), "--store", str(db)]) == 0
+    assert "already stored" in capsys.readouterr().out
+    with open_store(db) as store:
+        again = import_history(store, first, chunk_rows=1000)
+        assert (again.rows_new, again.differing, again.first_differing) == (0, 0, None)
+        summary = import_history(store, corrected, chunk_rows=1000)
+        assert summary.rows_new == 0 and summary.differing == len(rows)
+        sensor, ts, value, stored = summary.first_differing or ("", None, 0.0, 0.0)
+        assert (sensor, ts) == (part["sensor"][500], part["ts"][500])
+        assert value == pytest.approx(stored + 1.5)
+        back = store.read_readings(None)
+        pd.testing.assert_frame_equal(back, read_history(first))  # first write wins
+    assert main([str(corrected), "--store", str(db)]) == 0
+    out = capsys.readouterr().out
+    assert f"{len(rows)} of the stored readings hold another value" in out
+    assert f"{part['sensor'][500]} at {part['ts'][500].isoformat()}" in out

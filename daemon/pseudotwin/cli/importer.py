@@ -24,7 +24,9 @@ def _parser() -> argparse.ArgumentParser:
         description="Load a canonical history file (CSV or Parquet with columns "
                     "sensor,ts,value; ts ISO 8601 with offset or epoch s/ms) into the "
                     "history store. Idempotent: readings already stored are skipped, so "
-                    "importing a file twice adds nothing.",
+                    "importing a file twice adds nothing. A stored reading is never "
+                    "overwritten: where the file holds another value for it, the summary "
+                    "counts such readings and names the first.",
     )
     p.add_argument("file", type=Path, metavar="FILE", help="canonical history CSV or Parquet")
     p.add_argument("--store", required=True, metavar="URL",
