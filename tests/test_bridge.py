@@ -663,6 +663,40 @@ def test_readings_arrive_after_a_broker_restart(
         assert bridge.dropped == 0
 
 
+def test_a_broker_outage_longer_than_the_queue_keeps_each_sensors_newest_reading(
+    plc: Plc, env: Env, mosquitto: MosquittoBroker, mqtt_client: MqttClientFactory
+) -> None:
+    """With more readings than queue_size during an outage, the newest were dropped: after
+    the broker came back the daemon got the outage's first readings and then nothing, and
+    the reconnect's retained `online` was refused by the full queue (`offline` stayed)."""
+    inbox = _subscribe(mqtt_client, env, client_id=f"sub-{env.client_id}", clean_session=False)
+    path = env.write_config()
+    path.write_text(path.read_text().replace("[bridge]\n", "[bridge]\nqueue_size = 5\n"),
+                    encoding="utf-8")
+    with running(Bridge(load_bridge_config(path))) as bridge:
+        _wait_initial(inbox, env)
+        _wait_for(lambda: bridge.unacknowledged() == 0, "the initial values acknowledged")
+        try:
+            mosquitto.stop()
+            _wait_for(lambda: not bridge.mqtt_connected.is_set(), "the bridge sees the outage")
+            for i in range(10):
+                plc.write("MAIN.fRoomTemp", 30.0 + i)
+            plc.write("MAIN.nCo2", 800)
+            _wait_for(lambda: bridge.dropped == 4 and bridge.queue.empty(),
+                      "readings 35..38 dropped, 39 and the CO2 held back")
+        finally:
+            mosquitto.start()
+        for value in (30.0, 31.0, 32.0, 33.0, 34.0, 39.0):  # in this order, 35..38 dropped
+            inbox.wait(env.topics["hmi/temp"], _is(value))
+        inbox.wait(env.topics["ceiling/co2"], _is(800))
+        _wait_for(lambda: bridge.unacknowledged() == 0, "everything acknowledged")
+        assert bridge.dropped == 4
+        check = _subscribe(mqtt_client, env)  # what a later subscriber is told, retained
+        assert check.wait(f"{env.base}/bridge/status") == b"online"
+    assert not any(_is(v)(m.payload) for m in inbox.seen if m.topic == env.topics["hmi/temp"]
+                   for v in (35.0, 36.0, 37.0, 38.0))
+
+
 # -- tests: the broker away or refusing ---------------------------------------------------
 
 

@@ -337,7 +337,8 @@ class BridgeConfig:
     base_topic: status topics go to ``<base_topic>/bridge/...``; default the daemon's
         ``service.base_topic`` when the file has one, else ``"pseudotwin"``.
     queue_size: bound of the queue between the ADS notification thread and the publisher,
-        and of paho's queue of messages waiting for the broker (readings).
+        and of the readings waiting for the broker in paho's queue; beyond it each
+        sensor's newest reading is held back until there is room.
     """
 
     broker: BrokerConfig

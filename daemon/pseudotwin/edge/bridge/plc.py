@@ -16,7 +16,12 @@ Threads, and why:
   every other symbol's notifications, and on a full queue dropping (counted, logged) is
   better than stalling the PLC link;
 - one publisher thread turns queue items into MQTT messages (paho keeps QoS 1 messages that
-  cannot be sent right now and sends them after the broker reconnect);
+  cannot be sent right now and sends them after the broker reconnect). At most
+  ``queue_size`` readings wait for the broker; beyond that the publisher holds back only the
+  newest reading of each sensor and sends it as soon as there is room again, so after a
+  long broker outage the daemon gets every sensor's current value, not the outage's first
+  hours only (the readings in between are dropped and counted). The status messages have
+  room of their own in paho's queue, so a full queue never leaves ``offline`` retained;
 - paho's network thread (``loop_start``), which also reconnects to the broker by itself;
 - one supervisor thread owns the ADS connection: connect, validate the symbols, register the
   notifications, publish each symbol's current value, then poll ``read_state`` every
@@ -152,6 +157,11 @@ class _Item:
 
 
 EARLY_ACKS_KEPT = 1000  # far fewer than the 65535 mids before they wrap
+#: Room in paho's queue beyond queue_size readings, for the retained status and PLC state
+#: messages (a few per reconnect): they must never be refused for readings.
+STATUS_HEADROOM = 16
+#: How often the publisher looks for room for held-back readings while no new one comes [s].
+HELD_RETRY_SECONDS = 0.2
 _STOP = object()
 
 
@@ -197,7 +207,9 @@ class Bridge:
         # insertion-ordered, the oldest let go past EARLY_ACKS_KEPT: the status messages'
         # acks land here too, and paho's mids wrap at 65535
         self._early_acks: dict[int, None] = {}
-        self._acked = threading.Condition(self._count_lock)  # notified as _unacked empties
+        self._acked = threading.Condition(self._count_lock)  # notified at every acknowledgement
+        # sensor id → its newest reading that found the broker's queue full (publisher only)
+        self._held: dict[str, _Item] = {}
         # Setting plc_up and publishing it happen under one lock, in the supervisor and in
         # paho's on_connect alike: otherwise a connect racing a PLC state change could leave
         # the opposite state retained on the broker.
@@ -219,8 +231,9 @@ class Bridge:
             c.tls_set(ca_certs=str(b.ca_file) if b.ca_file else None)
         c.reconnect_delay_set(MQTT_RECONNECT_MIN, MQTT_RECONNECT_MAX)
         # Readings published while the broker is away wait in paho's queue (QoS 1, sent
-        # after the reconnect); the bound keeps a long outage from eating the memory.
-        c.max_queued_messages_set(self.cfg.queue_size)
+        # after the reconnect); the publisher keeps them to queue_size, so a long outage
+        # does not eat the memory, and the headroom is the status messages'.
+        c.max_queued_messages_set(self.cfg.queue_size + STATUS_HEADROOM)
         c.on_connect = self._on_connect
         c.on_disconnect = self._on_disconnect
         watch_takeover(c, self.cfg.client_id)  # e.g. two bridges on the default client id
@@ -259,8 +272,7 @@ class Bridge:
             if mid in self._unacked:
                 self._unacked.discard(mid)
                 self.published += 1
-                if not self._unacked:
-                    self._acked.notify_all()
+                self._acked.notify_all()  # stop() waits for none, held readings for room
             else:  # before publish() returned its mid (or the status message's)
                 self._early_acks[mid] = None
                 if len(self._early_acks) > EARLY_ACKS_KEPT:
@@ -268,14 +280,55 @@ class Bridge:
 
     def _publisher(self) -> None:
         while True:
-            item = self.queue.get()
+            try:
+                item = self.queue.get(timeout=HELD_RETRY_SECONDS if self._held else None)
+            except queue.Empty:
+                self._release_held()
+                continue
             if item is _STOP:
+                self._release_held_at_stop()
                 return
             try:
+                self._release_held()
                 self._publish_reading(item)
             except Exception:  # the bridge must outlive one bad reading
                 log.exception("unexpected error while publishing a reading of %s",
                               item.symbol.symbol)
+
+    def _has_room(self) -> bool:
+        with self._count_lock:
+            return len(self._unacked) < self.cfg.queue_size
+
+    def _release_held(self) -> None:
+        """Send held-back readings, oldest first, while the broker's queue has room."""
+        for sensor, item in sorted(self._held.items(), key=lambda kv: kv[1].ts):
+            if not self._has_room() or not self._send(item):
+                return
+            del self._held[sensor]
+
+    def _release_held_at_stop(self, timeout: float = 5.0) -> None:
+        """Send what is held back as room comes while the broker is there; count the rest."""
+        deadline = time.monotonic() + timeout
+        self._release_held()
+        while self._held and self.mqtt_connected.is_set() and time.monotonic() < deadline:
+            with self._acked:  # notified at every acknowledgement
+                self._acked.wait_for(lambda: len(self._unacked) < self.cfg.queue_size,
+                                     max(0.0, deadline - time.monotonic()))
+            self._release_held()
+        if self._held:
+            with self._count_lock:
+                self.dropped += len(self._held)
+            log.warning("%d held-back reading(s) (the newest of %s) not sent at stop: the "
+                        "broker's queue was full", len(self._held), ", ".join(sorted(self._held)))
+            self._held.clear()
+
+    def _hold(self, item: _Item) -> None:
+        """Keep ``item`` as its sensor's newest unsent reading; an older one is dropped."""
+        if self._held.pop(item.sensor.id, None) is not None:
+            self._count_drop(f"the MQTT queue is full ({self.cfg.queue_size} readings waiting "
+                             "for the broker); the newest reading of each sensor is kept "
+                             "and sent when there is room")
+        self._held[item.sensor.id] = item
 
     def _publish_reading(self, item: _Item) -> None:
         if item.source == "notification" and self._skew_warned_gen != self._gen:
@@ -286,28 +339,33 @@ class Bridge:
                             "%s); readings carry the PLC's time, and the daemon rejects "
                             "readings too far in the future or the past",
                             skew.total_seconds(), item.symbol.symbol)
+        if self._held or not self._has_room() or not self._send(item):
+            self._hold(item)
+
+    def _send(self, item: _Item) -> bool:
+        """Hand ``item`` to paho; False if paho's queue refused it."""
         s = item.sensor
         payload = payload_for(s.format, s.ts_key, s.value_key, item.ts, item.value)
         info = self.client.publish(s.topic, payload, qos=1)
         if info.rc == mqtt.MQTT_ERR_QUEUE_SIZE:
-            self._count_drop(f"the MQTT queue is full ({self.cfg.queue_size} readings waiting "
-                             "for the broker)")
-        else:
-            # MQTT_ERR_NO_CONN means queued by paho for after the reconnect: not lost yet,
-            # published once the broker acknowledges it (_on_publish).
-            with self._count_lock:
-                if info.mid in self._early_acks:
-                    del self._early_acks[info.mid]
-                    self.published += 1
-                else:
-                    self._unacked.add(info.mid)
-
-    def _count_drop(self, why: str) -> None:
+            return False
+        # MQTT_ERR_NO_CONN means queued by paho for after the reconnect: not lost yet,
+        # published once the broker acknowledges it (_on_publish).
         with self._count_lock:
-            self.dropped += 1
-            n = self.dropped
-        if n & (n - 1) == 0:  # 1, 2, 4, 8, ...: visible, but not one line per reading
-            log.warning("reading dropped: %s (%d dropped so far)", why, n)
+            if info.mid in self._early_acks:
+                del self._early_acks[info.mid]
+                self.published += 1
+            else:
+                self._unacked.add(info.mid)
+        return True
+
+    def _count_drop(self, why: str, n: int = 1) -> None:
+        with self._count_lock:
+            before = self.dropped
+            self.dropped += n
+            after = self.dropped
+        if after.bit_length() > before.bit_length():  # past 1, 2, 4, 8, ...: visible, but
+            log.warning("reading dropped: %s (%d dropped so far)", why, after)  # not per one
 
     def _publish_state(self, up: bool) -> None:
         self.client.publish(self.cfg.plc_topic, "up" if up else "down", qos=1, retain=True)
