@@ -622,6 +622,37 @@ def test_reconnects_by_itself_when_the_plc_drops_and_comes_back(
         inbox.wait(env.topics["ceiling/co2"], _is(700))
 
 
+def test_a_symbol_gone_at_a_reconnect_is_picked_up_again_when_it_is_back(
+    plc: Plc, env: Env, mqtt_client: MqttClientFactory, caplog: pytest.LogCaptureFixture,
+    monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A symbol missing after a PLC restart was skipped until the next reconnect, which a
+    PLC that keeps running never brings: its sensor went stale for good, `plc` said up."""
+    monkeypatch.setattr(plc_module, "SYMBOL_RETRY_SECONDS", 0.0,  # every poll (0.2 s)
+                        raising=False)
+    caplog.set_level(logging.INFO, logger="pseudotwin.edge.bridge")
+    inbox = _subscribe(mqtt_client, env)
+    with running(Bridge(env.config())) as bridge:
+        _wait_initial(inbox, env)
+        plc.stop()
+        _wait_for(lambda: not bridge.plc_up.is_set(), "the poll notices the drop")
+        co2 = plc.variable("MAIN.nCo2")
+        plc.handler._data = {k: v for k, v in plc.handler._data.items() if v is not co2}
+        plc.start()  # a new PLC program without MAIN.nCo2
+        _wait_for(lambda: bridge.plc_up.is_set(), "up again with two symbols")
+        assert "skipping a symbol" in caplog.text and "'MAIN.nCo2'" in caplog.text
+        assert any(r.levelno == logging.WARNING and "2 of 3 symbols registered" in r.message
+                   for r in caplog.records)
+        registered = len(co2.notifications)  # the test server keeps the dead link's
+        plc.handler.add_variable(co2)  # back, while the PLC keeps running
+        _wait_for(lambda: len(co2.notifications) > registered, "the symbol registered again")
+        assert "'MAIN.nCo2' found on the PLC again" in caplog.text
+        assert bridge.ads_connects == 2  # without a reconnect
+        inbox.wait(env.topics["ceiling/co2"], _is(450))  # its value read at once
+        plc.write("MAIN.nCo2", 777)
+        inbox.wait(env.topics["ceiling/co2"], _is(777))  # and its changes notified
+
+
 def test_plc_stopped_counts_as_down_until_it_runs_again(
     plc: Plc, env: Env, mqtt_client: MqttClientFactory
 ) -> None:

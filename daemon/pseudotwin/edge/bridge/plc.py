@@ -40,7 +40,8 @@ Configuration problems found on the PLC itself (an unknown symbol, a symbol whos
 differs from ``plc_type``) are fatal at the first successful connection: the bridge stops and
 ``pseudotwin bridge`` exits with 78 (EX_CONFIG), so systemd does not restart it in a loop. If
 they appear only after a later reconnect (a PLC program changed under a running bridge), the
-affected symbols are skipped with an error in the log and the others keep working.
+affected symbols are skipped with an error in the log, the others keep working, and the
+skipped ones are looked for again every ``SYMBOL_RETRY_SECONDS`` while the link is up.
 """
 
 from __future__ import annotations
@@ -94,6 +95,9 @@ ADSERR_SYMBOL_NOT_FOUND = 0x710
 TEARDOWN_TIMEOUT_MS = 250
 #: paho's reconnect backoff towards the broker [s].
 MQTT_RECONNECT_MIN, MQTT_RECONNECT_MAX = 1, 30
+#: How often a symbol skipped at a reconnect (gone from the PLC, or of another type) is
+#: looked for again while the link is up [s]; at least every poll_seconds.
+SYMBOL_RETRY_SECONDS = 30.0
 #: A PLC clock this far from ours is logged: the daemon rejects readings more than its
 #: max_skew in the future and older than its window, so the operator should know why.
 CLOCK_SKEW_WARN = dt.timedelta(minutes=5)
@@ -142,6 +146,7 @@ class _Link:
     gen: int
     symbols: list[_Resolved] = field(default_factory=list)
     handles: list[tuple[int, int | None]] = field(default_factory=list)
+    missing: list[int] = field(default_factory=list)  # indexes of symbols skipped
 
 
 @dataclass(frozen=True)
@@ -483,34 +488,41 @@ class Bridge:
         try:
             conn.set_timeout(max(1, round(plc.timeout_seconds * 1000)))
             self._check_running(conn)
-            link.symbols = self._resolve(conn)
-            for r in link.symbols:
-                attr = pyads.NotificationAttrib(r.cfg.type.size, adsc.ADSTRANS_SERVERONCHA,
-                                                r.cfg.max_delay_ms, r.cfg.cycle_ms)
-                # By index group/offset rather than by name: one lookup per connect, and
-                # it also works with servers that cannot notify by handle (pyads' own
-                # test server). Limitation: a PLC program download or online change that
-                # moves a variable without a state change seen by the poll leaves the
-                # notification on the old offset until the next reconnect (watching the
-                # PLC's symbol version, index group 0xF008, would catch it).
-                handles = conn.add_device_notification(
-                    (r.index_group, r.index_offset), attr, self._callback(link, r)
-                )
-                if handles is not None:
-                    link.handles.append(handles)
-            # A fresh value right away: the symbols may not change for hours. Stamped on the
-            # PLC's clock as far as notifications have shown it: on this host's, a PLC
-            # running behind would stamp its next change before the read, and the daemon,
-            # taking readings in time order, would hold the read's value until then.
-            now = self.clock.now()
-            for r in link.symbols:
-                raw = conn.read_by_name(r.cfg.symbol, r.cfg.type.ctype)
-                self._accept(r, raw, now + self._plc_offset, now, "read")
+            found, link.missing = self._resolve(conn)
+            for r in found:
+                self._register(link, r)
+            self._read_now(link, found)
         except BaseException:
             self._gen += 1
             self._teardown(link, alive=False)
             raise
         return link
+
+    def _register(self, link: _Link, r: _Resolved) -> None:
+        attr = pyads.NotificationAttrib(r.cfg.type.size, adsc.ADSTRANS_SERVERONCHA,
+                                        r.cfg.max_delay_ms, r.cfg.cycle_ms)
+        # By index group/offset rather than by name: one lookup per connect, and it also
+        # works with servers that cannot notify by handle (pyads' own test server).
+        # Limitation: a PLC program download or online change that moves a variable
+        # without a state change seen by the poll leaves the notification on the old
+        # offset until the next reconnect (watching the PLC's symbol version, index group
+        # 0xF008, would catch it).
+        handles = link.conn.add_device_notification(
+            (r.index_group, r.index_offset), attr, self._callback(link, r)
+        )
+        if handles is not None:
+            link.handles.append(handles)
+        link.symbols.append(r)
+
+    def _read_now(self, link: _Link, symbols: list[_Resolved]) -> None:
+        # A fresh value right away: the symbols may not change for hours. Stamped on the
+        # PLC's clock as far as notifications have shown it: on this host's, a PLC running
+        # behind would stamp its next change before the read, and the daemon, taking
+        # readings in time order, would hold the read's value until then.
+        now = self.clock.now()
+        for r in symbols:
+            raw = link.conn.read_by_name(r.cfg.symbol, r.cfg.type.ctype)
+            self._accept(r, raw, now + self._plc_offset, now, "read")
 
     def _check_running(self, conn: pyads.Connection) -> None:
         state = conn.read_state()
@@ -519,44 +531,76 @@ class Bridge:
         if state[0] != adsc.ADSSTATE_RUN:
             raise _PlcNotRunning(f"PLC state is {_ADS_STATES.get(state[0], state[0])}, not RUN")
 
-    def _resolve(self, conn: pyads.Connection) -> list[_Resolved]:
-        """Look every symbol up on the PLC; SymbolProblems at the first validation, else
-        the bad ones are logged and skipped."""
-        plc = self.cfg.plc
-        where = f"{plc.ams_net_id}:{plc.port} ({plc.ip_address})"
+    def _resolve(self, conn: pyads.Connection) -> tuple[list[_Resolved], list[int]]:
+        """Look every symbol up on the PLC: the ones found, and the indexes of the others.
+        SymbolProblems at the first validation; after it the bad ones are logged, skipped
+        and looked for again while the link is up (:meth:`_retry_missing`)."""
         good: list[_Resolved] = []
         problems: list[str] = []
-        for i, sym in enumerate(plc.symbols):
-            loc = f"plc.symbols[{i}]"
-            try:
-                info = conn.read_write(adsc.ADSIGRP_SYM_INFOBYNAMEEX, 0, SAdsSymbolEntry,
-                                       sym.symbol, pyads.PLCTYPE_STRING)
-            except pyads.ADSError as exc:
-                if getattr(exc, "err_code", None) != ADSERR_SYMBOL_NOT_FOUND:
-                    raise
-                problems.append(f"{loc}.symbol: {sym.symbol!r} is not a symbol of the PLC at "
-                                f"{where} (check the spelling and the POU/GVL prefix, e.g. "
-                                "'MAIN.' or 'GVL.')")
-                continue
-            problem = _type_problem(sym, info)
-            if problem:
-                problems.append(f"{loc}.plc_type: {problem}")
-                continue
-            good.append(_Resolved(sym, self.cfg.sensor_of(sym), info.iGroup, info.iOffs))
+        missing: list[int] = []
+        for i in range(len(self.cfg.plc.symbols)):
+            found = self._lookup(conn, i)
+            if isinstance(found, str):
+                problems.append(found)
+                missing.append(i)
+            else:
+                good.append(found)
         if problems:
             if not self._validated:
                 raise SymbolProblems(problems)
             for p in problems:
-                log.error("skipping a symbol until the next reconnect: %s", p)
+                log.error("skipping a symbol, looked for again every %g s: %s",
+                          self._retry_seconds(), p)
         self._validated = True
-        return good
+        return good, missing
+
+    def _lookup(self, conn: pyads.Connection, i: int) -> _Resolved | str:
+        """The i-th configured symbol as the PLC has it, or why it cannot be used."""
+        plc = self.cfg.plc
+        sym = plc.symbols[i]
+        loc = f"plc.symbols[{i}]"
+        try:
+            info = conn.read_write(adsc.ADSIGRP_SYM_INFOBYNAMEEX, 0, SAdsSymbolEntry,
+                                   sym.symbol, pyads.PLCTYPE_STRING)
+        except pyads.ADSError as exc:
+            if getattr(exc, "err_code", None) != ADSERR_SYMBOL_NOT_FOUND:
+                raise
+            return (f"{loc}.symbol: {sym.symbol!r} is not a symbol of the PLC at "
+                    f"{plc.ams_net_id}:{plc.port} ({plc.ip_address}) (check the spelling and "
+                    "the POU/GVL prefix, e.g. 'MAIN.' or 'GVL.')")
+        problem = _type_problem(sym, info)
+        if problem:
+            return f"{loc}.plc_type: {problem}"
+        return _Resolved(sym, self.cfg.sensor_of(sym), info.iGroup, info.iOffs)
+
+    def _retry_seconds(self) -> float:
+        return max(self.cfg.plc.poll_seconds, SYMBOL_RETRY_SECONDS)
+
+    def _retry_missing(self, link: _Link) -> None:
+        """Look for the symbols skipped at this connect again (a PLC program changed under
+        the bridge may bring them back); register and read the ones found."""
+        for i in list(link.missing):
+            found = self._lookup(link.conn, i)
+            if isinstance(found, str):
+                log.debug("still skipped: %s", found)
+                continue
+            self._register(link, found)
+            self._read_now(link, [found])
+            link.missing.remove(i)
+            log.warning("plc.symbols[%d] %r found on the PLC again; registered (%d of %d "
+                        "symbols)", i, found.cfg.symbol, len(link.symbols),
+                        len(self.cfg.plc.symbols))
 
     def _poll(self, link: _Link) -> BaseException | None:
         """Read the PLC state every poll_seconds; the reason the link is lost, or None when
         asked to stop."""
+        next_retry = time.monotonic() + self._retry_seconds()
         while not self._sleep(self.cfg.plc.poll_seconds):
             try:
                 self._check_running(link.conn)
+                if link.missing and time.monotonic() >= next_retry:
+                    next_retry = time.monotonic() + self._retry_seconds()
+                    self._retry_missing(link)
             except Exception as exc:  # noqa: BLE001 - whatever it is, the link is not usable
                 if not isinstance(exc, _EXPECTED):
                     log.exception("unexpected error while polling the PLC state")
@@ -593,9 +637,10 @@ class Bridge:
         since = ""
         if self._down_since is not None:
             since = f" after {time.monotonic() - self._down_since:.0f} s"
-        log.info("PLC %s:%d (%s) connected%s; %d of %d symbols registered for notifications",
-                 plc.ams_net_id, plc.port, plc.ip_address, since, len(link.symbols),
-                 len(plc.symbols))
+        log.log(logging.WARNING if link.missing else logging.INFO,
+                "PLC %s:%d (%s) connected%s; %d of %d symbols registered for notifications",
+                plc.ams_net_id, plc.port, plc.ip_address, since, len(link.symbols),
+                len(plc.symbols))
         self._down_logged = False
         self._down_since = None
         with self._state_lock:
