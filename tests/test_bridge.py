@@ -63,9 +63,11 @@ from pseudotwin.edge.bridge import (
     ADSERR_SYMBOL_NOT_FOUND,
     Bridge,
     BridgeConfig,
+    SymbolConfig,
     filetime_to_utc,
     load_bridge_config,
 )
+from pseudotwin.edge.replay import payload_for
 
 ROOT = Path(__file__).resolve().parent.parent
 ADS_HOST = "127.0.0.1"
@@ -404,6 +406,24 @@ def test_filetime_conversion_keeps_microseconds() -> None:
 
 
 # -- tests: configuration problems -------------------------------------------------------
+
+
+@pytest.mark.parametrize(("plc_type", "raw", "scale", "offset", "text"), [
+    ("INT", 219, 0.1, 0.0, b"21.9"),  # not 21.900000000000002
+    ("REAL", struct.unpack("<f", struct.pack("<f", 21.3))[0], 1.0, 0.0, b"21.3"),
+    ("REAL", struct.unpack("<f", struct.pack("<f", 2953.1))[0], 0.1, -273.15, b"22.16"),
+    ("LREAL", 21.123456789012344, 1.0, 0.0, b"21.123456789012344"),  # every digit kept
+    ("DINT", 450, 1.0, 0.0, b"450.0"),
+])
+def test_readings_carry_the_plcs_digits_not_binary_noise(
+        plc_type: str, raw: float, scale: float, offset: float, text: bytes) -> None:
+    """A scaled INT 219 went out as 21.900000000000002 and a REAL 21.3 as
+    21.299999237060547: a subscriber logging or comparing values saw noise."""
+    sym = SymbolConfig(symbol="MAIN.x", sensor="s", plc_type=plc_type, scale=scale,
+                       offset=offset)
+    ts = dt.datetime(2026, 1, 5, 8, tzinfo=dt.UTC)
+    assert payload_for("number", "", "", ts, sym.convert(raw)) == text
+    assert b'"value": ' + text in payload_for("json", "ts", "value", ts, sym.convert(raw))
 
 
 def test_unknown_symbol_and_wrong_type_are_configuration_errors(

@@ -22,9 +22,11 @@ import os
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from decimal import Decimal
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pyads
 from pyads import constants as adsc
 
@@ -180,8 +182,20 @@ class SymbolConfig:
         return PLC_TYPES[self.plc_type]
 
     def convert(self, raw: float | int | bool) -> float:
-        """The reading value of a raw PLC value."""
-        return float(raw) * self.scale + self.offset
+        """The reading value of a raw PLC value, computed on the decimal digits the PLC
+        value and the settings show: an INT 219 with scale 0.1 is 21.9, not
+        21.900000000000002, and a REAL 21.3 is 21.3, not its float32's 21.299999237060547."""
+        if self.plc_type == "REAL":  # shortest digits that give back the PLC's float32
+            digits = str(np.float32(raw))
+        elif isinstance(raw, float):
+            digits = repr(raw)
+        else:
+            digits = str(int(raw))
+        if self.scale == 1 and self.offset == 0:
+            return float(digits)
+        # (a NaN or infinity stays one: the bridge then says it is not published)
+        return float(Decimal(digits) * Decimal(repr(float(self.scale)))
+                     + Decimal(repr(float(self.offset))))
 
 
 @dataclass(frozen=True, kw_only=True)
