@@ -96,6 +96,7 @@ class PlcHandler(AdvancedHandler):
     def __init__(self) -> None:
         super().__init__()
         self.ads_state = adsc.ADSSTATE_RUN
+        self.answers = True  # False: like a PLC without a route back, it never answers
 
     @staticmethod
     def _reply(request: AmsPacket, data: bytes) -> AmsResponseData:
@@ -104,6 +105,8 @@ class PlcHandler(AdvancedHandler):
 
     def handle_request(self, request: AmsPacket) -> AmsResponseData:
         command = struct.unpack("<H", request.ams_header.command_id)[0]
+        if not self.answers:
+            raise KeyError("no route")  # the connection thread ends without an answer
         if command == adsc.ADSCOMMAND_READSTATE:
             return self._reply(request, struct.pack("<IHH", 0, self.ads_state, 0))
         try:
@@ -481,7 +484,7 @@ def test_configuration_file_problems_are_located_with_suggestions(
         {"symbol": "MAIN.a", "sensor": "hmi/tmep", "plc_type": "LRAEL"},
         {"symbol": "main.A", "sensor": "ceiling/co2", "plc_type": "STRING", "cycle": 5},
         {"symbol": "MAIN.b", "sensor": "ceiling/co2", "plc_type": "INT", "scale": 0},
-    ], ams_net_id="127.0.0.1.1", poll_seconds=0)
+    ], ams_net_id="127.0.0.1.1", poll_seconds=0.01, host="10.0.0.7:851")
     path = env.tmp_path / "bad.toml"
     path.write_text(text.replace("[bridge]", "[bridge]\nqueue_sise = 5"), encoding="utf-8")
     with pytest.raises(ConfigProblems) as caught:
@@ -491,7 +494,9 @@ def test_configuration_file_problems_are_located_with_suggestions(
         "bridge.queue_sise: unknown key (did you mean 'queue_size'?)",
         "plc.ams_net_id: '127.0.0.1.1' is not an AMS net id (six numbers 0..255, e.g. "
         "'5.12.34.56.1.1')",
-        "plc.poll_seconds: must be greater than 0, got 0",
+        "plc.poll_seconds: must be at least 0.1, got 0.01",
+        "plc.host: '10.0.0.7:851': give the IPv4 address or host name alone; the AMS port goes "
+        "in plc.port (the ADS TCP port is always 48898)",
         "plc.symbols[0].plc_type: unknown type 'LRAEL' (did you mean 'LREAL'?); one of BOOL, "
         "BYTE, USINT, SINT, WORD, UINT, INT, DWORD, UDINT, DINT, ULINT, LINT, REAL, LREAL",
         "plc.symbols[0].sensor: unknown sensor 'hmi/tmep' (did you mean 'hmi/temp'?); add it "
@@ -505,11 +510,11 @@ def test_configuration_file_problems_are_located_with_suggestions(
         "symbol per sensor",
     ):
         assert expected in problems
-    assert len(problems) == 10, problems
+    assert len(problems) == 11, problems
 
     assert main(["--config", str(path)]) == EX_CONFIG
     err = capsys.readouterr().err
-    assert f"{path}: plc.poll_seconds: must be greater than 0, got 0" in err
+    assert f"{path}: plc.poll_seconds: must be at least 0.1, got 0.01" in err
     assert main(["--config", str(env.tmp_path / "missing.toml")]) == EX_CONFIG
     assert "missing.toml: no such file" in capsys.readouterr().err
 
@@ -820,6 +825,23 @@ def test_a_plc_that_drops_packets_is_said_unreachable_and_a_stop_is_not_held_up(
         for s in fillers:
             s.close()
         listener.close()
+
+
+# How the test server's connection thread ends without an answer: by an exception.
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")
+def test_a_plc_that_never_answers_is_said_to_need_a_route_to_this_host(
+    plc: Plc, env: Env, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A PLC without a static route to this host takes the TCP connection and drops the
+    requests: the log said only "timeout elapsed (1861).", and nowhere which AMS net id
+    the route has to name."""
+    caplog.set_level(logging.INFO, logger="pseudotwin.edge.bridge")
+    plc.handler.answers = False
+    with running(Bridge(env.config())):
+        _wait_for(lambda: "cannot connect" in caplog.text, "the failed connect logged")
+    assert f"this host's AMS net id is {ADS_NET_ID}" in caplog.text
+    assert ("timeout elapsed (1861) (the PLC took the connection but did not answer: check "
+            f"that it has a static route to this host's AMS net id {ADS_NET_ID}") in caplog.text
 
 
 def test_reads_after_a_reconnect_are_stamped_on_the_plcs_clock(

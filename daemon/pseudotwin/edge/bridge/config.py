@@ -103,6 +103,11 @@ NON_NUMERIC_TYPES = frozenset({"STRING", "WSTRING", "TIME", "LTIME", "TOD", "TIM
 
 # -- configuration -----------------------------------------------------------------------
 
+#: Smallest plc.poll_seconds [s].
+MIN_POLL_SECONDS = 0.1
+#: The TCP port of ADS (AMS/TCP): every PLC's router listens on it.
+ADS_TCP_PORT = 48898
+
 
 def _net_id_problem(value: str) -> str | None:
     if not _NET_ID.fullmatch(value) or any(int(p) > 255 for p in value.split(".")):
@@ -264,6 +269,10 @@ def _plc_scalar_problems(*, ams_net_id: object, host: object, port: object,
         assert isinstance(host, str)
         if any(c.isspace() or ord(c) < 0x20 for c in host):
             found.append(("host", f"{host!r} contains blanks or control characters"))
+        elif ":" in host:  # also an IPv6 address: pyads' router speaks IPv4 only
+            found.append(("host", f"{host!r}: give the IPv4 address or host name alone; the "
+                                  "AMS port goes in plc.port (the ADS TCP port is always "
+                                  f"{ADS_TCP_PORT})"))
     if expect(found, "port", port, "integer") and not 1 <= port <= 65535:  # type: ignore[operator]
         found.append(("port", f"must be in 1..65535, got {port}"))
     if local_ams_net_id is not None and nonempty(found, "local_ams_net_id", local_ams_net_id):
@@ -271,7 +280,9 @@ def _plc_scalar_problems(*, ams_net_id: object, host: object, port: object,
         problem = _net_id_problem(local_ams_net_id)
         if problem:
             found.append(("local_ams_net_id", problem))
-    _number_problem(found, "poll_seconds", poll_seconds, low=0.0, low_inclusive=False)
+    # Each poll is one ADS request to the PLC: below this it would load its router for
+    # nothing (a dropped link is seen within a poll anyway).
+    _number_problem(found, "poll_seconds", poll_seconds, low=MIN_POLL_SECONDS)
     _number_problem(found, "reconnect_max_seconds", reconnect_max_seconds, low=1.0)
     # adslib takes the timeout in whole milliseconds.
     _number_problem(found, "timeout_seconds", timeout_seconds, low=0.001, high=3600.0)

@@ -65,6 +65,7 @@ from pyads.structs import SAdsSymbolEntry
 
 from pseudotwin.config import ConfigProblems, SensorConfig
 from pseudotwin.edge.bridge.config import (
+    ADS_TCP_PORT,
     NON_NUMERIC_TYPES,
     PLC_TYPES,
     BridgeConfig,
@@ -85,11 +86,10 @@ __all__ = [
 # One logger for the whole bridge (``pseudotwin.edge.bridge``), whichever module logs.
 log = logging.getLogger(__package__)
 
-#: The TCP port of ADS (AMS/TCP): every PLC's router listens on it.
-ADS_TCP_PORT = 48898
-
 #: ADS error "symbol not found" (0x710): what a TwinCAT runtime answers for an unknown name.
 ADSERR_SYMBOL_NOT_FOUND = 0x710
+#: ADS error "timeout elapsed" (1861): the request was sent and no answer came.
+ADSERR_CLIENT_SYNCTIMEOUT = 1861
 #: While tearing down a link that is known to be dead, each notification delete would wait
 #: the full request timeout (adslib deletes them one by one, also when closing the port).
 TEARDOWN_TIMEOUT_MS = 250
@@ -203,6 +203,7 @@ class Bridge:
         # The PLC's clock minus this host's, as the latest stamped notification showed it
         # (its delivery delay included): reads are stamped on the PLC's clock with it.
         self._plc_offset = dt.timedelta(0)
+        self._local_net_id: str | None = None  # this host's, as pyads' router has it
         self._heartbeat = time.monotonic()
         self._count_lock = threading.Lock()  # counters are bumped from several threads
         # Readings handed to paho whose PUBACK has not come (by mid), and PUBACKs that came
@@ -451,7 +452,7 @@ class Bridge:
                         # A bug rather than the network; retrying beats a supervisor thread
                         # that died silently while the process looks alive.
                         log.exception("unexpected error while connecting to the PLC")
-                    self._mark_down(f"cannot connect: {_describe(exc)}")
+                    self._mark_down(f"cannot connect: {_describe(exc)}{self._route_hint(exc)}")
                     if self._sleep(delay):
                         return
                     delay = min(delay * 2, plc.reconnect_max_seconds)
@@ -483,6 +484,12 @@ class Bridge:
         self._heartbeat = time.monotonic()
         conn = pyads.Connection(plc.ams_net_id, plc.port, plc.ip_address)
         conn.open()  # adds the route; raises ADSError when the PLC cannot be reached
+        if self._local_net_id is None:
+            local = conn.get_local_address()
+            if local is not None:
+                self._local_net_id = local.netid
+                log.info("this host's AMS net id is %s: the PLC needs a static route to it "
+                         "(with this host's IP address)", self._local_net_id)
         self._gen += 1
         link = _Link(conn, self._gen)
         try:
@@ -523,6 +530,15 @@ class Bridge:
         for r in symbols:
             raw = link.conn.read_by_name(r.cfg.symbol, r.cfg.type.ctype)
             self._accept(r, raw, now + self._plc_offset, now, "read")
+
+    def _route_hint(self, exc: BaseException) -> str:
+        """What to check when the PLC took the TCP connection and never answered: a PLC
+        without a static route to this host drops its requests silently."""
+        if getattr(exc, "err_code", None) != ADSERR_CLIENT_SYNCTIMEOUT:
+            return ""
+        return (" (the PLC took the connection but did not answer: check that it has a "
+                f"static route to this host's AMS net id {self._local_net_id or '?'} and IP "
+                "address, and plc.port)")
 
     def _check_running(self, conn: pyads.Connection) -> None:
         state = conn.read_state()
@@ -778,4 +794,4 @@ def _type_problem(sym: SymbolConfig, info: SAdsSymbolEntry) -> str | None:
 
 
 def _describe(exc: BaseException) -> str:
-    return str(exc).removeprefix("ADSError: ").strip() or type(exc).__name__
+    return str(exc).removeprefix("ADSError: ").strip().rstrip(".") or type(exc).__name__
