@@ -35,6 +35,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import logging
+import math
 import signal
 import socket
 import struct
@@ -427,6 +428,26 @@ def test_readings_carry_the_plcs_digits_not_binary_noise(
     ts = dt.datetime(2026, 1, 5, 8, tzinfo=dt.UTC)
     assert payload_for("number", "", "", ts, sym.convert(raw)) == text
     assert b'"value": ' + text in payload_for("json", "ts", "value", ts, sym.convert(raw))
+
+
+def test_a_flickering_nan_is_counted_and_logged_sparingly(
+    plc: Plc, env: Env, mqtt_client: MqttClientFactory, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A wire break flickering between NaN and a value logged one warning per NaN, without
+    end, and the stop's summary did not count them."""
+    caplog.set_level(logging.INFO, logger="pseudotwin.edge.bridge")
+    inbox = _subscribe(mqtt_client, env)
+    with running(Bridge(env.config())) as bridge:
+        _wait_initial(inbox, env)
+        for i in range(6):
+            plc.write("MAIN.fRoomTemp", math.nan)
+            plc.write("MAIN.fRoomTemp", 22.0 + i)
+            inbox.wait(env.topics["hmi/temp"], _is(22.0 + i))  # the values in between go out
+        assert bridge.not_finite == 6
+    warned = [r.getMessage() for r in caplog.records if "is nan; not published" in r.message]
+    assert [w.split("not published ")[1] for w in warned] == [
+        f"({n} such value(s) of it so far)" for n in (1, 2, 4)]
+    assert "6 not a number (not published)" in caplog.text
 
 
 def test_unknown_symbol_and_wrong_type_are_configuration_errors(

@@ -195,6 +195,8 @@ class Bridge:
         self.published = 0
         self.dropped = 0
         self.decode_errors = 0
+        self.not_finite = 0  # PLC values that were NaN or infinite (not published)
+        self._not_finite_of: dict[str, int] = {}  # symbol → its values that were
         self._gen = 0  # generation of the current ADS link; older callbacks are ignored
         self._validated = False
         self._down_logged = False
@@ -419,7 +421,13 @@ class Bridge:
         value = r.cfg.convert(raw)
         if not math.isfinite(value):
             # JSON has no NaN/Infinity; the daemon would reject it anyway.
-            log.warning("%s is %r; not published", r.cfg.symbol, value)
+            symbol = r.cfg.symbol
+            with self._count_lock:
+                self.not_finite += 1
+                n = self._not_finite_of[symbol] = self._not_finite_of.get(symbol, 0) + 1
+            if n & (n - 1) == 0:  # 1, 2, 4, ...: a flickering wire break must not flood
+                log.warning("%s is %r; not published (%d such value(s) of it so far)",
+                            symbol, value, n)
             return
         self._enqueue(_Item(r.cfg, r.sensor, ts, value, arrival, source))
 
@@ -751,7 +759,8 @@ class Bridge:
                         "with this stop (paho keeps them in memory only)", lost,
                         self.cfg.broker.host, self.cfg.broker.port)
         log.info("bridge stopped: %d readings published (acknowledged by the broker), %d "
-                 "dropped, %d lost at stop", self.published, self.dropped, lost)
+                 "dropped, %d lost at stop, %d not a number (not published)", self.published,
+                 self.dropped, lost, self.not_finite)
 
     def unacknowledged(self) -> int:
         """Readings handed to the MQTT client that the broker has not acknowledged."""
