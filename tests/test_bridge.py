@@ -32,6 +32,7 @@ Nothing waits on timing: every wait polls a condition with a deadline.
 
 from __future__ import annotations
 
+import ctypes
 import datetime as dt
 import json
 import logging
@@ -53,6 +54,8 @@ import paho.mqtt.client as mqtt
 import pyads
 import pytest
 from pyads import constants as adsc
+from pyads.filetimes import dt_to_filetime
+from pyads.pyads_ex import callback_store
 from pyads.testserver import AdsTestServer, AdvancedHandler, PLCVariable
 from pyads.testserver.handler import AmsPacket, AmsResponseData
 
@@ -98,6 +101,9 @@ class PlcHandler(AdvancedHandler):
         super().__init__()
         self.ads_state = adsc.ADSSTATE_RUN
         self.answers = True  # False: like a PLC without a route back, it never answers
+        # Set: like a TwinCAT runtime, the current value is notified at registration,
+        # stamped on this PLC clock (a function returning the instant)
+        self.notify_at_registration: Callable[[], dt.datetime] | None = None
 
     @staticmethod
     def _reply(request: AmsPacket, data: bytes) -> AmsResponseData:
@@ -110,6 +116,16 @@ class PlcHandler(AdvancedHandler):
             raise KeyError("no route")  # the connection thread ends without an answer
         if command == adsc.ADSCOMMAND_READSTATE:
             return self._reply(request, struct.pack("<IHH", 0, self.ads_state, 0))
+        if (command == adsc.ADSCOMMAND_ADDDEVICENOTE
+                and self.notify_at_registration is not None):
+            response = super().handle_request(request)
+            group, offset = struct.unpack("<II", request.ams_header.data[:8])
+            var = self.get_variable_by_indices(group, offset)
+            handle = var.notifications[-1]
+            threading.Thread(target=self._first_notification,
+                             args=(var, handle, self.notify_at_registration()),
+                             daemon=True).start()
+            return response
         try:
             return super().handle_request(request)
         except KeyError:
@@ -117,6 +133,28 @@ class PlcHandler(AdvancedHandler):
                 raise
             # result code + length of the (empty) read data
             return self._reply(request, struct.pack("<II", ADSERR_SYMBOL_NOT_FOUND, 0))
+
+
+    @staticmethod
+    def _first_notification(var: PLCVariable, handle: int, stamp: dt.datetime) -> None:
+        """Deliver the registration's notification as the test server delivers a write's
+        (module doc), once pyads has stored the client's callback for the handle."""
+        deadline = time.monotonic() + DEADLINE
+        while time.monotonic() < deadline:
+            found = [(k, f) for k, f in list(callback_store.items()) if k[1] == handle]
+            if found:
+                break
+            time.sleep(0.005)  # poll interval, not a timing assumption
+        else:
+            return
+        header = pyads.structs.SAdsNotificationHeader()
+        header.hNotification = handle
+        header.nTimeStamp = dt_to_filetime(stamp)
+        header.cbSampleSize = len(var.value)
+        ctypes.memmove(ctypes.addressof(header) + pyads.structs.SAdsNotificationHeader.data.offset,
+                       var.value, len(var.value))
+        for (addr, _), func in found:
+            func(addr.amsAddrStruct(), header, 0)
 
 
 class Plc:
@@ -691,8 +729,9 @@ def test_a_symbol_gone_at_a_reconnect_is_picked_up_again_when_it_is_back(
                    for r in caplog.records)
         registered = len(co2.notifications)  # the test server keeps the dead link's
         plc.handler.add_variable(co2)  # back, while the PLC keeps running
-        _wait_for(lambda: len(co2.notifications) > registered, "the symbol registered again")
-        assert "'MAIN.nCo2' found on the PLC again" in caplog.text
+        _wait_for(lambda: "'MAIN.nCo2' found on the PLC again" in caplog.text,
+                  "the symbol looked up again")
+        assert len(co2.notifications) > registered  # registered again
         assert bridge.ads_connects == 2  # without a reconnect
         inbox.wait(env.topics["ceiling/co2"], _is(450))  # its value read at once
         plc.write("MAIN.nCo2", 777)
@@ -863,6 +902,28 @@ def test_a_plc_that_never_answers_is_said_to_need_a_route_to_this_host(
     assert f"this host's AMS net id is {ADS_NET_ID}" in caplog.text
     assert ("timeout elapsed (1861) (the PLC took the connection but did not answer: check "
             f"that it has a static route to this host's AMS net id {ADS_NET_ID}") in caplog.text
+
+
+def test_the_value_a_plc_notifies_at_registration_is_the_initial_reading(
+    plc: Plc, env: Env, mqtt_client: MqttClientFactory
+) -> None:
+    """A TwinCAT runtime notifies a symbol's value when the notification is registered;
+    the bridge read it as well, stamped on this host's clock before it knew the PLC's: two
+    initial readings per symbol, and with the PLC behind, its next changes stamped before
+    the read (the daemon, readings in time order, held the read's value)."""
+    plc_clock = dt.datetime(2026, 3, 2, 9, 0, 0, tzinfo=dt.UTC)  # pyads stamps whole s
+    plc.handler.notify_at_registration = lambda: plc_clock
+    host = plc_clock + dt.timedelta(minutes=2)  # this host runs 2 min ahead of the PLC
+    inbox = _subscribe(mqtt_client, env)
+    with running(Bridge(env.config(), clock=FixedClock(host))) as bridge:
+        _wait_for(lambda: bridge.plc_up.is_set(), "connected and registered")
+        for sensor in ("hmi/temp", "ceiling/temp"):
+            assert _ts(inbox.wait(env.topics[sensor], _is(21.5))) == plc_clock
+        inbox.wait(env.topics["ceiling/co2"], _is(450))  # a bare number: no time stamp
+        plc.write("MAIN.nCo2", 520)
+        inbox.wait(env.topics["ceiling/co2"], _is(520))
+    readings = [m for m in inbox.seen if m.topic in env.topics.values()]
+    assert len(readings) == 4  # each initial value once, then the change: nothing read
 
 
 def test_reads_after_a_reconnect_are_stamped_on_the_plcs_clock(

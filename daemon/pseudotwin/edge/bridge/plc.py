@@ -24,7 +24,8 @@ Threads, and why:
   room of their own in paho's queue, so a full queue never leaves ``offline`` retained;
 - paho's network thread (``loop_start``), which also reconnects to the broker by itself;
 - one supervisor thread owns the ADS connection: connect, validate the symbols, register the
-  notifications, publish each symbol's current value, then poll ``read_state`` every
+  notifications, publish each symbol's current value (the first notification, which a
+  TwinCAT runtime sends at registration, or else a read), then poll ``read_state`` every
   ``poll_seconds``. ADS has no heartbeat: without the poll, a dropped route or a PLC stopped
   by its operator would just look like values that never change. On failure it tears the
   connection down and reconnects with exponential backoff (1 s doubling up to
@@ -88,6 +89,9 @@ log = logging.getLogger(__package__)
 
 #: ADS error "symbol not found" (0x710): what a TwinCAT runtime answers for an unknown name.
 ADSERR_SYMBOL_NOT_FOUND = 0x710
+#: How long a newly registered symbol's first notification is waited for before its value
+#: is read instead [s] (plus its cycle_ms and max_delay_ms; at most timeout_seconds).
+INITIAL_NOTIFICATION_SECONDS = 0.3
 #: ADS error "timeout elapsed" (1861): the request was sent and no answer came.
 ADSERR_CLIENT_SYNCTIMEOUT = 1861
 #: While tearing down a link that is known to be dead, each notification delete would wait
@@ -147,6 +151,9 @@ class _Link:
     symbols: list[_Resolved] = field(default_factory=list)
     handles: list[tuple[int, int | None]] = field(default_factory=list)
     missing: list[int] = field(default_factory=list)  # indexes of symbols skipped
+    # symbols a notification came for on this link, and a condition notified as they do
+    notified: set[str] = field(default_factory=set)
+    first_values: threading.Condition = field(default_factory=threading.Condition)
 
 
 @dataclass(frozen=True)
@@ -400,6 +407,10 @@ class Bridge:
             if filetime > 0:
                 self._plc_offset = ts - arrival
             self._accept(r, raw, ts, arrival, "notification")
+            if r.cfg.symbol not in link.notified:
+                with link.first_values:
+                    link.notified.add(r.cfg.symbol)
+                    link.first_values.notify_all()
 
         def guarded(notification: Any, data: Any) -> None:
             # An exception must not escape into the ctypes callback (it would be printed
@@ -530,12 +541,24 @@ class Bridge:
         link.symbols.append(r)
 
     def _read_now(self, link: _Link, symbols: list[_Resolved]) -> None:
-        # A fresh value right away: the symbols may not change for hours. Stamped on the
-        # PLC's clock as far as notifications have shown it: on this host's, a PLC running
-        # behind would stamp its next change before the read, and the daemon, taking
-        # readings in time order, would hold the read's value until then.
+        """Each of ``symbols``' current value right after its registration: the symbols
+        may not change for hours. A TwinCAT runtime sends it by itself as the first
+        notification, with the PLC's time stamp: that one is waited for a moment, and only
+        the symbols without it are read. A read is stamped on the PLC's clock as far as
+        notifications have shown it: on this host's, a PLC running behind would stamp its
+        next change before the read, and the daemon, taking readings in time order, would
+        hold the read's value until then."""
+        if not symbols:
+            return
+        wait = INITIAL_NOTIFICATION_SECONDS + max(
+            (r.cfg.cycle_ms + r.cfg.max_delay_ms) / 1000 for r in symbols)
+        with link.first_values:
+            link.first_values.wait_for(
+                lambda: all(r.cfg.symbol in link.notified for r in symbols),
+                min(wait, self.cfg.plc.timeout_seconds))
+            unsent = [r for r in symbols if r.cfg.symbol not in link.notified]
         now = self.clock.now()
-        for r in symbols:
+        for r in unsent:
             raw = link.conn.read_by_name(r.cfg.symbol, r.cfg.type.ctype)
             self._accept(r, raw, now + self._plc_offset, now, "read")
 
