@@ -385,6 +385,40 @@ def test_a_reference_never_heard_of_is_logged_once_stale_after_has_passed(
     assert "the estimate is stale" in silent()[0]
 
 
+def test_an_estimate_without_a_value_replaces_the_retained_one_once(
+    mosquitto, desk_artifact, tmp_path: Path
+) -> None:
+    """Restarted without a reading of its reference to hold (a weekend, a lost state dir),
+    the daemon published nothing: the retained estimate stayed the last run's, `ok` with a
+    σ, what every new subscriber took for the current state, while the log said stale."""
+    left = publisher(mosquitto.port, "previous-run")
+    left.publish("pt/desk/estimate", json.dumps({
+        "ts": "2012-03-16T17:45:00Z", "value": 21.8, "std": 0.4, "unit": "°C",
+        "model": "triv", "quality": "ok", "refs": {REF: "2012-03-16T17:44:00Z"},
+        "lost": []}), qos=1, retain=True).wait_for_publish(10)
+    left.disconnect()
+    left.loop_stop()
+    start = off_grid(8.0)
+    clock = HandClock(start)
+    svc = Service(config(tmp_path, mosquitto.port, desk_artifact, stale_after_minutes=30,
+                         publish_every_minutes=15, monitor_every_minutes=15), clock=clock)
+    svc.start(wait_connected=15)
+    viewer = Viewer(mosquitto.port)
+    try:
+        clock.set(start + dt.timedelta(minutes=46))  # 08:15, 08:30 and 08:45 ticked
+        wait_for(lambda: any(m["ts"] == stamp(HOURS.at(DAY, 8.75))
+                             for m in viewer.on("/monitor")), what="the 08:45 monitor")
+        sent = viewer.on("/estimate")
+        assert [(m["ts"], m["value"], m["std"], m["quality"]) for m in sent] == [
+            (stamp(HOURS.at(DAY, 8.25)), None, None, "stale")]  # once, not every tick
+        assert sent[0]["refs"] == {REF: None}
+        now = retained(mosquitto.port, "pt/desk/estimate")
+        assert (now["value"], now["quality"]) == (None, "stale")
+    finally:
+        svc.stop()
+        viewer.close()
+
+
 def test_two_daemons_on_one_client_id_are_told_that_they_take_each_others_session(
     mosquitto, desk_artifact, tmp_path: Path, caplog
 ) -> None:

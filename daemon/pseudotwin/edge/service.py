@@ -143,6 +143,9 @@ class TwinRuntime:
     # reading that arrived after a later grid estimate) goes out unretained, so the retained
     # message, what a new subscriber gets, never goes back in time.
     newest_published: dict[str, dt.datetime] = field(default_factory=dict)
+    # The last primary estimate published had no value (stale, no reading to hold): the
+    # next such one changes nothing and is not sent again.
+    without_value: bool = False
 
 
 class Service:
@@ -697,9 +700,11 @@ class Service:
         for kind, e in ests.items():
             if not e.publishable:
                 if kind == primary and e.quality == Quality.STALE:
-                    self._note_silence(rt, e)  # nothing to publish: a reference never heard
+                    self._note_silence(rt, e)  # no value: a reference never heard
+                    self._publish_no_value(rt, e)
                 continue
             if kind == primary:
+                rt.without_value = False
                 topic, qos = rt.estimate_topic, 1
                 rt.monitor.roll(self.hours.day_of(e.ts))
                 rt.monitor.record_estimate(e.std)
@@ -713,6 +718,22 @@ class Service:
             if kind == primary:
                 self.metrics.published(rt.cfg.id, e.quality, e.ts)
                 self._note_silence(rt, e)
+
+    def _publish_no_value(self, rt: TwinRuntime, e: TwinEstimate) -> None:
+        """A stale primary estimate without a value (no reading of a reference to hold,
+        e.g. after a weekend's restart) goes out once, retained, with ``value`` and ``std``
+        null: the retained message would otherwise stay the last one with a value, often
+        ``ok``, what every new subscriber takes for the current state."""
+        primary = rt.twin.artifact.primary
+        newest = rt.newest_published.get(primary)
+        if rt.without_value or (newest is not None and e.ts < newest):
+            return  # said already, or an older instant: it must not replace the retained
+        rt.without_value = True
+        rt.newest_published[primary] = e.ts
+        # Not counted among the published estimates: the age of the last estimate (with a
+        # value) is what an alert on a silent twin watches.
+        self._publish(rt.estimate_topic, estimate_payload(e, rt.twin.artifact.unit),
+                      retain=True, qos=1)
 
     def _note_silence(self, rt: TwinRuntime, e: TwinEstimate) -> None:
         """Log when references fall silent for the primary (a failover answers, or the
