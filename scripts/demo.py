@@ -212,6 +212,8 @@ def main() -> int:
             except queue.Empty:
                 continue
             parts = topic.split("/")
+            if isinstance(body, dict) and body.get("value") is None:
+                continue  # stale with no reading to hold: nothing to score or print
             if len(parts) == 4 and parts[2] == "baseline" and isinstance(body, dict) \
                     and parts[1] in received:
                 received[parts[1]].append(dayscore.Published.from_payload(parts[3], body))
