@@ -419,6 +419,46 @@ def test_an_estimate_without_a_value_replaces_the_retained_one_once(
         viewer.close()
 
 
+def test_after_a_restart_a_late_reading_does_not_take_the_retained_estimate_back(
+    mosquitto, desk_artifact, tmp_path: Path
+) -> None:
+    """The retained estimate never goes back in time, but the instant it had reached lived
+    in memory only: restarted, the daemon retained a late reading's estimate older than the
+    grid estimate the run before had left, and every new subscriber got the older one."""
+    cfg = config(tmp_path, mosquitto.port, desk_artifact, publish_every_minutes=15)
+    df = day_readings(sml())
+    df = df[(df["ts"] >= HOURS.at(DAY, 7.0)) & (df["ts"] <= HOURS.at(DAY, 9.4))]
+    clock = HandClock(HOURS.at(DAY, 9.5) + dt.timedelta(minutes=1))
+    first = Service(cfg, clock=clock)
+    first.start(wait_connected=15)
+    viewer = Viewer(mosquitto.port)
+    pub = publisher(mosquitto.port, "restart-bridge")
+    try:
+        for ts, v in zip(df["ts"], df["value"], strict=True):
+            pub.publish("house/dining/temp", reading(ts, float(v)), qos=1)
+        wait_for(lambda: first.twins["desk"].twin.newest() == df["ts"].iloc[-1],
+                 what="the morning's readings taken")
+        clock.set(HOURS.at(DAY, 9.75) + dt.timedelta(minutes=1))  # 09:45 ticked
+        grid = stamp(HOURS.at(DAY, 9.75))
+        wait_for(lambda: any(e["ts"] == grid for e in viewer.on("/estimate")),
+                 what="the 09:45 grid estimate")
+    finally:
+        first.stop()
+    second = Service(cfg, clock=HandClock(HOURS.at(DAY, 9.75) + dt.timedelta(minutes=2)))
+    second.start(wait_connected=15)
+    try:
+        late = HOURS.at(DAY, 9.6)  # after the journal's newest reading, before 09:45
+        pub.publish("house/dining/temp", reading(late, 20.0), qos=1)
+        wait_for(lambda: any(e["ts"] == stamp(late) for e in viewer.on("/estimate")),
+                 what="the late reading's estimate")
+        assert retained(mosquitto.port, "pt/desk/estimate")["ts"] == grid
+    finally:
+        second.stop()
+        viewer.close()
+        pub.disconnect()
+        pub.loop_stop()
+
+
 def test_two_daemons_on_one_client_id_are_told_that_they_take_each_others_session(
     mosquitto, desk_artifact, tmp_path: Path, caplog
 ) -> None:

@@ -18,6 +18,7 @@ duplicates by the twins.
 from __future__ import annotations
 
 import datetime as dt
+import json
 import logging
 import queue
 import threading
@@ -32,6 +33,7 @@ import paho.mqtt.client as mqtt
 from paho.mqtt.enums import MQTTErrorCode
 
 from pseudotwin.config import SensorConfig, ServiceConfig, TwinConfig
+from pseudotwin.core.files import write_replacing
 from pseudotwin.core.twinlog import twin_context
 from pseudotwin.edge import homeassistant as ha
 from pseudotwin.edge.clock import Clock, SystemClock
@@ -93,6 +95,9 @@ TICK_MAX_PAUSE = 0.05
 MONITORING_QOS = 0
 # state_dir's record of the retained output topics published (Service._plan_outputs).
 OUTPUTS_FILE = "outputs.json"
+#: The last grid instant ticked (state_dir): how recent a retained estimate the run before
+#: this one may have left (TwinRuntime.published_floor).
+GRID_FILE = "grid.json"
 # A grid instant's estimates are made this long after it (clock time): a reading stamped
 # exactly at the instant (a bridge polling on the quarter hour) reaches the daemon a little
 # after it, and evaluate and backfill count it in. A reading stamped past the instant
@@ -143,6 +148,9 @@ class TwinRuntime:
     # reading that arrived after a later grid estimate) goes out unretained, so the retained
     # message, what a new subscriber gets, never goes back in time.
     newest_published: dict[str, dt.datetime] = field(default_factory=dict)
+    # What the run before this start may have left retained, at the latest: its last grid
+    # instant, or its newest journaled input reading (restore() sets it).
+    published_floor: dt.datetime | None = None
     # The last primary estimate published had no value (stale, no reading to hold): the
     # next such one changes nothing and is not sent again.
     without_value: bool = False
@@ -710,7 +718,7 @@ class Service:
                 rt.monitor.record_estimate(e.std)
             else:
                 topic, qos = rt.baseline_topics[kind], MONITORING_QOS
-            newest = rt.newest_published.get(kind)
+            newest = rt.newest_published.get(kind, rt.published_floor)
             retain = newest is None or e.ts >= newest
             if retain:
                 rt.newest_published[kind] = e.ts
@@ -725,7 +733,7 @@ class Service:
         null: the retained message would otherwise stay the last one with a value, often
         ``ok``, what every new subscriber takes for the current state."""
         primary = rt.twin.artifact.primary
-        newest = rt.newest_published.get(primary)
+        newest = rt.newest_published.get(primary, rt.published_floor)
         if rt.without_value or (newest is not None and e.ts < newest):
             return  # said already, or an older instant: it must not replace the retained
         rt.without_value = True
@@ -787,6 +795,7 @@ class Service:
         instant sees exactly the readings that arrived before the tick."""
         self._grid_started = instant
         self._grid_next = self._next_grid(instant)
+        self._remember_tick(instant)
         health = self.health.snapshot() if self._monitor_at(instant) else None
         # A reading of a twin whose grid work is still queued does that work first (its
         # estimates and messages, ~1 ms): in config order, most of the readings arriving
@@ -895,9 +904,44 @@ class Service:
                         max(r.ts for r in later).isoformat(), now.isoformat())
         if n:
             log.info("restored state from %d journaled readings", n)
-        elif self.cfg.store:
+        self._set_published_floor(now)  # from the journal's readings, not the store's
+        if not n and self.cfg.store:
             n = self._warm_start(since, now)
         return n
+
+    def _set_published_floor(self, now: dt.datetime) -> None:
+        """The retained estimate never goes back in time, across a restart too. The run
+        before published, at the latest, at the last grid instant it ticked (GRID_FILE) and
+        at its newest journaled input reading (restored from the journal, before any warm
+        start): an estimate of an earlier instant now goes out unretained, as it would have
+        in that run. A first start (neither) has no floor."""
+        ticked = self._last_ticked()
+        for rt in self.twins.values():
+            newest = rt.twin.newest()
+            floors = [t for t in (ticked, None if newest is None else min(newest, now))
+                      if t is not None]
+            rt.published_floor = max(floors, default=None)
+
+    def _last_ticked(self) -> dt.datetime | None:
+        path = Path(self.cfg.state_dir) / GRID_FILE
+        try:
+            return dt.datetime.fromisoformat(json.loads(path.read_text())["ticked"])
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            log.warning("%s unreadable (%s): a late reading's estimate may replace a newer "
+                        "retained one once", path, exc)
+            return None
+
+    def _remember_tick(self, instant: dt.datetime) -> None:
+        """Written before the instant's estimates go out: a floor too late by one crash
+        only sends a late reading's estimate unretained, never the other way round."""
+        path = Path(self.cfg.state_dir) / GRID_FILE
+        text = json.dumps({"ticked": instant.isoformat()})
+        try:
+            write_replacing(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
+        except OSError as exc:
+            log.debug("cannot remember the grid instant in %s: %s", path, exc)
 
     def _warm_start(self, since: dt.datetime, now: dt.datetime) -> int:
         from pseudotwin.history.store import open_store
