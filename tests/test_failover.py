@@ -354,3 +354,41 @@ def test_an_estimate_at_an_earlier_instant_does_not_end_the_failover_spell(
     assert twin.failover_since == since and twin.failover_lost == (R1,)
     twin.estimate(t + dt.timedelta(minutes=3))
     assert twin.failover_since == since
+
+
+def test_a_failover_spell_between_two_grid_instants_is_told_on_the_monitor(
+    mosquitto, artifact: Artifact, history: pd.DataFrame, tmp_path: Path
+) -> None:
+    """R2 silent from 10:02:30 to 10:42:30: the estimate failed over at 10:37:30 and came
+    back at 10:42:30, between the 10:30 and 10:45 grid instants. The monitor compared the
+    state at grid instants only, so no monitor ever told of the spell."""
+    path = artifact.save(tmp_path / "desk.json")
+    cfg = load_config(write_config(tmp_path, mosquitto.port, path))
+    start, end = HOURS.at(TEST_DAY, 7.0), HOURS.at(TEST_DAY, 10.9)
+    day = history[(history["ts"] >= start) & (history["ts"] < end)]
+    gap = (day["sensor"] == R2) & (day["ts"] > HOURS.at(TEST_DAY, 10.05)) \
+        & (day["ts"] < HOURS.at(TEST_DAY, 10.7))
+    day = day[~gap]
+    last_r2 = day.loc[(day["sensor"] == R2) & (day["ts"] < HOURS.at(TEST_DAY, 10.5)), "ts"].max()
+    back = day.loc[(day["sensor"] == R2) & (day["ts"] > HOURS.at(TEST_DAY, 10.5)), "ts"].min()
+    assert HOURS.at(TEST_DAY, 10.5) - last_r2 <= STALE < back - last_r2  # no tick sees it
+    assert back < HOURS.at(TEST_DAY, 10.75)
+    clock = HandClock(start)
+    monitor = Viewer(mosquitto.port, "pt/desk/monitor")
+    svc = Service(cfg, clock=clock)
+    svc.start(wait_connected=15)
+    try:
+        replay(cfg, day, start, end, 1.0, clock=Lockstep(clock, svc))
+        at = stamp_of(HOURS.at(TEST_DAY, 10.75))
+        wait_for(lambda: any(m["ts"] == at for m in monitor.all()),
+                 what="a monitor at 10:45 for the ended spell")
+    finally:
+        svc.stop()
+        monitor.close()
+    told = [(m["ts"], m["ended"]) for m in monitor.all() if m["ended"]]
+    assert len(told) == 1 and told[0][0] == at
+    (spell,) = told[0][1]
+    assert spell["kind"] == "failover" and spell["lost"] == [R2]
+    assert dt.datetime.fromisoformat(spell["since"]) - last_r2 > STALE
+    assert dt.datetime.fromisoformat(spell["until"]) == back
+    assert all(m["failover"] is None for m in monitor.all())

@@ -66,6 +66,8 @@ def monitor_payload(fields: dict[str, Any]) -> bytes:
             return _num(v)
         if isinstance(v, dict):
             return {k: clean(x) for k, x in v.items()}
+        if isinstance(v, list):
+            return [clean(x) for x in v]
         if isinstance(v, dt.datetime):
             return iso(v)
         return v

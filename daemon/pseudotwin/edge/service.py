@@ -835,14 +835,14 @@ class Service:
         tw = rt.twin
         state = (tw.uncertain_since, tw.uncertain_why, tw.failover_since, tw.failover_lost)
         if health is None:  # not a monitor instant (_monitor_at) ...
-            if state == rt.monitor_state:
+            if state == rt.monitor_state and not tw.spells_ended:
                 return
             health = self.health.snapshot()  # ... but why the estimate changed must not wait
         rt.monitor_state = state
         rejected = self.rejections.of_day(self.hours.day_of(instant))
         self._publish(rt.monitor_topic,
                       monitor_payload({**rt.monitor.snapshot(instant, rejected),
-                                       "health": health}),
+                                       "ended": tw.take_ended_spells(), "health": health}),
                       retain=False, qos=MONITORING_QOS)
 
     # -- timers ---------------------------------------------------------------------------

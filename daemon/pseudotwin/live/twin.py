@@ -36,6 +36,8 @@ from pseudotwin.models.base import DayEstimator, Estimate, TwinModel
 log = logging.getLogger(__name__)
 
 
+#: Ended uncertain/failover spells kept for the monitor between two of its messages.
+ENDED_SPELLS_KEPT = 20
 #: How old a reading before the day may be to give the day's carry-over.
 MAX_CARRY = dt.timedelta(hours=24)
 
@@ -174,6 +176,27 @@ class Twin:
         self.failover_since: dt.datetime | None = None
         self.failover_lost: tuple[str, ...] = ()
         self._spells_at: dt.datetime | None = None  # the latest instant they were judged at
+        # Spells that ended since the monitor last took them (take_ended_spells): one that
+        # begins and ends between two grid instants is told all the same.
+        self._ended_spells: list[dict[str, object]] = []
+
+    def _ended(self, kind: str, since: dt.datetime, until: dt.datetime,
+               **why: list[str]) -> None:
+        if len(self._ended_spells) == ENDED_SPELLS_KEPT:  # a flapping reference: the latest
+            del self._ended_spells[0]
+        self._ended_spells.append({"kind": kind, "since": since, "until": until, **why})
+
+    @property
+    def spells_ended(self) -> bool:
+        """Whether a spell ended since take_ended_spells was last called."""
+        return bool(self._ended_spells)
+
+    def take_ended_spells(self) -> list[dict[str, object]]:
+        """The uncertain and failover spells that ended since the last call (at most
+        ENDED_SPELLS_KEPT, the latest), oldest first: ``{"kind", "since", "until"}`` and
+        ``why`` or ``lost``."""
+        out, self._ended_spells = self._ended_spells, []
+        return out
 
     def _running(self, kind: str, model: TwinModel) -> list[tuple[str, TwinModel]]:
         """The (kind, model) pairs whose day states ``kind`` needs: itself, or a stacked
@@ -459,6 +482,12 @@ class Twin:
             if kind == self.artifact.primary and (self._spells_at is None
                                                   or ts >= self._spells_at):
                 self._spells_at = ts
+                if self.uncertain_since is not None and not why:
+                    self._ended("uncertain", self.uncertain_since, ts,
+                                why=list(self.uncertain_why))
+                if self.failover_since is not None and not lost:
+                    self._ended("failover", self.failover_since, ts,
+                                lost=list(self.failover_lost))
                 self.uncertain_why = why
                 self.uncertain_since = (self.uncertain_since or ts) if why else None
                 self.failover_lost = lost
