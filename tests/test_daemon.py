@@ -14,6 +14,7 @@ import paho.mqtt.client as mqtt
 from paho.mqtt.enums import CallbackAPIVersion
 
 import pseudotwin.edge.service as service_module
+from conftest import MosquittoBroker, _mosquitto_binary
 from daemon_support import (
     DAY,
     HOURS,
@@ -459,6 +460,45 @@ def test_after_a_restart_a_late_reading_does_not_take_the_retained_estimate_back
         pub.loop_stop()
 
 
+def test_a_broker_that_lost_its_state_gets_the_retained_estimate_again(
+    desk_artifact, tmp_path: Path
+) -> None:
+    """A broker restarted without its persistence (a new container, a lost volume) lost
+    the retained estimates: a new subscriber got none until the next reading or grid
+    instant, up to publish_every_minutes later."""
+    folder = tmp_path / "broker"
+    folder.mkdir()
+    broker = MosquittoBroker(_mosquitto_binary(), folder)  # its own: its state is lost
+    broker.start()
+    svc = Service(config(tmp_path, broker.port, desk_artifact),
+                  clock=HandClock(off_grid(10.0)))
+    try:
+        svc.start(wait_connected=15)
+        viewer = Viewer(broker.port)
+        pub = publisher(broker.port, "lost-state-bridge")
+        pub.publish("house/dining/temp", reading(HOURS.at(DAY, 9.95), 17.5), qos=1)
+        wait_for(lambda: viewer.on("/estimate"), what="the reading's estimate")
+        viewer.close()
+        before = retained(broker.port, "pt/desk/estimate")
+        pub.disconnect()
+        pub.loop_stop()
+        broker.stop()
+        for f in (folder / "data").iterdir():
+            f.unlink()  # the persistence file: sessions and retained messages gone
+        broker.start()
+
+        def kept() -> dict | None:  # a subscriber before the daemon is back gets it live
+            try:
+                return retained(broker.port, "pt/desk/estimate", timeout=1.0)
+            except AssertionError:
+                return None
+
+        wait_for(lambda: kept() == before, what="the retained estimate sent again")
+    finally:
+        svc.stop()
+        broker.stop()
+
+
 def test_two_daemons_on_one_client_id_are_told_that_they_take_each_others_session(
     mosquitto, desk_artifact, tmp_path: Path, caplog
 ) -> None:
@@ -650,8 +690,8 @@ def reading_then_tick(svc: Service, port: int, client_id: str
     return viewer, pub, tick
 
 
-def retained(port: int, topic: str) -> dict:
-    """The retained message of ``topic``, as a new subscriber gets it."""
+def retained(port: int, topic: str, timeout: float = 30.0) -> dict:
+    """The retained message of ``topic``, as a new subscriber gets it (within ``timeout``)."""
     got: list[dict] = []
     c = mqtt.Client(CallbackAPIVersion.VERSION2)
     c.on_connect = lambda c, u, f, rc, p: c.subscribe(topic, 1)
@@ -659,7 +699,7 @@ def retained(port: int, topic: str) -> dict:
     c.connect("127.0.0.1", port)
     c.loop_start()
     try:
-        wait_for(lambda: got, what=f"the retained message of {topic}")
+        wait_for(lambda: got, timeout, what=f"the retained message of {topic}")
     finally:
         c.disconnect()
         c.loop_stop()

@@ -151,6 +151,9 @@ class TwinRuntime:
     # What the run before this start may have left retained, at the latest: its last grid
     # instant, or its newest journaled input reading (restore() sets it).
     published_floor: dt.datetime | None = None
+    # Topic → the last payload retained on it (the estimate, the baselines): sent again
+    # when the broker comes back without our session, its retained messages maybe lost.
+    retained: dict[str, bytes] = field(default_factory=dict)
     # The last primary estimate published had no value (stale, no reading to hold): the
     # next such one changes nothing and is not sent again.
     without_value: bool = False
@@ -216,6 +219,7 @@ class Service:
         # Readings the journal could not take, in order, not acknowledged: retried every
         # JOURNAL_RETRY_SECONDS (bounded by the broker's in-flight window; see _hold).
         self._held: list[tuple[Reading, tuple[int, int, int]]] = []
+        self._republish = threading.Event()  # set on a connect without our session
         self._journal_retry_at = 0.0
         self._journal_s = 0.0  # the current batch's journal writes [s] (_log_long_batch)
         self._journal_recreated = 0
@@ -290,6 +294,15 @@ class Service:
             self._forget_unretained()
         for topic, body in self.discovery.items():
             self._send(topic, body)
+        if not flags.session_present:
+            # A broker that lost our session (restarted without persistence) may have lost
+            # the retained estimates too: the worker sends them again (in order with its
+            # own publishing, so a newer one is never overtaken by the copy of an older).
+            self._republish.set()
+            try:
+                self.queue.put_nowait(("wake",))
+            except queue.Full:
+                pass  # busy anyway: it looks at the flag before its next batch
         log.info("connected to %s:%d (session present: %s); subscribing to %d sensor topics",
                  self.cfg.broker.host, self.cfg.broker.port, flags.session_present,
                  len(self._subscription.topics))
@@ -458,6 +471,9 @@ class Service:
         # Stops at the next batch once stop_event is set, whatever the queue still holds:
         # those messages are not acknowledged, so the broker delivers them again.
         while not self.stop_event.is_set():
+            if self._republish.is_set():
+                self._republish.clear()
+                self._guarded("reconnect", self._send_retained_again)
             if self._held and time.monotonic() >= self._journal_retry_at:
                 try:
                     self._retry_held()
@@ -479,6 +495,17 @@ class Service:
                     return
             if (took := time.perf_counter() - t0) > LONG_BATCH_S:
                 self._log_long_batch(batch, took, time.thread_time() - cpu0)
+
+    def _send_retained_again(self) -> None:
+        n = 0
+        for rt in self.twins.values():
+            for topic, payload in rt.retained.items():
+                qos = 1 if topic == rt.estimate_topic else MONITORING_QOS
+                self._publish(topic, payload, retain=True, qos=qos)
+                n += 1
+        if n:
+            log.info("the broker had no session of this daemon: its %d retained estimate(s) "
+                     "sent again", n)
 
     def _log_long_batch(self, batch: list[tuple[Any, ...]], took: float, cpu: float) -> None:
         readings = sum(1 for item in batch if item[0] == "msg")
@@ -720,9 +747,11 @@ class Service:
                 topic, qos = rt.baseline_topics[kind], MONITORING_QOS
             newest = rt.newest_published.get(kind, rt.published_floor)
             retain = newest is None or e.ts >= newest
+            payload = estimate_payload(e, unit)
             if retain:
                 rt.newest_published[kind] = e.ts
-            self._publish(topic, estimate_payload(e, unit), retain=retain, qos=qos)
+                rt.retained[topic] = payload
+            self._publish(topic, payload, retain=retain, qos=qos)
             if kind == primary:
                 self.metrics.published(rt.cfg.id, e.quality, e.ts)
                 self._note_silence(rt, e)
@@ -738,10 +767,10 @@ class Service:
             return  # said already, or an older instant: it must not replace the retained
         rt.without_value = True
         rt.newest_published[primary] = e.ts
+        payload = rt.retained[rt.estimate_topic] = estimate_payload(e, rt.twin.artifact.unit)
         # Not counted among the published estimates: the age of the last estimate (with a
         # value) is what an alert on a silent twin watches.
-        self._publish(rt.estimate_topic, estimate_payload(e, rt.twin.artifact.unit),
-                      retain=True, qos=1)
+        self._publish(rt.estimate_topic, payload, retain=True, qos=1)
 
     def _note_silence(self, rt: TwinRuntime, e: TwinEstimate) -> None:
         """Log when references fall silent for the primary (a failover answers, or the
