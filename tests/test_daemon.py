@@ -499,6 +499,47 @@ def test_a_broker_that_lost_its_state_gets_the_retained_estimate_again(
         broker.stop()
 
 
+def test_a_clock_stepped_back_past_the_grid_ends_the_daemon_for_a_restart(
+    mosquitto, desk_artifact, tmp_path: Path, caplog
+) -> None:
+    """A clock a day ahead, then put back by NTP: the grid had run through tomorrow, the
+    twins' windows were tomorrow's, and every reading of today was rejected as too old,
+    with nothing in the log about the clock, for a day. The restart that cures it must not
+    take the future grid instant as the floor of the retained estimates either."""
+    cfg = config(tmp_path, mosquitto.port, desk_artifact, publish_every_minutes=15)
+    today = off_grid(8.0)
+    clock = HandClock(today)
+    svc = Service(cfg, clock=clock)
+    svc.start(wait_connected=15)
+    viewer = Viewer(mosquitto.port)
+    try:
+        ahead = today + dt.timedelta(days=1, minutes=15)  # 08:16 tomorrow
+        clock.set(ahead)
+        wait_for(lambda: svc._grid_started == HOURS.at(DAY + dt.timedelta(days=1), 8.25),
+                 what="the grid run through to tomorrow 08:15")
+        assert svc.fatal is None
+        clock.set(today + dt.timedelta(minutes=20))  # put back: 08:21 today
+        wait_for(lambda: svc.fatal is not None, what="the step back noticed")
+        assert svc.fatal[0] == 75  # EX_TEMPFAIL: systemd and Docker restart it
+        assert "the clock went back to" in svc.fatal[1]
+    finally:
+        svc.stop()
+    caplog.clear()
+    again = Service(cfg, clock=HandClock(today + dt.timedelta(minutes=21)))
+    again.start(wait_connected=15)
+    try:
+        assert "grid.json says grid instant" in caplog.text
+        assert again.twins["desk"].published_floor is None
+        pub = publisher(mosquitto.port, "after-step")
+        pub.publish("house/dining/temp", reading(today + dt.timedelta(minutes=10), 17.5), qos=1)
+        wait_for(lambda: again.twins["desk"].newest_published, what="an estimate retained")
+        pub.disconnect()
+        pub.loop_stop()
+    finally:
+        again.stop()
+        viewer.close()
+
+
 def test_two_daemons_on_one_client_id_are_told_that_they_take_each_others_session(
     mosquitto, desk_artifact, tmp_path: Path, caplog
 ) -> None:

@@ -13,6 +13,10 @@ import threading
 import time
 from typing import Protocol
 
+#: Exit status of a long-running process that a restart may cure (sysexits EX_TEMPFAIL):
+#: another process holds the state dir, or the clock went back past the daemon's grid.
+EX_TEMPFAIL = 75
+
 
 class Clock(Protocol):
     def now(self) -> dt.datetime:

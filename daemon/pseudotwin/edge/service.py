@@ -36,7 +36,7 @@ from pseudotwin.config import SensorConfig, ServiceConfig, TwinConfig
 from pseudotwin.core.files import write_replacing
 from pseudotwin.core.twinlog import twin_context
 from pseudotwin.edge import homeassistant as ha
-from pseudotwin.edge.clock import Clock, SystemClock
+from pseudotwin.edge.clock import EX_TEMPFAIL, Clock, SystemClock
 from pseudotwin.edge.fleet import FleetMember
 from pseudotwin.edge.health import Health
 from pseudotwin.edge.journal import Journal
@@ -471,6 +471,8 @@ class Service:
         # Stops at the next batch once stop_event is set, whatever the queue still holds:
         # those messages are not acknowledged, so the broker delivers them again.
         while not self.stop_event.is_set():
+            if self._clock_went_back():
+                return
             if self._republish.is_set():
                 self._republish.clear()
                 self._guarded("reconnect", self._send_retained_again)
@@ -495,6 +497,25 @@ class Service:
                     return
             if (took := time.perf_counter() - t0) > LONG_BATCH_S:
                 self._log_long_batch(batch, took, time.thread_time() - cpu0)
+
+    def _clock_went_back(self) -> bool:
+        """A clock stepped back past a grid instant done already (more than max_skew: NTP
+        correcting a clock that ran ahead, a VM resumed): the twins' windows, the grid and
+        the retained estimates are of a time that has not come. The process ends with
+        EX_TEMPFAIL; restarted (systemd, Docker), it rebuilds today from the journal, whose
+        readings from that future it keeps out, as a restart after the step would."""
+        started = self._grid_started
+        if started is None or self.fatal is not None:
+            return self.fatal is not None
+        now = self.clock.now()
+        if now >= started - self.cfg.max_skew:
+            return False
+        why = (f"the clock went back to {now.isoformat()}, before grid instant "
+               f"{started.isoformat()} done already: today's windows and retained estimates are "
+               "of a time not come yet; a restart rebuilds them from the journal")
+        self.fatal = (EX_TEMPFAIL, why)
+        log.error("%s", why)
+        return True
 
     def _send_retained_again(self) -> None:
         n = 0
@@ -945,6 +966,13 @@ class Service:
         start): an estimate of an earlier instant now goes out unretained, as it would have
         in that run. A first start (neither) has no floor."""
         ticked = self._last_ticked()
+        if ticked is not None and ticked > now + self.cfg.max_skew:
+            # Ticked by a run whose clock was ahead: as a floor it would keep every estimate
+            # of today unretained, and the stale one of that future instant retained.
+            log.warning("%s says grid instant %s was done, after the daemon's clock %s: did "
+                        "the clock jump back? It is not taken as the floor of the retained "
+                        "estimates", GRID_FILE, ticked.isoformat(), now.isoformat())
+            ticked = None
         for rt in self.twins.values():
             newest = rt.twin.newest()
             floors = [t for t in (ticked, None if newest is None else min(newest, now))
