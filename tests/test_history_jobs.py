@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import logging
 from pathlib import Path
 
 import pandas as pd
 import pytest
 
+import pseudotwin.edge.recorder as recorder_module
 from daemon_support import (
     DAY,
     HOURS,
@@ -163,6 +165,53 @@ def test_a_spool_line_cut_short_costs_no_later_reading(tmp_path: Path) -> None:
         fh.write(b'{"sensor": "dining/temp", "ts": "2012-03-20T0')  # the crash
     spool.add(later)
     assert spool.load() == [first, *later]
+
+
+def test_a_long_spool_goes_to_the_store_a_piece_at_a_time(
+    mosquitto, desk_artifact, tmp_path: Path, monkeypatch, caplog
+) -> None:
+    """The recorder read its whole spool into memory at every retry while the store was
+    away (days of readings: seconds of CPU and hundreds of MB every few seconds), and wrote
+    it in one piece when the store came back."""
+    monkeypatch.setattr(recorder_module, "SPOOL_CHUNK", 10)
+    caplog.set_level(logging.INFO, logger="pseudotwin.edge.recorder")
+    db = tmp_path / "later" / "history.db"  # its folder does not exist yet: store "down"
+    cfg = config(tmp_path, mosquitto.port, desk_artifact, store=str(db))
+    spooled = [Reading(REF, HOURS.at(DAY, 8 + i / 60), 20 + i / 100) for i in range(25)]
+    Spool(Path(cfg.state_dir) / "recorder-spool.jsonl").add(spooled)  # a run before's
+    rec = Recorder(cfg, retry_seconds=0.2)
+    rec.start(wait_connected=15)
+    try:
+        wait_for(lambda: rec.metrics.store_errors._value.get() >= 2,
+                 what="two retries while the store is away")
+        tried = [r.getMessage() for r in caplog.records if "history store unavailable" in
+                 r.getMessage()]
+        assert tried and all("; 10 readings: they and the rest of the spool stay in it" in t
+                             for t in tried)
+        assert rec.spool.load() == spooled
+        db.parent.mkdir()  # the store comes back
+        wait_for(lambda: not rec.spool.path.exists(), what="the spool written")
+    finally:
+        rec.stop()
+    with open_store(str(db)) as store:
+        got = store.read_readings([REF])
+    assert [t.to_pydatetime() for t in got["ts"]] == [r.ts for r in spooled]
+    assert "wrote 25 spooled readings to the history store" in caplog.text
+
+
+def test_a_spool_written_in_part_keeps_the_rest_in_order(tmp_path: Path) -> None:
+    spool = Spool(tmp_path / "state" / "spool.jsonl")
+    readings = [Reading(REF, HOURS.at(DAY, 8 + i / 60), 20.0 + i) for i in range(25)]
+    spool.add(readings)
+    pieces = list(spool.chunks(10))
+    assert [len(p) for p, _ in pieces] == [10, 10, 5]
+    assert pieces[-1][1] == spool.path.stat().st_size
+    spool.drop_through(pieces[0][1])  # the first piece stored
+    assert spool.load() == readings[10:]
+    (tmp_path / "state" / "spool.jsonl").unlink()
+    (tmp_path / "state").rmdir()  # the state dir deleted under a running recorder
+    spool.add(readings[:1])
+    assert spool.load() == readings[:1]
 
 
 def test_backfill_equals_evaluate_and_is_idempotent_and_resumable(

@@ -14,16 +14,19 @@ import datetime as dt
 import logging
 import os
 import queue
+import shutil
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import paho.mqtt.client as mqtt
 import pandas as pd
 
 from pseudotwin.config import SensorConfig, ServiceConfig
 from pseudotwin.core import series
+from pseudotwin.core.files import write_replacing
 from pseudotwin.core.series import write_history
 from pseudotwin.edge import readinglines
 from pseudotwin.edge.clock import Clock, SystemClock
@@ -56,6 +59,11 @@ OLDEST = series.OLDEST.to_pydatetime()
 REFUSED_FILE = "recorder-refused.csv"
 
 
+#: Readings the spool hands to the store at a time: a spool of days (a long store outage)
+#: is read and written in such pieces, never held in memory whole.
+SPOOL_CHUNK = 10_000
+
+
 class Spool:
     """Batches the store could not take, on disk until it can (JSON lines, flushed)."""
 
@@ -64,19 +72,38 @@ class Spool:
         path.parent.mkdir(parents=True, exist_ok=True)
 
     def add(self, readings: list[Reading]) -> None:
+        # The state dir may have been deleted under a running recorder: spool all the same.
+        self.path.parent.mkdir(parents=True, exist_ok=True)
         readinglines.append(self.path, readings)  # a torn last line is ended first
 
-    def load(self) -> list[Reading]:
+    def chunks(self, size: int | None = None) -> Iterator[tuple[list[Reading], int]]:
+        """The spooled readings in file order, ``size`` (default SPOOL_CHUNK) at a time,
+        each piece with the byte offset where it ends (for :meth:`drop_through`)."""
+        size = size or SPOOL_CHUNK
         if not self.path.exists():
-            return []
-        out = []
+            return
+        out: list[Reading] = []
         with open(self.path, "rb") as fh:  # bytes: invalid UTF-8 is one bad line
-            for line in fh:
+            while line := fh.readline():
                 try:
                     out.append(readinglines.decode(line))
                 except ValueError:
                     log.warning("spool line unreadable (cut short by a crash?), skipped")
-        return out
+                if len(out) >= size:
+                    yield out, fh.tell()
+                    out = []
+            if out:
+                yield out, fh.tell()
+
+    def load(self) -> list[Reading]:
+        return [r for piece, _ in self.chunks() for r in piece]
+
+    def drop_through(self, offset: int) -> None:
+        """Forget the spool's first ``offset`` bytes (readings stored by now); the rest is
+        copied to a new spool that replaces it."""
+        with open(self.path, "rb") as src:
+            src.seek(offset)
+            write_replacing(self.path, lambda tmp: _copy_rest(src, tmp))
 
     def clear(self) -> None:
         self.path.unlink(missing_ok=True)
@@ -86,6 +113,11 @@ class Spool:
             return 0
         with open(self.path, encoding="utf-8") as fh:
             return sum(1 for _ in fh)
+
+
+def _copy_rest(src: BinaryIO, tmp: Path) -> None:
+    with open(tmp, "wb") as dst:
+        shutil.copyfileobj(src, dst)
 
 
 class Recorder:
@@ -202,7 +234,8 @@ class Recorder:
     def _write(self, readings: list[Reading], spooled: bool = False) -> bool:
         """Store ``readings``; False (logged, to be spooled or kept in the spool: ``spooled``,
         readings taken from it) when the store cannot take them."""
-        then = "they stay in the spool" if spooled else "spooling them to disk"
+        # (a spool is tried a piece at a time: the count is the piece's, not the spool's)
+        then = "they and the rest of the spool stay in it" if spooled else "spooling them to disk"
         refused: list[Reading] = []
         try:
             try:
@@ -259,21 +292,29 @@ class Recorder:
             self.store = None
 
     def _retry_spool(self) -> None:
+        """Hand the spool to the store, SPOOL_CHUNK readings at a time, oldest first: with
+        the store still away that is one piece read per retry, not the whole outage."""
         if time.monotonic() < self._next_retry or not self.spool.path.exists():
             return
+        written, through = 0, 0
         try:
-            pending = self.spool.load()
+            for piece, end in self.spool.chunks():
+                if not self._write(piece, spooled=True):
+                    break
+                written, through = written + len(piece), end
+            else:
+                if written:
+                    log.info("wrote %d spooled readings to the history store", written)
+                self.spool.clear()
+                return
+            if through:
+                log.info("wrote %d spooled readings to the history store; the rest stays "
+                         "in the spool", written)
+                self.spool.drop_through(through)
         except OSError as exc:
-            log.error("cannot read the spool %s (%s); retrying", self.spool.path, exc)
-            self._next_retry = time.monotonic() + self.retry_seconds
-            return
-        if pending and self._write(pending, spooled=True):
-            log.info("wrote %d spooled readings to the history store", len(pending))
-            self.spool.clear()
-        elif not pending:
-            self.spool.clear()
-        else:
-            self._next_retry = time.monotonic() + self.retry_seconds
+            log.error("cannot read or rewrite the spool %s (%s); retrying", self.spool.path,
+                      exc)
+        self._next_retry = time.monotonic() + self.retry_seconds
 
     def _flush(self, batch: list[Reading], tokens: list[tuple[int, int, int]]) -> bool:
         """Store or spool ``batch`` and acknowledge it; False (nothing acknowledged, keep
