@@ -199,6 +199,44 @@ def test_a_long_spool_goes_to_the_store_a_piece_at_a_time(
     assert "wrote 25 spooled readings to the history store" in caplog.text
 
 
+def test_a_recorder_that_can_neither_store_nor_spool_says_degraded_sparingly(
+    mosquitto, desk_artifact, tmp_path: Path, mqtt_client, caplog
+) -> None:
+    """With the store away and the disk refusing the spool, the recorder logged an error at
+    every flush (~86,000 a day) while its status stayed `online`."""
+    caplog.set_level(logging.INFO, logger="pseudotwin.edge.recorder")
+    db = tmp_path / "later" / "history.db"  # the store away
+    cfg = config(tmp_path, mosquitto.port, desk_artifact, store=str(db))
+    rec = Recorder(cfg, retry_seconds=0.05, flush_seconds=0.05)
+    rec.spool.path.mkdir()  # the spool cannot be written (as on a full disk)
+    status = mqtt_client()
+    status.subscribe("pt/recorder/status")
+    said: list[bytes] = []
+
+    def last_status() -> bytes | None:
+        while not status.messages.empty():
+            said.append(status.messages.get_nowait().payload)
+        return said[-1] if said else None
+
+    rec.start(wait_connected=15)
+    pub = publisher(mosquitto.port, "stuck-bridge")
+    try:
+        pub.publish("house/dining/temp", reading(HOURS.at(DAY, 8.0), 20.0), qos=1)
+        wait_for(lambda: rec._stuck >= 20, what="twenty failed flushes")
+        wait_for(lambda: last_status() == b"degraded", what="status degraded")
+        errors = [r for r in caplog.records if "cannot spool" in r.getMessage()]
+        assert 1 <= len(errors) <= 6  # 1, 2, 4, 8, 16, (32)
+        unavailable = [r for r in caplog.records if "history store unavailable" in r.message]
+        assert len(unavailable) <= 6
+        rec.spool.path.rmdir()  # space again
+        wait_for(lambda: rec.spooled == 1, what="the reading spooled")
+        wait_for(lambda: last_status() == b"online", what="status online again")
+        assert "spooling again after" in caplog.text
+    finally:
+        rec.stop()
+        pub.loop_stop()
+
+
 def test_a_spool_written_in_part_keeps_the_rest_in_order(tmp_path: Path) -> None:
     spool = Spool(tmp_path / "state" / "spool.jsonl")
     readings = [Reading(REF, HOURS.at(DAY, 8 + i / 60), 20.0 + i) for i in range(25)]

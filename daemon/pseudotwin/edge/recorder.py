@@ -145,6 +145,11 @@ class Recorder:
         self.connected = threading.Event()
         self.written = 0
         self.spooled = 0
+        # Consecutive failed store writes, and flushes neither the store nor the spool took
+        # (a full disk): logged at the 1st, 2nd, 4th, ... of a run, not at every retry.
+        self._store_failures = 0
+        self._stuck: int = 0
+        self._stuck_since = 0.0
         self.already_stored = 0  # readings whose key was in the store already (first kept)
         self.refused = 0  # readings the store refused while taking others: in refused_path
         self.fatal: tuple[int, str] | None = None  # (exit status, why): the process must end
@@ -175,7 +180,8 @@ class Recorder:
             return
         self._gen += 1
         self._subscription.subscribe(client)
-        client.publish(self.status_topic, "online", qos=1, retain=True)
+        client.publish(self.status_topic, "degraded" if self._stuck else "online", qos=1,
+                       retain=True)
         log.info("recorder connected; recording %d sensor topics", len(self.cfg.sensors))
 
     def _on_message(self, client: mqtt.Client, userdata: Any, msg: mqtt.MQTTMessage) -> None:
@@ -247,6 +253,10 @@ class Recorder:
                     raise  # nothing taken: the store is unusable for now, as if it were away
                 self._refuse(refused, exc)
                 n = exc.written
+            if self._store_failures:
+                log.info("history store writable again after %d failed write(s)",
+                         self._store_failures)
+                self._store_failures = 0
             self.written += n
             self.metrics.stored.inc(n)
             # Readings are immutable: a key stored already keeps its first value. Counted,
@@ -256,17 +266,21 @@ class Recorder:
                 self.metrics.already_stored.inc(kept_first)
             return True
         except (PseudotwinError, OSError) as exc:
-            self.metrics.store_errors.inc()
-            log.warning("history store unavailable (%s); %d readings: %s", exc,
-                        len(readings), then)
-            self._drop_store()
+            self._store_failed(f"history store unavailable ({exc}); {len(readings)} readings: "
+                               f"{then}")
             return False
         except Exception as exc:  # e.g. the crate client's connection errors
-            self.metrics.store_errors.inc()
-            log.warning("history store write failed (%s: %s); %d readings: %s",
-                        type(exc).__name__, exc, len(readings), then)
-            self._drop_store()
+            self._store_failed(f"history store write failed ({type(exc).__name__}: {exc}); "
+                               f"{len(readings)} readings: {then}")
             return False
+
+    def _store_failed(self, what: str) -> None:
+        self.metrics.store_errors.inc()
+        self._store_failures += 1
+        n = self._store_failures
+        if n & (n - 1) == 0:  # an outage of days must not write a line every retry
+            log.warning("%s%s", what, f" ({n} failed writes in a row)" if n > 1 else "")
+        self._drop_store()
 
     def _refuse(self, readings: list[Reading], why: RowsRejected) -> None:
         """Readings the store refused while it took the others of their batch (CrateDB
@@ -324,17 +338,41 @@ class Recorder:
             try:
                 self.spool.add(batch)
             except OSError as exc:
-                log.error("cannot spool %d readings either (%s): NOT acknowledged (the broker "
-                          "keeps them); retrying", len(batch), exc)
-                self._next_retry = time.monotonic() + self.retry_seconds
+                self._stuck_on(len(batch), exc)
                 return False
             self.spooled += len(batch)
             self.metrics.spooled.inc(len(batch))
             self._next_retry = min(self._next_retry or time.monotonic(),
                                    time.monotonic() + self.retry_seconds)
+        self._unstuck()
         for t in tokens:  # in the store or in the spool: safe to acknowledge
             self._ack(t)
         return True
+
+    def _stuck_on(self, n: int, exc: OSError) -> None:
+        """Neither the store nor the spool takes readings: status ``degraded``, logged at
+        the 1st, 2nd, 4th, ... failed flush; nothing is acknowledged meanwhile."""
+        self._next_retry = time.monotonic() + self.retry_seconds
+        self._stuck += 1
+        if self._stuck == 1:
+            self._stuck_since = time.monotonic()
+            self._send_status()
+        if self._stuck & (self._stuck - 1) == 0:
+            log.error("cannot spool %d readings either (%s): NOT acknowledged (the broker "
+                      "keeps them); status degraded, retrying (%d failed flushes so far)", n,
+                      exc, self._stuck)
+
+    def _unstuck(self) -> None:
+        if self._stuck:
+            log.warning("spooling again after %.0f s (%d failed flushes); status online",
+                        time.monotonic() - self._stuck_since, self._stuck)
+            self._stuck = 0
+            self._send_status()
+
+    def _send_status(self) -> None:
+        if self.client.is_connected():
+            self.client.publish(self.status_topic, "degraded" if self._stuck else "online",
+                                qos=1, retain=True)
 
     def _run(self) -> None:
         batch: list[Reading] = []
