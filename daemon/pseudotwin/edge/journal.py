@@ -31,13 +31,13 @@ class Journal:
         self.folder.mkdir(parents=True, exist_ok=True)
         self.keep_days = keep_days
         self._day: dt.date | None = None
-        self._fh: BinaryIO | None = None
-        # The lines of the current file and of the one before (yesterday's carry-over), to
-        # rebuild them if the state dir is deleted under us.
-        self._lines: list[bytes] = []
-        self._lines_day: dt.date | None = None
-        self._prev: tuple[dt.date, list[bytes]] | None = None
-        self.recreated = 0  # times the journal file vanished and was rebuilt from memory
+        self._fh: BinaryIO | None = None  # the current day's file: appended to, and read
+        # The file before it (yesterday's carry-over), kept open: should the state dir be
+        # deleted under us, both are rebuilt from their open descriptors (an unlinked file
+        # stays readable through them), never from a copy of every line held in memory.
+        self._prev: tuple[dt.date, BinaryIO] | None = None
+        self._torn = False  # a write failed: end a torn last line before the next one
+        self.recreated = 0  # times the journal file vanished and was rebuilt
         self._identity = (0, 0)  # (st_dev, st_ino) of the open file
 
     def _path(self, day: dt.date) -> Path:
@@ -52,8 +52,9 @@ class Journal:
         (then none of them is owed: the caller acks none; lines written before a failure
         are written again by the retry, and a replay drops such duplicates).
         Unbuffered: the lines are in the kernel before the acks and survive SIGKILL (not
-        power loss; see fsync()). After a failure the file is reopened on the next call, so a
-        transient fault (full disk, a directory briefly unwritable) ends when it clears."""
+        power loss; see fsync()). A failed write is retried on the next call (a torn line
+        ended first), so a transient fault (full disk, a directory briefly unwritable) ends
+        when it clears."""
         start = 0
         while start < len(readings):
             day = readings[start].ts.astimezone(dt.UTC).date()
@@ -70,32 +71,27 @@ class Journal:
         if day != self._day or self._fh is None:
             self._rotate(day)
         elif self._vanished():
-            self._abandon()
-            self._rotate(day)  # rebuilds the file from memory
+            self._rebuild()
         assert self._fh is not None
-        lines = readinglines.encode(readings)
-        block = b"".join(lines)
+        if self._torn:
+            _end_line(self._fh)
+            self._torn = False
+        block = b"".join(readinglines.encode(readings))
         try:
             if self._fh.write(block) != len(block):
                 raise OSError(errno.ENOSPC, "short write to the journal")
         except OSError:
-            self._abandon()  # the next append reopens (and ends a torn line first)
+            self._torn = True  # the next append ends a torn line first
             raise
-        self._lines.extend(lines)
 
     def _write_earlier(self, day: dt.date, readings: Sequence[Reading]) -> None:
         """Readings of a UTC day before the current file's (stamped before midnight, arriving
         after): appended to that day's file as they come, the current file staying open.
         Rotating back and forth re-read the whole of each file at every switch, which two
         sensors straddling midnight did at every reading."""
-        if self._vanished():  # the state dir went: rebuild the files from memory first
-            current = self._day
-            assert current is not None
-            self._abandon()
-            self._rotate(current)
-        lines = readinglines.append(self._path(day), readings)
-        if self._prev is not None and self._prev[0] == day:
-            self._prev[1].extend(lines)  # rebuildable as yesterday's file
+        if self._vanished():  # the state dir went: rebuild the files first
+            self._rebuild()
+        readinglines.append(self._path(day), readings)
 
     def _vanished(self) -> bool:
         """True when the open file is no longer the one at its path (deleted, replaced)."""
@@ -106,13 +102,30 @@ class Journal:
             return True
         return (st.st_dev, st.st_ino) != self._identity
 
-    def _abandon(self) -> None:
-        if self._fh is not None:
-            try:
-                self._fh.close()
-            except OSError:
-                pass
+    def _rebuild(self) -> None:
+        """The current file (or the whole state dir) was deleted while running: writing on
+        into the unlinked file would lose everything at the next restart. Rebuild it, and
+        the file before it, from their open descriptors; older days' files are gone."""
+        assert self._fh is not None and self._day is not None
+        self.folder.mkdir(parents=True, exist_ok=True)
+        rebuilt: list[str] = []
+        for d, fh in ((self._day, self._fh), *([self._prev] if self._prev else [])):
+            path = self._path(d)
+            if not path.exists():
+                size = _copy_open(fh, path)
+                rebuilt.append(f"{d} ({size / 1e3:.0f} kB)")
+        log.error("journal file %s was deleted while running (state dir removed?); "
+                  "recreated it from the open files: %s; older days' journals are lost",
+                  self._path(self._day), ", ".join(rebuilt))
+        self.recreated += 1
+        if self._prev is not None:  # its descriptor is of the deleted file now
+            d, old = self._prev
+            old.close()
+            self._prev = (d, open(self._path(d), "rb"))  # noqa: SIM115
+        day = self._day
+        self._fh.close()
         self._fh, self._day = None, None
+        self._open(day)
 
     def fsync(self) -> None:
         if self._fh is not None:
@@ -120,42 +133,31 @@ class Journal:
             os.fsync(self._fh.fileno())
 
     def _rotate(self, day: dt.date) -> None:
-        self.close()
-        path = self._path(day)
+        """Make ``day``'s file the current one; the current one becomes the file before."""
+        if self._fh is not None and self._day is not None:
+            self.fsync()
+            self._set_prev((self._day, self._fh))
+            self._fh, self._day = None, None
         self.folder.mkdir(parents=True, exist_ok=True)  # recreated if it was deleted
-        old = path.read_bytes() if path.exists() else b""
-        if self._lines_day is not None and self._lines_day != day:
-            self._prev = (self._lines_day, self._lines)  # the file before stays rebuildable
-            self._lines, self._lines_day = [], None
-        if not old and self._lines_day == day and self._lines:
-            # The file (or the whole state dir) was deleted while running: writing on into
-            # the unlinked file would lose everything at the next restart. Rebuild it, and
-            # the file before it, from the lines held in memory; older ones are gone.
-            restored = [(day, self._lines), *([self._prev] if self._prev else [])]
-            for d, lines in restored:
-                if not self._path(d).exists():
-                    with open(self._path(d), "wb") as fresh:
-                        fresh.write(b"".join(lines))
-            log.error("journal file %s was deleted while running (state dir removed?); "
-                      "recreated it from the %d readings held in memory (%s); older days' "
-                      "journals are lost", path, sum(len(x) for _, x in restored),
-                      ", ".join(str(d) for d, _ in restored))
-            old = b"".join(self._lines)
-            self.recreated += 1
-        fh = open(path, "ab", buffering=0)  # noqa: SIM115
-        if old and not old.endswith(b"\n"):  # a crash cut the last line short: never glue
-            try:                               # the next one onto it
-                fh.write(b"\n")
-            except OSError:
-                fh.close()
-                raise
-            old += b"\n"
+        self._open(day)
+        self.prune(day)
+
+    def _open(self, day: dt.date) -> None:
+        fh = open(self._path(day), "a+b", buffering=0)  # noqa: SIM115
+        try:
+            _end_line(fh)  # a crash cut the last line short: never glue the next one onto it
+        except OSError:
+            fh.close()
+            raise
         # Only once the file is open: a failed open leaves the journal closed, not broken.
-        self._fh, self._day, self._lines_day = fh, day, day
+        self._fh, self._day, self._torn = fh, day, False
         own = os.fstat(fh.fileno())  # an open file keeps its identity: one stat per check
         self._identity = (own.st_dev, own.st_ino)
-        self._lines = old.splitlines(keepends=True)
-        self.prune(day)
+
+    def _set_prev(self, prev: tuple[dt.date, BinaryIO] | None) -> None:
+        if self._prev is not None:
+            self._prev[1].close()
+        self._prev = prev
 
     def prune(self, today: dt.date) -> None:
         for p in self.folder.glob("*.jsonl"):
@@ -167,13 +169,16 @@ class Journal:
                 p.unlink(missing_ok=True)
 
     def close(self) -> None:
-        if self._fh is not None:
-            try:
-                self.fsync()
-            finally:
-                self._fh.close()
-                self._fh = None
-        self._day = None
+        try:
+            if self._fh is not None:
+                try:
+                    self.fsync()
+                finally:
+                    self._fh.close()
+                    self._fh = None
+        finally:
+            self._day = None
+            self._set_prev(None)
 
     def replay(self, since: dt.datetime) -> Iterator[Reading]:
         """Journaled readings of the files that may hold readings at or after ``since``."""
@@ -192,3 +197,26 @@ class Journal:
                     except ValueError:
                         # A line cut short by a crash mid-write: everything before it counts.
                         log.warning("journal %s line %d unreadable, skipped", p.name, n)
+
+
+def _copy_open(fh: BinaryIO, path: Path) -> int:
+    """Copy everything in the open file ``fh`` (deleted or not) to a new file ``path``,
+    in the kernel, without moving ``fh``; returns the bytes copied."""
+    fd = fh.fileno()
+    size = os.fstat(fd).st_size
+    with open(path, "wb") as out:
+        done = 0
+        while done < size:
+            sent = os.sendfile(out.fileno(), fd, done, size - done)
+            if sent == 0:
+                break
+            done += sent
+    return done
+
+
+def _end_line(fh: BinaryIO) -> None:
+    """End the file's last line if a crash or a failed write left it torn."""
+    fd = fh.fileno()
+    size = os.fstat(fd).st_size
+    if size and os.pread(fd, 1, size - 1) != b"\n":
+        fh.write(b"\n")

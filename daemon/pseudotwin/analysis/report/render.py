@@ -308,6 +308,11 @@ PERFORMANCE = (
      "The Prometheus endpoint with 1,000 twins",
      "The daemon's metric set for 1,000 twins with two references each, filled as by a day "
      "of operation: samples and bytes per scrape, and the time of a real scrape over HTTP."),
+    ("bench_journal.txt", ".venv/bin/python scripts/bench_journal.py",
+     "The journal over a day of a million readings",
+     "One UTC day of 1,000,000 readings of 100 sensors appended as the daemon's worker does "
+     "(batches of 64): write rate, file size, the resident memory the journal adds, and the "
+     "rebuild of a journal deleted under it, from its open files."),
     ("failover.txt", ".venv/bin/python scripts/failover.py",
      "Reference failover",
      "Each reference of the two-reference runs silenced for every test day: the estimate's "
