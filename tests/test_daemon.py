@@ -955,3 +955,34 @@ def test_readings_arriving_hours_after_their_stamp_are_named(
     said = [r.getMessage() for r in caplog.records if "after its stamp" in r.getMessage()]
     assert len(said) == 1 and "reading of dining/temp arrived 12" in said[0]
     pub.disconnect()
+
+
+def test_readings_the_broker_kept_during_an_outage_are_not_blamed_on_the_sensor(
+        mosquitto, desk_artifact, tmp_path: Path, caplog) -> None:
+    """After a broker outage longer than stale_after, the readings a bridge stamped during
+    it arrive late all at once: the log said the sensor's clock ran behind. The backlog after
+    a reconnect (or a journal's recovery) is now taken as the start's is."""
+    start = off_grid(10.0)
+    clock = HandClock(start)
+    svc = Service(config(tmp_path, mosquitto.port, desk_artifact), clock=clock)
+    svc.start(wait_connected=15)
+    try:
+        clock.set(start + svc.cfg.stale_after + dt.timedelta(minutes=1))  # start's backlog over
+        mosquitto.restart()
+        wait_for(lambda: svc.backlog_since == clock.now(), what="the daemon reconnected")
+        pub = publisher(mosquitto.port, "outage-bridge")
+        with caplog.at_level("WARNING"):
+            kept = clock.now() - dt.timedelta(minutes=50)  # stamped during the outage
+            pub.publish("house/dining/temp", reading(kept, 17.0), qos=1).wait_for_publish(10)
+            wait_for(lambda: svc.accepted >= 1, what="the kept reading taken")
+            assert not [r for r in caplog.records if "after its stamp" in r.getMessage()]
+            clock.set(clock.now() + svc.cfg.stale_after + dt.timedelta(minutes=1))
+            behind = clock.now() - dt.timedelta(minutes=50)  # now a clock behind
+            pub.publish("house/dining/temp", reading(behind, 17.1), qos=1).wait_for_publish(10)
+            wait_for(lambda: svc.accepted >= 2, what="the late reading taken")
+        said = [r.getMessage() for r in caplog.records if "after its stamp" in r.getMessage()]
+        assert len(said) == 1 and "reading of dining/temp arrived 50" in said[0]
+        pub.disconnect()
+        pub.loop_stop()
+    finally:
+        svc.stop()

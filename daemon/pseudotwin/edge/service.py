@@ -175,6 +175,9 @@ class Service:
         # The daemon's clock at start: a reference unheard of since is "silent" only once
         # stale_after has passed (at a fresh start every reference is unheard of at first).
         self.up_since: dt.datetime | None = None
+        # The start, the latest connect or the latest journal recovery: readings arriving
+        # late for a while after it are a backlog, not a sensor's clock behind.
+        self.backlog_since: dt.datetime | None = None
         self.twins: dict[str, TwinRuntime] = {}
         self.by_sensor: dict[str, list[TwinRuntime]] = defaultdict(list)
         problems = []
@@ -282,6 +285,7 @@ class Service:
             return
         with self._lock:
             self._gen += 1
+        self.backlog_since = self.clock.now()  # what the broker kept for us comes now
         with self._sent_lock:
             self._unwritten_qos0.clear()
         self._subscription.subscribe(client)
@@ -596,6 +600,8 @@ class Service:
             self.health.journal_failed(exc, len(self._held))
             self._journal_retry_at = time.monotonic() + JOURNAL_RETRY_SECONDS
             return
+        if self.health.journal_failing_since is not None:
+            self.backlog_since = self.clock.now()  # the broker's kept readings come now
         self.health.journal_ok(done)
 
     def _hold(self, r: Reading, token: tuple[int, int, int]) -> None:
@@ -707,11 +713,12 @@ class Service:
             log.exception("payload on %s could not be processed", topic)
             self.rejections.add_reason(sensor.id, UNPROCESSABLE, repr(exc)[:200], day)
             return None
-        # Late past stale_after, once the start's backlog (readings queued while the daemon
-        # was down) is through: a clock behind, or a bridge on another time zone.
+        # Late past stale_after, once a backlog (readings queued while the daemon was down,
+        # disconnected or held by a failing journal) is through: a clock behind, or a
+        # bridge on another time zone.
         lag = arrival - r.ts
-        if lag > self.cfg.stale_after and self.up_since is not None \
-                and arrival - self.up_since > self.cfg.stale_after:
+        if lag > self.cfg.stale_after and self.backlog_since is not None \
+                and arrival - self.backlog_since > self.cfg.stale_after:
             self.rejections.behind(sensor.id, lag.total_seconds(), day)
         self.health.processed_one(lag.total_seconds(), backlog)
         return r
@@ -1038,7 +1045,7 @@ class Service:
         self.state_lock.starting(lambda: self._start(wait_connected), self.metrics.close)
 
     def _start(self, wait_connected: float | None) -> None:
-        self.up_since = self.clock.now()
+        self.up_since = self.backlog_since = self.clock.now()
         if self.cfg.metrics.port is not None:  # a port in use fails before anything runs
             self.metrics.serve(self.cfg.metrics.host, self.cfg.metrics.port, "daemon")
         self.restore()
