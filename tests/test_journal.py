@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import datetime as dt
+import resource
 import shutil
+import signal
 from pathlib import Path
+
+import pytest
 
 from pseudotwin.edge.journal import Journal
 from pseudotwin.live.readings import Reading
@@ -75,3 +79,45 @@ def test_a_straggler_after_the_state_dir_was_deleted_rebuilds_the_journal(
     j.append(r(1, 4.0, 20))
     j.close()
     assert [x.value for x in Journal(folder).replay(r(0, 0, 19).ts)] == [1.0, 3.0, 2.0, 4.0]
+
+
+def test_a_rebuild_cut_short_by_a_full_disk_leaves_no_half_file(tmp_path: Path) -> None:
+    """The rebuild copied straight to the journal's path: cut short by a full disk, the
+    half file stood there, the retry took it for the rebuilt one and let the whole go (63
+    of 1,001 readings left). Here the disk is a file size limit of this process."""
+    folder = tmp_path / "journal"
+    j = Journal(folder)
+    t0 = dt.datetime(2012, 3, 20, 8, tzinfo=dt.UTC)
+    day = [Reading("s", t0 + dt.timedelta(seconds=k), float(k)) for k in range(1000)]
+    j.append_many(day)
+    shutil.rmtree(folder)  # the state dir deleted under the daemon
+    late = Reading("s", t0 + dt.timedelta(hours=1), -1.0)
+    handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # EFBIG instead of a kill
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (4096, hard))
+    try:
+        with pytest.raises(OSError):
+            j.append(late)  # not written: the daemon holds it and retries
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        signal.signal(signal.SIGXFSZ, handler)
+    assert not (folder / "2012-03-20.jsonl").exists()  # no half file at the path
+    j.append(late)  # the retry, with room again
+    j.close()
+    assert list(Journal(folder).replay(t0)) == [*day, late]
+
+
+def test_after_a_restart_yesterdays_file_is_rebuilt_too(tmp_path: Path) -> None:
+    """Only a journal that had rotated during the run kept yesterday's file (today's
+    carry-over) for a rebuild; after a restart it was lost with the state dir."""
+    folder = tmp_path / "journal"
+    j = Journal(folder)
+    j.append(r(23, 1.0, 19))
+    j.append(r(0, 2.0, 20))
+    j.close()
+    j = Journal(folder)  # the restarted daemon
+    j.append(r(1, 3.0, 20))
+    shutil.rmtree(folder)
+    j.append(r(2, 4.0, 20))
+    j.close()
+    assert [x.value for x in Journal(folder).replay(r(0, 0, 19).ts)] == [1.0, 2.0, 3.0, 4.0]

@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import datetime as dt
 import errno
+import functools
 import logging
 import os
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import BinaryIO
 
+from pseudotwin.core.files import write_replacing
 from pseudotwin.edge import readinglines
 from pseudotwin.live.readings import Reading
 
@@ -112,12 +114,17 @@ class Journal:
         for d, fh in ((self._day, self._fh), *([self._prev] if self._prev else [])):
             path = self._path(d)
             if not path.exists():
-                size = _copy_open(fh, path)
+                # Whole or not at all: a copy cut short (a full disk) must not stand at the
+                # path, where the retry would take it for the rebuilt file. The descriptors
+                # stay open until every copy is in place (OSError: the caller retries).
+                size = os.fstat(fh.fileno()).st_size
+                write_replacing(path, functools.partial(_copy_open, fh))
                 rebuilt.append(f"{d} ({size / 1e3:.0f} kB)")
-        log.error("journal file %s was deleted while running (state dir removed?); "
-                  "recreated it from the open files: %s; older days' journals are lost",
-                  self._path(self._day), ", ".join(rebuilt))
-        self.recreated += 1
+        if rebuilt:
+            log.error("journal file %s was deleted while running (state dir removed?); "
+                      "recreated it from the open files: %s; older days' journals are lost",
+                      self._path(self._day), ", ".join(rebuilt))
+            self.recreated += 1
         if self._prev is not None:  # its descriptor is of the deleted file now
             d, old = self._prev
             old.close()
@@ -140,6 +147,9 @@ class Journal:
             self._fh, self._day = None, None
         self.folder.mkdir(parents=True, exist_ok=True)  # recreated if it was deleted
         self._open(day)
+        before = day - dt.timedelta(days=1)
+        if self._prev is None and self._path(before).exists():  # a start: the day before
+            self._prev = (before, open(self._path(before), "rb"))  # noqa: SIM115
         self.prune(day)
 
     def _open(self, day: dt.date) -> None:
@@ -199,9 +209,9 @@ class Journal:
                         log.warning("journal %s line %d unreadable, skipped", p.name, n)
 
 
-def _copy_open(fh: BinaryIO, path: Path) -> int:
+def _copy_open(fh: BinaryIO, path: Path) -> None:
     """Copy everything in the open file ``fh`` (deleted or not) to a new file ``path``,
-    in the kernel, without moving ``fh``; returns the bytes copied."""
+    in the kernel, without moving ``fh``; OSError if it falls short."""
     fd = fh.fileno()
     size = os.fstat(fd).st_size
     with open(path, "wb") as out:
@@ -209,9 +219,8 @@ def _copy_open(fh: BinaryIO, path: Path) -> int:
         while done < size:
             sent = os.sendfile(out.fileno(), fd, done, size - done)
             if sent == 0:
-                break
+                raise OSError(errno.EIO, f"journal copy ended at {done} of {size} bytes")
             done += sent
-    return done
 
 
 def _end_line(fh: BinaryIO) -> None:
