@@ -813,6 +813,35 @@ def test_a_broker_outage_longer_than_the_queue_keeps_each_sensors_newest_reading
                    for v in (35.0, 36.0, 37.0, 38.0))
 
 
+def test_plc_flaps_during_a_broker_outage_do_not_crowd_out_the_status(
+    plc: Plc, env: Env, mosquitto: MosquittoBroker, mqtt_client: MqttClientFactory,
+    monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each PLC up/down during a broker outage queued a retained state message for the
+    broker: past the status messages' room in paho's queue, the reconnect's `online` and
+    state were refused without a word, and `offline` stayed retained."""
+    monkeypatch.setattr(plc_module, "STATUS_HEADROOM", 3)  # 16: the same in 8 flaps
+    path = env.write_config()
+    path.write_text(path.read_text().replace("[bridge]\n", "[bridge]\nqueue_size = 5\n"),
+                    encoding="utf-8")
+    with running(Bridge(load_bridge_config(path))) as bridge:
+        _wait_for(lambda: bridge.plc_up.is_set() and bridge.mqtt_connected.is_set(), "up")
+        try:
+            mosquitto.stop()
+            _wait_for(lambda: not bridge.mqtt_connected.is_set(), "the bridge sees the outage")
+            for _ in range(2):  # 4 state changes: more than the status messages' room
+                plc.handler.ads_state = adsc.ADSSTATE_STOP
+                _wait_for(lambda: not bridge.plc_up.is_set(), "down")
+                plc.handler.ads_state = adsc.ADSSTATE_RUN
+                _wait_for(lambda: bridge.plc_up.is_set(), "up again")
+        finally:
+            mosquitto.start()
+        _wait_for(bridge.mqtt_connected.is_set, "the bridge reconnects")
+        later = _subscribe(mqtt_client, env)  # what a new subscriber is told, retained
+        assert later.wait(f"{env.base}/bridge/status") == b"online"
+        assert later.wait(f"{env.base}/bridge/plc") == b"up"
+
+
 # -- tests: the broker away or refusing ---------------------------------------------------
 
 

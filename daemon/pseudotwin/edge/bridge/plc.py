@@ -298,7 +298,7 @@ class Bridge:
             try:
                 item = self.queue.get(timeout=HELD_RETRY_SECONDS if self._held else None)
             except queue.Empty:
-                self._release_held()
+                self._release_held()  # guarded per reading
                 continue
             if item is _STOP:
                 self._release_held_at_stop()
@@ -317,7 +317,18 @@ class Bridge:
     def _release_held(self) -> None:
         """Send held-back readings, oldest first, while the broker's queue has room."""
         for sensor, item in sorted(self._held.items(), key=lambda kv: kv[1].ts):
-            if not self._has_room() or not self._send(item):
+            if not self._has_room():
+                return
+            try:
+                sent = self._send(item)
+            except Exception:  # one bad reading must not block every later one
+                log.exception("unexpected error while publishing a held-back reading of %s; "
+                              "dropped", item.symbol.symbol)
+                del self._held[sensor]
+                with self._count_lock:
+                    self.dropped += 1
+                continue
+            if not sent:
                 return
             del self._held[sensor]
 
@@ -383,7 +394,16 @@ class Bridge:
             log.warning("reading dropped: %s (%d dropped so far)", why, after)  # not per one
 
     def _publish_state(self, up: bool) -> None:
-        self.client.publish(self.cfg.plc_topic, "up" if up else "down", qos=1, retain=True)
+        """The PLC state, retained; only while connected (call under ``_state_lock``):
+        queued for a broker that is away, every PLC flap of an outage would take room in
+        paho's queue, and ``_on_connect`` publishes the state of that moment anyway."""
+        if not self.client.is_connected():
+            return
+        info = self.client.publish(self.cfg.plc_topic, "up" if up else "down", qos=1,
+                                   retain=True)
+        if info.rc == mqtt.MQTT_ERR_QUEUE_SIZE:
+            log.warning("the PLC state could not be queued for the broker (its queue is "
+                        "full); it goes out at the next change or reconnect")
 
     # -- ADS notification thread: decode, stamp, enqueue; nothing that can block -------
     def _enqueue(self, item: _Item) -> None:
@@ -503,15 +523,15 @@ class Bridge:
         self._heartbeat = time.monotonic()
         conn = pyads.Connection(plc.ams_net_id, plc.port, plc.ip_address)
         conn.open()  # adds the route; raises ADSError when the PLC cannot be reached
-        if self._local_net_id is None:
-            local = conn.get_local_address()
-            if local is not None:
-                self._local_net_id = local.netid
-                log.info("this host's AMS net id is %s: the PLC needs a static route to it "
-                         "(with this host's IP address)", self._local_net_id)
         self._gen += 1
         link = _Link(conn, self._gen)
         try:
+            if self._local_net_id is None:
+                local = conn.get_local_address()
+                if local is not None:
+                    self._local_net_id = local.netid
+                    log.info("this host's AMS net id is %s: the PLC needs a static route to "
+                             "it (with this host's IP address)", self._local_net_id)
             conn.set_timeout(max(1, round(plc.timeout_seconds * 1000)))
             self._check_running(conn)
             found, link.missing = self._resolve(conn)
@@ -626,17 +646,19 @@ class Bridge:
     def _retry_missing(self, link: _Link) -> None:
         """Look for the symbols skipped at this connect again (a PLC program changed under
         the bridge may bring them back); register and read the ones found."""
+        back: list[_Resolved] = []
         for i in list(link.missing):
             found = self._lookup(link.conn, i)
             if isinstance(found, str):
                 log.debug("still skipped: %s", found)
                 continue
             self._register(link, found)
-            self._read_now(link, [found])
             link.missing.remove(i)
+            back.append(found)
             log.warning("plc.symbols[%d] %r found on the PLC again; registered (%d of %d "
                         "symbols)", i, found.cfg.symbol, len(link.symbols),
                         len(self.cfg.plc.symbols))
+        self._read_now(link, back)  # one wait for their first notifications, as at connect
 
     def _poll(self, link: _Link) -> BaseException | None:
         """Read the PLC state every poll_seconds; the reason the link is lost, or None when
