@@ -14,12 +14,11 @@ import datetime as dt
 import logging
 import os
 import queue
-import shutil
 import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
 import paho.mqtt.client as mqtt
 import pandas as pd
@@ -27,6 +26,7 @@ import pandas as pd
 from pseudotwin.config import SensorConfig, ServiceConfig
 from pseudotwin.core import series
 from pseudotwin.core.files import write_replacing
+from pseudotwin.core.logpace import doubled
 from pseudotwin.core.series import write_history
 from pseudotwin.edge import readinglines
 from pseudotwin.edge.clock import Clock, SystemClock
@@ -62,13 +62,20 @@ REFUSED_FILE = "recorder-refused.csv"
 #: Readings the spool hands to the store at a time: a spool of days (a long store outage)
 #: is read and written in such pieces, never held in memory whole.
 SPOOL_CHUNK = 10_000
+#: Pieces written per flush: the readings arriving meanwhile wait behind at most these.
+SPOOL_CHUNKS_PER_FLUSH = 10
 
 
 class Spool:
-    """Batches the store could not take, on disk until it can (JSON lines, flushed)."""
+    """Batches the store could not take, on disk until it can (JSON lines, flushed). What
+    the store took already is not cut off the file (a copy of the rest each time would be
+    quadratic in a long spool) but marked by the byte offset it ends at, in a file beside
+    it; after a crash between a write and its mark a piece is written again, which the
+    store keeps once (readings are keyed)."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
+        self.offset_path = path.with_name(path.name + ".offset")
         path.parent.mkdir(parents=True, exist_ok=True)
 
     def add(self, readings: list[Reading]) -> None:
@@ -76,14 +83,22 @@ class Spool:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         readinglines.append(self.path, readings)  # a torn last line is ended first
 
+    def consumed(self) -> int:
+        """Bytes at the spool's start the store has taken (0: none, or no mark)."""
+        try:
+            return max(0, int(self.offset_path.read_text(encoding="ascii")))
+        except (OSError, ValueError):
+            return 0
+
     def chunks(self, size: int | None = None) -> Iterator[tuple[list[Reading], int]]:
-        """The spooled readings in file order, ``size`` (default SPOOL_CHUNK) at a time,
-        each piece with the byte offset where it ends (for :meth:`drop_through`)."""
+        """The readings not taken yet, in file order, ``size`` (default SPOOL_CHUNK) at a
+        time, each piece with the byte offset where it ends (for :meth:`consume`)."""
         size = size or SPOOL_CHUNK
         if not self.path.exists():
             return
         out: list[Reading] = []
         with open(self.path, "rb") as fh:  # bytes: invalid UTF-8 is one bad line
+            fh.seek(self.consumed())
             while line := fh.readline():
                 try:
                     out.append(readinglines.decode(line))
@@ -98,26 +113,14 @@ class Spool:
     def load(self) -> list[Reading]:
         return [r for piece, _ in self.chunks() for r in piece]
 
-    def drop_through(self, offset: int) -> None:
-        """Forget the spool's first ``offset`` bytes (readings stored by now); the rest is
-        copied to a new spool that replaces it."""
-        with open(self.path, "rb") as src:
-            src.seek(offset)
-            write_replacing(self.path, lambda tmp: _copy_rest(src, tmp))
+    def consume(self, offset: int) -> None:
+        """Mark the spool's first ``offset`` bytes as taken by the store."""
+        text = str(offset)
+        write_replacing(self.offset_path, lambda tmp: tmp.write_text(text, encoding="ascii"))
 
     def clear(self) -> None:
         self.path.unlink(missing_ok=True)
-
-    def __len__(self) -> int:
-        if not self.path.exists():
-            return 0
-        with open(self.path, encoding="utf-8") as fh:
-            return sum(1 for _ in fh)
-
-
-def _copy_rest(src: BinaryIO, tmp: Path) -> None:
-    with open(tmp, "wb") as dst:
-        shutil.copyfileobj(src, dst)
+        self.offset_path.unlink(missing_ok=True)
 
 
 class Recorder:
@@ -148,6 +151,7 @@ class Recorder:
         # Consecutive failed store writes, and flushes neither the store nor the spool took
         # (a full disk): logged at the 1st, 2nd, 4th, ... of a run, not at every retry.
         self._store_failures = 0
+        self._spool_failures = 0  # retries that could not read the spool or mark it
         self._stuck: int = 0
         self._stuck_since = 0.0
         self.already_stored = 0  # readings whose key was in the store already (first kept)
@@ -253,10 +257,8 @@ class Recorder:
                     raise  # nothing taken: the store is unusable for now, as if it were away
                 self._refuse(refused, exc)
                 n = exc.written
-            if self._store_failures:
-                log.info("history store writable again after %d failed write(s)",
-                         self._store_failures)
-                self._store_failures = 0
+            if not spooled:  # a spool's retry says so when all of it is in
+                self._store_back()
             self.written += n
             self.metrics.stored.inc(n)
             # Readings are immutable: a key stored already keeps its first value. Counted,
@@ -278,9 +280,15 @@ class Recorder:
         self.metrics.store_errors.inc()
         self._store_failures += 1
         n = self._store_failures
-        if n & (n - 1) == 0:  # an outage of days must not write a line every retry
+        if doubled(n - 1, n):  # an outage of days must not write a line every retry
             log.warning("%s%s", what, f" ({n} failed writes in a row)" if n > 1 else "")
         self._drop_store()
+
+    def _store_back(self) -> None:
+        if self._store_failures:
+            log.info("history store writable again after %d failed write(s)",
+                     self._store_failures)
+            self._store_failures = 0
 
     def _refuse(self, readings: list[Reading], why: RowsRejected) -> None:
         """Readings the store refused while it took the others of their batch (CrateDB
@@ -306,28 +314,37 @@ class Recorder:
             self.store = None
 
     def _retry_spool(self) -> None:
-        """Hand the spool to the store, SPOOL_CHUNK readings at a time, oldest first: with
+        """Hand the spool to the store, SPOOL_CHUNK readings at a time, oldest first, at
+        most SPOOL_CHUNKS_PER_FLUSH pieces per call (the next flush goes on at once): with
         the store still away that is one piece read per retry, not the whole outage."""
         if time.monotonic() < self._next_retry or not self.spool.path.exists():
             return
-        written, through = 0, 0
+        written, through, pieces = 0, 0, 0
         try:
             for piece, end in self.spool.chunks():
+                if pieces == SPOOL_CHUNKS_PER_FLUSH:
+                    self.spool.consume(through)
+                    return  # _next_retry not moved: the next flush goes on
                 if not self._write(piece, spooled=True):
                     break
-                written, through = written + len(piece), end
+                written, through, pieces = written + len(piece), end, pieces + 1
             else:
                 if written:
                     log.info("wrote %d spooled readings to the history store", written)
                 self.spool.clear()
+                self._store_back()
+                self._spool_failures = 0
                 return
             if through:
                 log.info("wrote %d spooled readings to the history store; the rest stays "
                          "in the spool", written)
-                self.spool.drop_through(through)
+                self.spool.consume(through)
         except OSError as exc:
-            log.error("cannot read or rewrite the spool %s (%s); retrying", self.spool.path,
-                      exc)
+            self._spool_failures += 1
+            if doubled(self._spool_failures - 1, self._spool_failures):
+                log.error("cannot read the spool %s or mark what was stored (%s); retrying "
+                          "(%d failures in a row)", self.spool.path, exc,
+                          self._spool_failures)
         self._next_retry = time.monotonic() + self.retry_seconds
 
     def _flush(self, batch: list[Reading], tokens: list[tuple[int, int, int]]) -> bool:
@@ -357,7 +374,7 @@ class Recorder:
         if self._stuck == 1:
             self._stuck_since = time.monotonic()
             self._send_status()
-        if self._stuck & (self._stuck - 1) == 0:
+        if doubled(self._stuck - 1, self._stuck):
             log.error("cannot spool %d readings either (%s): NOT acknowledged (the broker "
                       "keeps them); status degraded, retrying (%d failed flushes so far)", n,
                       exc, self._stuck)

@@ -65,6 +65,7 @@ from pyads import constants as adsc
 from pyads.structs import SAdsSymbolEntry
 
 from pseudotwin.config import ConfigProblems, SensorConfig
+from pseudotwin.core.logpace import doubled
 from pseudotwin.edge.bridge.config import (
     ADS_TCP_PORT,
     NON_NUMERIC_TYPES,
@@ -390,8 +391,8 @@ class Bridge:
             before = self.dropped
             self.dropped += n
             after = self.dropped
-        if after.bit_length() > before.bit_length():  # past 1, 2, 4, 8, ...: visible, but
-            log.warning("reading dropped: %s (%d dropped so far)", why, after)  # not per one
+        if doubled(before, after):  # visible, but not one line per reading
+            log.warning("reading dropped: %s (%d dropped so far)", why, after)
 
     def _publish_state(self, up: bool) -> None:
         """The PLC state, retained; only while connected (call under ``_state_lock``):
@@ -441,7 +442,7 @@ class Bridge:
                 with self._count_lock:
                     self.decode_errors += 1
                     n = self.decode_errors
-                if n & (n - 1) == 0:
+                if doubled(n - 1, n):
                     log.warning("cannot decode a notification of %s as %s: %s (%d so far)",
                                 r.cfg.symbol, r.cfg.plc_type, exc, n)
 
@@ -456,7 +457,7 @@ class Bridge:
             with self._count_lock:
                 self.not_finite += 1
                 n = self._not_finite_of[symbol] = self._not_finite_of.get(symbol, 0) + 1
-            if n & (n - 1) == 0:  # 1, 2, 4, ...: a flickering wire break must not flood
+            if doubled(n - 1, n):  # a flickering wire break must not flood the log
                 log.warning("%s is %r; not published (%d such value(s) of it so far)",
                             symbol, value, n)
             return
