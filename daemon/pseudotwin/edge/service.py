@@ -95,6 +95,9 @@ TICK_MAX_PAUSE = 0.05
 MONITORING_QOS = 0
 # state_dir's record of the retained output topics published (Service._plan_outputs).
 OUTPUTS_FILE = "outputs.json"
+#: A step back of the clock this small (or up to max_skew_seconds) is let pass: NTP's
+#: corrections of a few seconds, not a clock that ran hours or days ahead.
+CLOCK_BACK_TOLERANCE = dt.timedelta(minutes=1)
 #: The last grid instant ticked (state_dir): how recent a retained estimate the run before
 #: this one may have left (TwinRuntime.published_floor).
 GRID_FILE = "grid.json"
@@ -157,6 +160,17 @@ class TwinRuntime:
     # The last primary estimate published had no value (stale, no reading to hold): the
     # next such one changes nothing and is not sent again.
     without_value: bool = False
+
+    def retains(self, kind: str, topic: str, ts: dt.datetime, payload: bytes) -> bool:
+        """Whether ``kind``'s estimate at ``ts`` goes out retained: not when one of a later
+        instant has (newest_published, published_floor); if so, it is remembered as the
+        newest and as the topic's retained payload."""
+        newest = self.newest_published.get(kind, self.published_floor)
+        if newest is not None and ts < newest:
+            return False
+        self.newest_published[kind] = ts
+        self.retained[topic] = payload
+        return True
 
 
 class Service:
@@ -512,13 +526,13 @@ class Service:
         if started is None or self.fatal is not None:
             return self.fatal is not None
         now = self.clock.now()
-        if now >= started - self.cfg.max_skew:
+        if now >= started - max(self.cfg.max_skew, CLOCK_BACK_TOLERANCE):
             return False
-        why = (f"the clock went back to {now.isoformat()}, before grid instant "
-               f"{started.isoformat()} done already: today's windows and retained estimates are "
-               "of a time not come yet; a restart rebuilds them from the journal")
-        self.fatal = (EX_TEMPFAIL, why)
-        log.error("%s", why)
+        # (logged by whoever ends the process: `run` says it with the exit status)
+        self.fatal = (EX_TEMPFAIL, f"the clock went back to {now.isoformat()}, before grid "
+                                   f"instant {started.isoformat()} done already: today's "
+                                   "windows and retained estimates are of a time not come "
+                                   "yet; a restart rebuilds them from the journal")
         return True
 
     def _send_retained_again(self) -> None:
@@ -767,18 +781,15 @@ class Service:
                     self._publish_no_value(rt, e)
                 continue
             if kind == primary:
-                rt.without_value = False
                 topic, qos = rt.estimate_topic, 1
                 rt.monitor.roll(self.hours.day_of(e.ts))
                 rt.monitor.record_estimate(e.std)
             else:
                 topic, qos = rt.baseline_topics[kind], MONITORING_QOS
-            newest = rt.newest_published.get(kind, rt.published_floor)
-            retain = newest is None or e.ts >= newest
             payload = estimate_payload(e, unit)
-            if retain:
-                rt.newest_published[kind] = e.ts
-                rt.retained[topic] = payload
+            retain = rt.retains(kind, topic, e.ts, payload)
+            if retain and kind == primary:
+                rt.without_value = False
             self._publish(topic, payload, retain=retain, qos=qos)
             if kind == primary:
                 self.metrics.published(rt.cfg.id, e.quality, e.ts)
@@ -789,13 +800,12 @@ class Service:
         e.g. after a weekend's restart) goes out once, retained, with ``value`` and ``std``
         null: the retained message would otherwise stay the last one with a value, often
         ``ok``, what every new subscriber takes for the current state."""
-        primary = rt.twin.artifact.primary
-        newest = rt.newest_published.get(primary, rt.published_floor)
-        if rt.without_value or (newest is not None and e.ts < newest):
-            return  # said already, or an older instant: it must not replace the retained
+        if rt.without_value:
+            return  # said already
+        payload = estimate_payload(e, rt.twin.artifact.unit)
+        if not rt.retains(rt.twin.artifact.primary, rt.estimate_topic, e.ts, payload):
+            return  # an older instant: it must not replace the retained message
         rt.without_value = True
-        rt.newest_published[primary] = e.ts
-        payload = rt.retained[rt.estimate_topic] = estimate_payload(e, rt.twin.artifact.unit)
         # Not counted among the published estimates: the age of the last estimate (with a
         # value) is what an alert on a silent twin watches.
         self._publish(rt.estimate_topic, payload, retain=True, qos=1)
@@ -989,7 +999,10 @@ class Service:
     def _last_ticked(self) -> dt.datetime | None:
         path = Path(self.cfg.state_dir) / GRID_FILE
         try:
-            return dt.datetime.fromisoformat(json.loads(path.read_text())["ticked"])
+            ticked = dt.datetime.fromisoformat(json.loads(path.read_text())["ticked"])
+            if ticked.utcoffset() is None:
+                raise ValueError(f"{ticked.isoformat()} has no UTC offset")
+            return ticked
         except FileNotFoundError:
             return None
         except (OSError, ValueError, KeyError, TypeError) as exc:
