@@ -264,6 +264,10 @@ def test_global_log_level_before_a_delegated_subcommand(tmp_path: Path, capsys) 
     # CRITICAL too, as the configuration's log_level, and the bridge's own option alike (their
     # parsers only: running them at CRITICAL would silence the process's log for later tests)
     assert build_parser().parse_args(["--log-level", "critical"]).log_level == "CRITICAL"
+    # after the subcommand too (`run ... --log-level DEBUG` was "unrecognized arguments")
+    after = build_parser().parse_args(["run", "--config", "c.toml", "--log-level", "debug"])
+    assert (after.command, after.log_level) == ("run", "DEBUG")
+    assert build_parser().parse_args(["run", "--config", "c.toml"]).log_level is None
     assert bridge_parser().parse_args(
         ["--config", "b.toml", "--log-level", "Critical"]).log_level == "CRITICAL"
 

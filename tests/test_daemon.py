@@ -986,3 +986,18 @@ def test_readings_the_broker_kept_during_an_outage_are_not_blamed_on_the_sensor(
         pub.loop_stop()
     finally:
         svc.stop()
+
+
+def test_the_start_names_every_twin_its_primary_topic_and_training_age(
+        mosquitto, desk_artifact, tmp_path: Path, caplog) -> None:
+    """The start said "2 twin(s), 3 sensor(s)": a twin with nothing withheld was never
+    named, nor which model it publishes where, nor how old its training was."""
+    caplog.set_level(logging.INFO, logger="pseudotwin.edge.service")
+    art = Artifact.load(desk_artifact)
+    assert art.training_end is not None
+    svc = Service(config(tmp_path, mosquitto.port, desk_artifact),
+                  clock=HandClock(off_grid(9.0)))
+    age = (DAY - art.training_end).days
+    assert (f"twin desk: {art.primary} from {REF}, estimates on pt/desk/estimate; trained "
+            f"through {art.training_end} ({age} days ago)") in caplog.text
+    svc.journal.close()

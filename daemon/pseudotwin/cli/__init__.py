@@ -671,6 +671,7 @@ def cmd_record(a: argparse.Namespace) -> int:
         rec = Recorder(cfg)
     except ConfigError as exc:
         return _config_error("record", a.config, exc)
+    logging.getLogger().setLevel(a.log_level or cfg.log_level)  # as run
     return _serve(rec)
 
 
@@ -741,7 +742,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--version", action="version", version=f"pseudotwin {__version__}")
     p.add_argument("--log-level", type=str.upper, choices=LOG_LEVELS,
-                   help="default INFO (for run: the configuration's log_level)")
+                   help="default INFO (for run and record: the configuration's log_level)")
     sub = p.add_subparsers(dest="command", metavar="SUBCOMMAND")
 
     t = sub.add_parser("train", help="train a twin's models and write the model artifact",
@@ -860,6 +861,12 @@ def build_parser() -> argparse.ArgumentParser:
                    add_help=False)
     sub.add_parser("bridge", help="publish PLC symbols (ADS notifications) as MQTT readings",
                    add_help=False)
+    for name, sp in sub.choices.items():
+        if name not in DELEGATED:  # after the subcommand too: `pseudotwin run ... --log-level`
+            sp.add_argument("--log-level", type=str.upper, choices=LOG_LEVELS,
+                            default=argparse.SUPPRESS,
+                            help="as before the subcommand: default INFO (for run and record: "
+                                 "the configuration's log_level)")
     return p
 
 

@@ -211,6 +211,10 @@ class Service:
                 cfg.twin_topic(tid, "estimate"), cfg.twin_topic(tid, "monitor"),
                 {k: cfg.twin_topic(tid, "baseline", k) for k in twin.kinds if k != art.primary})
             self.twins[tid] = rt
+            end, today = art.training_end, self.hours.day_of(self.clock.now())
+            age = "" if end is None else f"; trained through {end} ({(today - end).days} days ago)"
+            log.info("twin %s: %s from %s, estimates on %s%s", tid, art.primary,
+                     ", ".join(tc.references), rt.estimate_topic, age)
             for s in {*tc.inputs, *([tc.target] if tc.target else [])}:
                 self.by_sensor[s].append(rt)
         if problems:
