@@ -386,13 +386,12 @@ class Bridge:
                 self._unacked.add(info.mid)
         return True
 
-    def _count_drop(self, why: str, n: int = 1) -> None:
+    def _count_drop(self, why: str) -> None:
         with self._count_lock:
-            before = self.dropped
-            self.dropped += n
-            after = self.dropped
-        if doubled(before, after):  # visible, but not one line per reading
-            log.warning("reading dropped: %s (%d dropped so far)", why, after)
+            self.dropped += 1
+            n = self.dropped
+        if doubled(n - 1, n):  # visible, but not one line per reading
+            log.warning("reading dropped: %s (%d dropped so far)", why, n)
 
     def _publish_state(self, up: bool) -> None:
         """The PLC state, retained; only while connected (call under ``_state_lock``):
