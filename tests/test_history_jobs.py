@@ -6,6 +6,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import logging
+import shutil
 from pathlib import Path
 
 import pandas as pd
@@ -31,6 +32,8 @@ from pseudotwin.core.series import read_history, write_history
 from pseudotwin.edge.clock import ReplayClock
 from pseudotwin.edge.recorder import Recorder, Spool
 from pseudotwin.edge.service import Service
+from pseudotwin.edge.statelock import StateLock
+from pseudotwin.errors import StateInUseError
 from pseudotwin.history.backfill import backfill
 from pseudotwin.history.store import open_store, to_ms
 from pseudotwin.live.artifact import Artifact, artifact_hash
@@ -231,6 +234,33 @@ def test_a_recorder_that_can_neither_store_nor_spool_says_degraded_sparingly(
         wait_for(lambda: rec.spooled == 1, what="the reading spooled")
         wait_for(lambda: last_status() == b"online", what="status online again")
         assert "spooling again after" in caplog.text
+    finally:
+        rec.stop()
+        pub.loop_stop()
+
+
+def test_a_recorder_whose_state_dir_is_deleted_spools_and_locks_it_again(
+    mosquitto, desk_artifact, tmp_path: Path, caplog
+) -> None:
+    """The recorder alone on its state dir: deleted, the spool failed every second until an
+    administrator made the folder again, and the lock was gone (a second recorder could
+    start there)."""
+    caplog.set_level(logging.WARNING, logger="pseudotwin")
+    db = tmp_path / "later" / "history.db"  # the store away: readings go to the spool
+    cfg = config(tmp_path, mosquitto.port, desk_artifact, store=str(db))
+    rec = Recorder(cfg, retry_seconds=0.2)
+    rec.start(wait_connected=15)
+    pub = publisher(mosquitto.port, "deleted-state-bridge")
+    try:
+        pub.publish("house/dining/temp", reading(HOURS.at(DAY, 8.0), 20.0), qos=1)
+        wait_for(lambda: rec.spooled == 1, what="the first reading spooled")
+        shutil.rmtree(cfg.state_dir)
+        pub.publish("house/dining/temp", reading(HOURS.at(DAY, 8.1), 20.1), qos=1)
+        wait_for(lambda: rec.spooled == 2, what="the second reading spooled")
+        assert rec.spool.load()[-1].value == 20.1
+        assert "was deleted while recording" in caplog.text
+        with pytest.raises(StateInUseError):  # locked again: no second recorder here
+            StateLock(Path(cfg.state_dir) / "recorder.lock", "recorder").acquire()
     finally:
         rec.stop()
         pub.loop_stop()

@@ -78,10 +78,14 @@ class Spool:
         self.offset_path = path.with_name(path.name + ".offset")
         path.parent.mkdir(parents=True, exist_ok=True)
 
-    def add(self, readings: list[Reading]) -> None:
-        # The state dir may have been deleted under a running recorder: spool all the same.
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+    def add(self, readings: list[Reading]) -> bool:
+        """Append ``readings``; True if the folder had to be made again (the state dir was
+        deleted under a running recorder: it spools all the same)."""
+        made = not self.path.parent.is_dir()
+        if made:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
         readinglines.append(self.path, readings)  # a torn last line is ended first
+        return made
 
     def consumed(self) -> int:
         """Bytes at the spool's start the store has taken (0: none, or no mark)."""
@@ -353,10 +357,14 @@ class Recorder:
         self._retry_spool()  # older readings first
         if batch and (self.spool.path.exists() or not self._write(batch)):
             try:
-                self.spool.add(batch)
+                remade = self.spool.add(batch)
             except OSError as exc:
                 self._stuck_on(len(batch), exc)
                 return False
+            if remade:
+                log.error("the state dir %s was deleted while recording; made again for the "
+                          "spool", self.spool.path.parent)
+                self.state_lock.renew()  # it went with the lock file
             self.spooled += len(batch)
             self.metrics.spooled.inc(len(batch))
             self._next_retry = min(self._next_retry or time.monotonic(),
