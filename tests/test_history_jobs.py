@@ -177,6 +177,7 @@ def test_a_long_spool_goes_to_the_store_a_piece_at_a_time(
     away (days of readings: seconds of CPU and hundreds of MB every few seconds), and wrote
     it in one piece when the store came back."""
     monkeypatch.setattr(recorder_module, "SPOOL_CHUNK", 10)
+    monkeypatch.setattr(recorder_module, "SPOOL_CHUNKS_PER_FLUSH", 2)  # 3 pieces: 2 flushes
     caplog.set_level(logging.INFO, logger="pseudotwin.edge.recorder")
     db = tmp_path / "later" / "history.db"  # its folder does not exist yet: store "down"
     cfg = config(tmp_path, mosquitto.port, desk_artifact, store=str(db))

@@ -156,6 +156,7 @@ class Recorder:
         # (a full disk): logged at the 1st, 2nd, 4th, ... of a run, not at every retry.
         self._store_failures = 0
         self._spool_failures = 0  # retries that could not read the spool or mark it
+        self._spool_written = 0  # spooled readings stored by the flushes of this drain
         self._stuck: int = 0
         self._stuck_since = 0.0
         self.already_stored = 0  # readings whose key was in the store already (first kept)
@@ -328,21 +329,24 @@ class Recorder:
             for piece, end in self.spool.chunks():
                 if pieces == SPOOL_CHUNKS_PER_FLUSH:
                     self.spool.consume(through)
+                    self._spool_written += written
                     return  # _next_retry not moved: the next flush goes on
                 if not self._write(piece, spooled=True):
                     break
                 written, through, pieces = written + len(piece), end, pieces + 1
             else:
-                if written:
-                    log.info("wrote %d spooled readings to the history store", written)
+                if total := self._spool_written + written:
+                    log.info("wrote %d spooled readings to the history store", total)
+                self._spool_written = 0
                 self.spool.clear()
                 self._store_back()
                 self._spool_failures = 0
                 return
             if through:
                 log.info("wrote %d spooled readings to the history store; the rest stays "
-                         "in the spool", written)
+                         "in the spool", self._spool_written + written)
                 self.spool.consume(through)
+                self._spool_written = 0
         except OSError as exc:
             self._spool_failures += 1
             if doubled(self._spool_failures - 1, self._spool_failures):
