@@ -155,6 +155,23 @@ def test_run_with_an_unknown_twin_exits_78_naming_it(tmp_path: Path, desk_artifa
     assert "unknown twin 'office-9'" in p.stderr and "Traceback" not in p.stderr
 
 
+def test_a_broken_artifact_stops_its_owner_only(tmp_path: Path, desk_artifact: Path) -> None:
+    """Every instance checked every twin's artifact: one bad retrained artifact made the
+    whole fleet exit 78, which systemd does not restart."""
+    from pseudotwin.cli import _load_service_config, _owned, build_parser
+
+    path = site_config(tmp_path, 1883, desk_artifact)
+    (tmp_path / "office-2.json").write_text("{ not json", encoding="utf-8")  # shard 1/2's
+    args = [build_parser().parse_args(["run", "--config", str(path), "--shard", f"{i}/2"])
+            for i in range(2)]
+    assert set(_load_service_config(path, _owned(args[0])).twins) == {"office-1", "office-3",
+                                                                      "office-2", "office-4"}
+    with pytest.raises(ConfigError, match="office-2.json"):
+        _load_service_config(path, _owned(args[1]))
+    with pytest.raises(ConfigError, match="office-2.json"):
+        _load_service_config(path)  # a single daemon runs them all
+
+
 # -- two instances on one real broker -------------------------------------------------------
 def start(cfg: ServiceConfig, shard: Shard) -> tuple[Service, FleetMember]:
     c, member = narrow(cfg, shard=shard)

@@ -556,10 +556,11 @@ def _artifact_check(twin: TwinConfig, hours: OperatingHours | None,
     return check_artifact(twin, hours=hours, thinning=thinning)
 
 
-def _load_service_config(path: Path) -> ServiceConfig:
+def _load_service_config(path: Path, only_twins: frozenset[str] | None = None
+                         ) -> ServiceConfig:
     from pseudotwin.config import check_config
 
-    return check_config(path, artifact_check=_artifact_check)
+    return check_config(path, artifact_check=_artifact_check, only_twins=only_twins)
 
 
 def _serve(process: Service | Recorder) -> int:
@@ -622,14 +623,17 @@ def cmd_run(a: argparse.Namespace) -> int:
     from pseudotwin.edge.clock import ReplayClock, SystemClock
     from pseudotwin.edge.service import Service
 
+    fleet = a.shard is not None or a.twins is not None
     try:
-        cfg = _load_service_config(a.config)
+        # A fleet instance checks its own twins' artifacts only: one twin's broken artifact
+        # must stop its owner, not every instance (78 is not restarted by systemd).
+        cfg = _load_service_config(a.config, _owned(a) if fleet else None)
     except ConfigError as exc:
         return _config_error("run", a.config, exc)
     logging.getLogger().setLevel(a.log_level or cfg.log_level)
     member = None
     try:
-        if a.shard is not None or a.twins is not None:
+        if fleet:
             from pseudotwin.edge.fleet import narrow
 
             cfg, member = narrow(cfg, shard=a.shard, twins=a.twins, metrics_port=a.metrics_port)
@@ -646,6 +650,15 @@ def cmd_run(a: argparse.Namespace) -> int:
         log.info("replay mode: clock starts at %s and runs at %g× real time",
                  a.replay_from.isoformat(), a.speed or 1.0)
     return _serve(Service(cfg, clock, member))
+
+
+def _owned(a: argparse.Namespace) -> frozenset[str]:
+    """The twins of ``run --shard/--twins``, from the file's own consistency alone."""
+    from pseudotwin.config import load_config
+    from pseudotwin.edge.fleet import narrow
+
+    _, member = narrow(load_config(a.config), shard=a.shard, twins=a.twins)
+    return frozenset(member.twins)
 
 
 def cmd_replay(a: argparse.Namespace) -> int:

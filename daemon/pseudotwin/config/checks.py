@@ -88,7 +88,7 @@ class StartupLoader(Loader):
             # empty database): missing, the recorder would only ever spool.
             if store is not None and "://" not in store and not Path(store).parent.is_dir():
                 self.add("service.store", f"directory {Path(store).parent} does not exist")
-        for loc, twin in twins:
+        for loc, twin in self.checked(twins):
             if twin.artifact.is_dir():
                 self.add(f"{loc}.artifact", f"{twin.artifact} is a directory, not an "
                                             "artifact file")
@@ -100,8 +100,10 @@ class StartupLoader(Loader):
 
 
 def check_config(path: str | os.PathLike[str], *,
-                 artifact_check: ArtifactCheck | None = None) -> ServiceConfig:
+                 artifact_check: ArtifactCheck | None = None,
+                 only_twins: frozenset[str] | None = None) -> ServiceConfig:
     """Everything :func:`~pseudotwin.config.loader.load_config` checks, plus what the service
     needs to start: each artifact exists (and passes ``artifact_check``), the CA file exists,
-    the password source is readable, and the state dir is not a file and could be created."""
-    return load_file(path, StartupLoader, artifact_check)
+    the password source is readable, and the state dir is not a file and could be created.
+    only_twins: check the artifacts of these twins only (a fleet instance's own)."""
+    return load_file(path, StartupLoader, artifact_check, only_twins)

@@ -82,9 +82,13 @@ class Loader:
                        "monitor_every_minutes")
     HOURS_KEYS = ("day_start", "day_end", "init_minutes", "slot_minutes", "timezone")
 
-    def __init__(self, base_dir: Path, *, artifact_check: ArtifactCheck | None = None) -> None:
+    def __init__(self, base_dir: Path, *, artifact_check: ArtifactCheck | None = None,
+                 only_twins: frozenset[str] | None = None) -> None:
+        """only_twins: the twins whose artifacts are checked (a fleet instance's own: another
+        instance's broken artifact is that instance's problem); None: all."""
         self.base_dir = base_dir
         self.artifact_check = artifact_check
+        self.only_twins = only_twins
         self.problems: list[str] = []
         self.hours: OperatingHours | None = None
         self.thinning: Thinning | None = None
@@ -373,9 +377,14 @@ class Loader:
         checked by ``artifact_check``. :class:`pseudotwin.config.checks.StartupLoader`
         checks what must hold at start-up instead."""
         if self.artifact_check is not None:
-            for loc, twin in twins:
+            for loc, twin in self.checked(twins):
                 if twin.artifact.is_file():
                     self.run_artifact_check(loc, twin)
+
+    def checked(self, twins: list[tuple[str, TwinConfig]]) -> list[tuple[str, TwinConfig]]:
+        """The twins whose artifacts are checked (``only_twins``)."""
+        only = self.only_twins
+        return twins if only is None else [(loc, t) for loc, t in twins if t.id in only]
 
     def run_artifact_check(self, loc: str, twin: TwinConfig) -> None:
         assert self.artifact_check is not None
@@ -419,11 +428,14 @@ def read_toml(path: Path) -> dict[str, Any]:
 
 
 def load_file(path: str | os.PathLike[str], make_loader: Callable[..., Loader],
-              artifact_check: ArtifactCheck | None = None) -> ServiceConfig:
-    """Read ``path`` and load it with ``make_loader(base_dir, artifact_check=...)``."""
+              artifact_check: ArtifactCheck | None = None,
+              only_twins: frozenset[str] | None = None) -> ServiceConfig:
+    """Read ``path`` and load it with ``make_loader(base_dir, artifact_check=...,
+    only_twins=...)``."""
     path = Path(path)
     doc = read_toml(path)
-    loader = make_loader(path.absolute().parent, artifact_check=artifact_check)
+    loader = make_loader(path.absolute().parent, artifact_check=artifact_check,
+                         only_twins=only_twins)
     config = loader.load(doc)
     if loader.problems or config is None:
         raise ConfigProblems(loader.problems or ["config: invalid"])
