@@ -1001,3 +1001,45 @@ def test_the_start_names_every_twin_its_primary_topic_and_training_age(
     assert (f"twin desk: {art.primary} from {REF}, estimates on pt/desk/estimate; trained "
             f"through {art.training_end} ({age} days ago)") in caplog.text
     svc.journal.close()
+
+
+def test_a_sensor_removed_from_the_configuration_is_unsubscribed_once(
+        mosquitto, desk_artifact, tmp_path: Path, caplog) -> None:
+    """The persistent session kept a removed sensor's subscription: every reading of it was
+    delivered (and queued while the daemon was down) and logged as unexpected, for good."""
+    path = write_config(tmp_path, mosquitto.port, desk_artifact)
+    base = path.read_text(encoding="utf-8")
+    path.write_text(base + '\n[[sensors]]\nid = "hall/temp"\ntopic = "house/hall/temp"\n'
+                           'unit = "°C"\nmin = -10\nmax = 50\n', encoding="utf-8")
+    first = Service(load_config(path), clock=HandClock(off_grid(9.0)))
+    first.start(wait_connected=15)
+    first.stop()
+    path.write_text(base, encoding="utf-8")  # the hall sensor removed
+    again = Service(load_config(path), clock=HandClock(off_grid(9.0)))
+    caplog.set_level(logging.WARNING, logger="pseudotwin.edge.service")
+    again.start(wait_connected=15)
+    pub = publisher(mosquitto.port, "hall-bridge")
+    try:
+        for k in range(2):
+            pub.publish("house/hall/temp", reading(HOURS.at(DAY, 8.9), 20.0 + k),
+                        qos=1).wait_for_publish(10)
+        said = lambda: [r for r in caplog.records if "house/hall/temp" in r.getMessage()]  # noqa: E731
+        wait_for(said, what="the removed sensor's reading noticed")
+        assert "unsubscribed" in said()[0].getMessage()
+        wait_for(lambda: again.health.received >= 2, what="both hall readings delivered")
+        assert len(said()) == 1  # said once
+    finally:
+        again.stop()
+    # Gone from the session: the next start hears nothing of the hall (one publisher's
+    # messages arrive in order, so the dining reading after it says the hall's would have).
+    third = Service(load_config(path), clock=HandClock(off_grid(9.0)))
+    third.start(wait_connected=15)
+    try:
+        pub.publish("house/hall/temp", reading(HOURS.at(DAY, 8.95), 21.0), qos=1)
+        pub.publish("house/dining/temp", reading(HOURS.at(DAY, 8.95), 17.0), qos=1)
+        wait_for(lambda: third.accepted >= 1, what="the dining reading taken")
+        assert len(said()) == 1 and third.health.received == 1
+    finally:
+        third.stop()
+        pub.disconnect()
+        pub.loop_stop()

@@ -241,6 +241,7 @@ class Service:
         # JOURNAL_RETRY_SECONDS (bounded by the broker's in-flight window; see _hold).
         self._held: list[tuple[Reading, tuple[int, int, int]]] = []
         self._republish = threading.Event()  # set on a connect without our session
+        self._unsubscribed: set[str] = set()  # topics of sensors no longer configured
         self._journal_retry_at = 0.0
         self._journal_s = 0.0  # the current batch's journal writes [s] (_log_long_batch)
         self._journal_recreated = 0
@@ -539,6 +540,20 @@ class Service:
                                    "yet; a restart rebuilds them from the journal")
         return True
 
+    def _unsubscribe_stale(self, topic: str) -> None:
+        """A message on a topic no configured sensor has: the broker's persistent session
+        still holds the subscription of a sensor since removed from the configuration (a
+        twin removed or moved to another fleet instance), and would deliver and queue its
+        readings for good. Sensor topics have no wildcards, so unsubscribing the topic
+        takes nothing else away; said once per topic."""
+        if topic in self._unsubscribed:
+            return
+        self._unsubscribed.add(topic)
+        self.client.unsubscribe(topic)
+        log.warning("message on %s, which no configured sensor has (a sensor removed from the "
+                    "configuration, still subscribed in the broker's session): ignored, and "
+                    "the topic unsubscribed", topic)
+
     def _send_retained_again(self) -> None:
         n = 0
         for rt in self.twins.values():
@@ -716,7 +731,7 @@ class Service:
         """The message's reading, or None (rejected and counted; the caller acks).
         backlog: messages waiting behind this one (the health's flood detection)."""
         if sensor is None:
-            log.warning("message on unexpected topic %s ignored", topic)
+            self._unsubscribe_stale(topic)
             return None
         day = self.hours.day_of(arrival)
         try:
