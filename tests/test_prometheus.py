@@ -189,7 +189,8 @@ def test_a_metrics_port_in_use_is_reported_before_anything_starts(
         path = with_metrics(write_config(tmp_path, mosquitto.port, desk_artifact),
                             f"port = {port}\n")
         svc = Service(load_config(path), clock=ReplayClock(off_grid(9.0), 1.0))
-        with pytest.raises(ConfigError, match=f"metrics.port: cannot listen on 127.0.0.1:{port}"):
+        with pytest.raises(ConfigError, match=f"metrics.port: cannot listen on 127.0.0.1:{port}"
+                                              ".*its own: `run --metrics-port`"):
             svc.start(wait_connected=1)
     assert not svc.client.is_connected() and not svc._threads
 

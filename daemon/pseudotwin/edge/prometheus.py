@@ -64,8 +64,10 @@ class MetricsServer:
         try:
             self._server, self._thread = start_http_server(port, addr=host, registry=registry)
         except OSError as exc:
+            hint = "; each daemon on one host needs its own: `run --metrics-port`" \
+                if what == "daemon" else ""
             raise ConfigError(f"metrics.{'port' if what == 'daemon' else 'record_port'}: "
-                              f"cannot listen on {host}:{port} ({exc.strerror or exc})") \
+                              f"cannot listen on {host}:{port} ({exc.strerror or exc}){hint}") \
                 from None
         self.port = int(self._server.server_port)
         log.info("%s Prometheus metrics on http://%s:%d/metrics", what, host, self.port)
