@@ -140,7 +140,7 @@ def test_an_instance_gets_only_its_twins_their_sensors_and_names_of_its_own(
     assert m.name != narrow(cfg, twins=["office-2"])[1].name
     with pytest.raises(ConfigError, match="unknown twin 'ofice-2' \\(did you mean 'office-2'"):
         narrow(cfg, twins=["ofice-2"])
-    with pytest.raises(ConfigError, match="listed twice"):
+    with pytest.raises(ConfigError, match="listed more than once: office-2$"):
         narrow(cfg, twins=["office-2", "office-2"])
     assert narrow(cfg, shard=Shard(0, 2), metrics_port=9200)[0].metrics.port == 9200
 

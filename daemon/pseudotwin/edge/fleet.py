@@ -100,8 +100,9 @@ def _explicit(twins: Sequence[str], configured: Collection[str]) -> tuple[str, .
     if unknown:
         raise ConfigError("; ".join(f"--twins: unknown twin {t!r}{suggest(t, configured)}"
                                     for t in unknown))
-    if len(set(twins)) != len(twins):
-        raise ConfigError("--twins: a twin is listed twice")
+    twice = sorted({t for t in twins if twins.count(t) > 1})
+    if twice:
+        raise ConfigError(f"--twins: listed more than once: {', '.join(twice)}")
     return tuple(t for t in configured if t in set(twins))  # the file's order
 
 

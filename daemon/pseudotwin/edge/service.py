@@ -1077,6 +1077,9 @@ class Service:
         self.state_lock.starting(lambda: self._start(wait_connected), self.metrics.close)
 
     def _start(self, wait_connected: float | None) -> None:
+        if self.member is not None:  # first: a failing start says which instance it was
+            log.info("fleet: %s; client id %s, state %s, status %s", self.member.describe(),
+                     self.cfg.broker.client_id, self.cfg.state_dir, self.status_topic)
         self.up_since = self.backlog_since = self.clock.now()
         if self.cfg.metrics.port is not None:  # a port in use fails before anything runs
             self.metrics.serve(self.cfg.metrics.host, self.cfg.metrics.port, "daemon")
@@ -1123,8 +1126,6 @@ class Service:
                  len(self.cfg.sensors), "" if self.connected.is_set()
                  else f"; connecting to {b.host}:{b.port}")
         if self.member is not None:
-            log.info("fleet: %s; client id %s, state %s, status %s", self.member.describe(),
-                     b.client_id, self.cfg.state_dir, self.status_topic)
             if not self.twins:
                 log.warning("fleet: %s owns no twin; it stays connected and idle (more "
                             "instances than twins, or an unlucky split)", self.member.label)
