@@ -9,14 +9,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
-from pseudotwin.edge.clock import EX_TEMPFAIL
+from pseudotwin.edge.clock import EX_TEMPFAIL as EX_TEMPFAIL  # the CLI's too
 from pseudotwin.errors import ConfigError, PseudotwinError
 
 if TYPE_CHECKING:
     from pseudotwin.config import ServiceConfig
 
 EX_CONFIG = 78  # sysexits: systemd's RestartPreventExitStatus keys on it
-__all__ = ["EX_CONFIG", "EX_TEMPFAIL"]  # EX_TEMPFAIL is edge.clock's, for the CLI
 
 #: Signals that stop a long-running process cleanly. SIGHUP too: a terminal closed under a
 #: foreground run killed it without a line or a clean stop; it reloads nothing.
