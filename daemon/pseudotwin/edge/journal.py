@@ -76,7 +76,8 @@ class Journal:
             self._rebuild()
         assert self._fh is not None
         if self._torn:
-            _end_line(self._fh)
+            if readinglines.torn(self._fh):
+                self._fh.write(b"\n")
             self._torn = False
         block = b"".join(readinglines.encode(readings))
         try:
@@ -155,7 +156,8 @@ class Journal:
     def _open(self, day: dt.date) -> None:
         fh = open(self._path(day), "a+b", buffering=0)  # noqa: SIM115
         try:
-            _end_line(fh)  # a crash cut the last line short: never glue the next one onto it
+            if readinglines.torn(fh):  # a crash cut the last line short: never glue the next
+                fh.write(b"\n")        # one onto it
         except OSError:
             fh.close()
             raise
@@ -221,11 +223,3 @@ def _copy_open(fh: BinaryIO, path: Path) -> None:
             if sent == 0:
                 raise OSError(errno.EIO, f"journal copy ended at {done} of {size} bytes")
             done += sent
-
-
-def _end_line(fh: BinaryIO) -> None:
-    """End the file's last line if a crash or a failed write left it torn."""
-    fd = fh.fileno()
-    size = os.fstat(fd).st_size
-    if size and os.pread(fd, 1, size - 1) != b"\n":
-        fh.write(b"\n")

@@ -9,6 +9,7 @@ import json
 import os
 from collections.abc import Iterable
 from pathlib import Path
+from typing import BinaryIO
 
 from pseudotwin.live.readings import Reading
 
@@ -36,10 +37,16 @@ def append(path: Path, readings: Iterable[Reading]) -> list[bytes]:
     lines = encode(readings)
     block = b"".join(lines)
     with open(path, "a+b") as fh:
-        if fh.seek(0, os.SEEK_END) > 0:
-            fh.seek(-1, os.SEEK_END)
-            if fh.read(1) != b"\n":
-                block = b"\n" + block
+        if torn(fh):
+            block = b"\n" + block
         if fh.write(block) != len(block):
             raise OSError(errno.ENOSPC, f"short write to {path}")
     return lines
+
+
+def torn(fh: BinaryIO) -> bool:
+    """Whether the open file's last line is cut short (a crash or a full disk mid-write):
+    the next line must not be glued onto it. Reads one byte, without moving ``fh``."""
+    fd = fh.fileno()
+    size = os.fstat(fd).st_size
+    return size > 0 and os.pread(fd, 1, size - 1) != b"\n"
