@@ -123,8 +123,10 @@ class Spool:
         write_replacing(self.offset_path, lambda tmp: tmp.write_text(text, encoding="ascii"))
 
     def clear(self) -> None:
-        self.path.unlink(missing_ok=True)
+        # The mark first: a crash in between leaves a spool written again whole (kept once
+        # by the store), never a mark that would skip a new spool's first readings.
         self.offset_path.unlink(missing_ok=True)
+        self.path.unlink(missing_ok=True)
 
 
 class Recorder:
@@ -189,8 +191,7 @@ class Recorder:
             return
         self._gen += 1
         self._subscription.subscribe(client)
-        client.publish(self.status_topic, "degraded" if self._stuck else "online", qos=1,
-                       retain=True)
+        self._send_status()
         log.info("recorder connected; recording %d sensor topics", len(self.cfg.sensors))
 
     def _on_message(self, client: mqtt.Client, userdata: Any, msg: mqtt.MQTTMessage) -> None:
