@@ -491,9 +491,39 @@ def test_the_systemd_units_verify_and_wait_for_readiness_however_long(tmp_path: 
             assert "\nTimeoutStartSec=infinity\n" in text, unit.name
         (tmp_path / unit.name).write_text(text.replace("/opt/pseudotwin/bin/pseudotwin",
                                                        str(exe)), encoding="utf-8")
-    done = subprocess.run(["systemd-analyze", "verify", *map(str, sorted(tmp_path.iterdir()))],
+    # The fleet's template: the daemon's unit under a template name, beside its drop-in.
+    shutil.copy(tmp_path / "pseudotwin.service", tmp_path / "pseudotwin@.service")
+    shutil.copytree(DEPLOY / "pseudotwin@.service.d", tmp_path / "pseudotwin@.service.d")
+    files = [*map(str, sorted(tmp_path.glob("*.service"))),
+             str(tmp_path / "pseudotwin@1-4.service")]
+    done = subprocess.run(["systemd-analyze", "verify", *files],
                           capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 0 and not done.stderr.strip(), done.stderr
+
+
+@pytest.mark.skipif(shutil.which("systemd-escape") is None, reason="no systemd-escape")
+def test_a_fleet_instance_of_the_template_runs_its_shard() -> None:
+    """pseudotwin@1-4.service: the unit's command line with the drop-in's options, the
+    instance name unescaped by systemd as %I, is `run --shard 1/4`; the plain unit passes no
+    option (an unset variable as a word of its own is no argument)."""
+    from pseudotwin.cli import build_parser
+    from pseudotwin.edge.fleet import Shard
+
+    unit = (DEPLOY / "pseudotwin.service").read_text(encoding="utf-8")
+    exec_start = re.search(r"^ExecStart=(.*)$", unit, re.M)
+    assert exec_start is not None
+    words = exec_start.group(1).split()
+    assert words[-1] == "$PSEUDOTWIN_RUN_ARGS"
+    plain = build_parser().parse_args(words[1:-1])
+    assert plain.command == "run" and plain.shard is None
+    dropin = (DEPLOY / "pseudotwin@.service.d" / "fleet.conf").read_text(encoding="utf-8")
+    env = re.search(r'^Environment="PSEUDOTWIN_RUN_ARGS=(.*)"$', dropin, re.M)
+    assert env is not None
+    instance = subprocess.run(["systemd-escape", "-u", "1-4"], capture_output=True,
+                              text=True, check=True).stdout.strip()
+    argv = [*words[1:-1], *env.group(1).replace("%I", instance).split()]
+    fleet = build_parser().parse_args(argv)
+    assert fleet.shard == Shard(1, 4) and fleet.config == Path("/etc/pseudotwin/config.toml")
 
 
 def test_the_image_and_the_tests_share_one_pinned_set_of_dependencies() -> None:
