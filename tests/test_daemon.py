@@ -48,7 +48,9 @@ class Viewer:
         self.ready = threading.Event()
         self.c = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=client_id or "",
                              clean_session=clean)
-        self.c.on_connect = lambda c, u, f, rc, p: (c.subscribe(topic, 1), self.ready.set())
+        # ready once subscribed: a message published before the SUBACK may not reach it
+        self.c.on_connect = lambda c, u, f, rc, p: c.subscribe(topic, 1)
+        self.c.on_subscribe = lambda c, u, mid, rcs, p: self.ready.set()
         self.c.on_message = self._on
         self.c.connect("127.0.0.1", port)
         self.c.loop_start()

@@ -29,6 +29,7 @@ from pseudotwin.config import ServiceConfig, load_config
 from pseudotwin.edge import homeassistant as ha
 from pseudotwin.edge.clock import ReplayClock
 from pseudotwin.edge.fleet import FleetMember, Shard, narrow, shard_of
+from pseudotwin.edge.ownership import Claim, Ownership
 from pseudotwin.edge.service import Service
 from pseudotwin.errors import ConfigError
 from test_daemon import Viewer, publisher, reading
@@ -288,12 +289,107 @@ def test_two_sharded_daemons_publish_every_twin_once_and_lose_nothing_on_a_resta
         assert ("pt/status", "online") not in statuses  # no shared status topic
         assert statuses[-1] == ("pt/status/shard-1-of-2", "online")
         assert ("pt/status/shard-0-of-2", "offline") not in statuses
+        # disjoint shards: each heard its own claims only
+        assert "published by another daemon too" not in caplog.text
     finally:
         for svc in (a, b, b2):
             if svc is not None and not svc.stop_event.is_set():
                 svc.stop()
         pub.loop_stop()
         viewer.close()
+
+
+def claims(viewer: Viewer, twin: str) -> list[dict]:
+    with viewer.lock:
+        return [b for tp, b in viewer.msgs if tp == f"pt/{twin}/owner" and isinstance(b, dict)]
+
+
+def conflicts(svc: Service, twin: str) -> float:
+    return svc.metrics.registry.get_sample_value(
+        "pseudotwin_twin_other_publishers_total", {"twin": twin}) or 0.0
+
+
+def test_two_daemons_owning_one_twin_both_say_so_and_a_claim_kept_while_away_is_answered(
+    tmp_path: Path, mosquitto, desk_artifact: Path, caplog
+) -> None:
+    """Overlapping --twins lists: office-2 is published by both instances. Each hears the
+    other's claim and logs it (the one that started first from the second's connect, the
+    second from the answer); the twins only one owns are not named. A claim the broker kept
+    for a stopped instance is answered at its return but not reported: its sender stopped."""
+    caplog.set_level(logging.ERROR, logger="pseudotwin.edge.service")
+    cfg = load_config(site_config(tmp_path, mosquitto.port, desk_artifact))
+    t0 = off_grid(12.0)
+
+    def start_twins(twins: list[str], at: dt.datetime) -> Service:
+        c, member = narrow(cfg, twins=twins)
+        svc = Service(c, clock=ReplayClock(at, 1.0), member=member)
+        svc.start(wait_connected=15)
+        return svc
+
+    viewer = Viewer(mosquitto.port, "pt/+/owner")
+    a = start_twins(["office-1", "office-2"], t0)
+    b = start_twins(["office-2", "office-3"], t0)
+    later: list[Service] = []
+    try:
+        wait_for(lambda: conflicts(a, "office-2") == 1 and conflicts(b, "office-2") == 1,
+                 what=lambda: caplog.text)
+        ids = {a.cfg.broker.client_id, b.cfg.broker.client_id}
+        errors = [r for r in caplog.records if "published by another daemon too" in r.message]
+        assert {next(i for i in ids if repr(i) in r.message) for r in errors} == ids
+        assert all("office-2" in r.message and "pt/office-2/estimate" in r.message
+                   for r in errors) and len(errors) == 2
+        assert conflicts(a, "office-1") == conflicts(b, "office-3") == 0
+        # each connect's claim, and one answer each: nothing goes back and forth
+        wait_for(lambda: len(claims(viewer, "office-2")) == 4, what="claims and answers")
+        assert [c["client_id"] for c in claims(viewer, "office-1")] == [a.cfg.broker.client_id]
+
+        a.stop()  # a's session keeps b's next claim
+        b.stop()
+        b2 = start_twins(["office-2", "office-3"], t0)
+        later.append(b2)
+        wait_for(lambda: len(claims(viewer, "office-2")) == 5, what="b's new claim")
+        b2.stop()
+        caplog.clear()
+        a2 = start_twins(["office-1", "office-2"], t0 + dt.timedelta(hours=1))
+        later.append(a2)
+        # a2's connect claim and its answer to b's kept claim (and to any of b's earlier
+        # ones that a's stop left unacknowledged), no report
+        since = a2.ownership.since
+        assert since is not None
+        wait_for(lambda: sum(c["since"] == since.isoformat()
+                             for c in claims(viewer, "office-2")) >= 2,
+                 what="a2's claim and answer")
+        assert conflicts(a2, "office-2") == 0 and "another daemon" not in caplog.text
+    finally:
+        for svc in (a, b, *later):
+            if not svc.stop_event.is_set():
+                svc.stop()
+        viewer.close()
+
+
+@pytest.mark.parametrize("payload", [
+    b"", b"not json", b"[]", b'{"client_id": "x"}',
+    b'{"client_id": "x", "host": "h", "pid": "1", "since": "2024-01-01T00:00:00+00:00", '
+    b'"sent": "2024-01-01T00:00:00+00:00"}',
+    b'{"client_id": "x", "host": "h", "pid": 1, "since": "2024-01-01T00:00:00", '
+    b'"sent": "2024-01-01T00:00:00+00:00"}',
+])
+def test_a_claim_that_is_not_one_is_refused(payload: bytes) -> None:
+    with pytest.raises(ValueError, match="not a claim|timezone-aware"):
+        Claim.parse(payload)
+
+
+def test_a_daemon_ignores_its_own_claims_and_those_of_its_previous_run() -> None:
+    own = Ownership("pt-a", "host", 1, {"pt/x/owner": "x"}, late=dt.timedelta(minutes=5))
+    own.start(NOON)
+    mine = Claim.parse(own.claim(NOON))
+    assert mine.client_id == "pt-a" and mine.since == mine.sent == NOON
+    earlier = Claim("pt-a", "host", 7, NOON - dt.timedelta(days=1), NOON - dt.timedelta(days=1))
+    for payload in (own.claim(NOON), earlier.payload()):
+        assert own.heard("pt/x/owner", payload, NOON) == (None, False, False)
+    other = Claim("pt-b", "other", 2, NOON, NOON - dt.timedelta(minutes=4))
+    assert own.heard("pt/x/owner", other.payload(), NOON) == (other, True, True)
+    assert own.heard("pt/x/owner", other.payload(), NOON) == (other, False, False)
 
 
 def test_an_instance_owning_no_twin_warns_and_stays_online(

@@ -165,6 +165,11 @@ class DaemonMetrics(_Metrics):
             "trained on: σ was measured before it, and months later it has measured too narrow; "
             "alert on time() minus this to plan a check with the desk sensor", ["twin"],
             registry=r)
+        self.other_publishers = Counter(
+            "pseudotwin_twin_other_publishers",
+            "Claims of one of this daemon's twins by another daemon (another MQTT client id) "
+            "while connected, each other daemon counted once per twin: both publish the "
+            "twin's estimates; alert on any increase", ["twin"], registry=r)
         self.journal_healthy = Gauge(
             "pseudotwin_journal_healthy",
             "1 while the journal can be written (status online), 0 while degraded",

@@ -20,7 +20,9 @@ from __future__ import annotations
 import datetime as dt
 import json
 import logging
+import os
 import queue
+import socket
 import threading
 import time
 from collections import Counter, defaultdict, deque
@@ -47,6 +49,7 @@ from pseudotwin.edge.mqttconn import (
     watch_takeover,
 )
 from pseudotwin.edge.outputs import estimate_payload, monitor_payload
+from pseudotwin.edge.ownership import CLAIM_SUFFIX, Ownership
 from pseudotwin.edge.prometheus import DaemonMetrics
 from pseudotwin.edge.sdnotify import notify, watchdog_interval
 from pseudotwin.edge.statelock import StateLock
@@ -272,8 +275,15 @@ class Service:
         self._gen = 0
         self._lock = threading.Lock()
         self._threads: list[threading.Thread] = []
-        self._subscription = Subscription([(s.topic, 1) for s in self.cfg.sensors.values()],
-                                          self.connected)
+        # Each twin's claim topic: a second daemon publishing one of our twins is told.
+        self.ownership = Ownership(
+            cfg.broker.client_id, socket.gethostname(), os.getpid(),
+            {cfg.twin_topic(tid, CLAIM_SUFFIX): tid for tid in self.twins},
+            late=max(cfg.max_skew, CLOCK_BACK_TOLERANCE))
+        self._connected_at = self.clock.now()  # of the latest connect
+        self._subscription = Subscription(
+            [(s.topic, 1) for s in self.cfg.sensors.values()]
+            + [(topic, 1) for topic in self.ownership.topics], self.connected)
         self.client = self._make_client()
         self.wakeups = WakeCoalescer(self.client)
         self.discovery, self.undiscovery = self._plan_discovery()
@@ -304,7 +314,7 @@ class Service:
             return
         with self._lock:
             self._gen += 1
-        self.backlog_since = self.clock.now()  # what the broker kept for us comes now
+        self.backlog_since = self._connected_at = self.clock.now()  # the broker's backlog comes now
         with self._sent_lock:
             self._unwritten_qos0.clear()
         self._subscription.subscribe(client)
@@ -317,6 +327,8 @@ class Service:
             self._forget_unretained()
         for topic, body in self.discovery.items():
             self._send(topic, body)
+        for topic in self.ownership.topics:  # after the subscription: others answer to it
+            self._send(topic, self.ownership.claim(self._connected_at), retain=False)
         if not flags.session_present:
             # A broker that lost our session (restarted without persistence) may have lost
             # the retained estimates too: the worker sends them again (in order with its
@@ -390,11 +402,17 @@ class Service:
     def _on_message(self, client: mqtt.Client, userdata: Any, msg: mqtt.MQTTMessage) -> None:
         if self.stop_event.is_set():
             return  # stopping: not queued, not acknowledged, redelivered on the next start
+        token = (self._gen, msg.mid, msg.qos)
+        if msg.topic in self.ownership.topics:
+            self._enqueue(("claim", msg.topic, msg.payload, token))
+            return
         self.health.received += 1
         sensor = self.cfg.sensor_for_topic(msg.topic)
         # perf_counter: the arrival the reading-to-estimate latency counts from.
-        item = ("msg", sensor, msg.topic, msg.payload, self.clock.now(), time.perf_counter(),
-                (self._gen, msg.mid, msg.qos), bool(msg.retain))
+        self._enqueue(("msg", sensor, msg.topic, msg.payload, self.clock.now(),
+                       time.perf_counter(), token, bool(msg.retain)))
+
+    def _enqueue(self, item: tuple[Any, ...]) -> None:
         while True:
             try:
                 self.queue.put(item, timeout=1.0)
@@ -540,19 +558,43 @@ class Service:
                                    "yet; a restart rebuilds them from the journal")
         return True
 
+    def _handle_claim(self, topic: str, payload: bytes, token: tuple[int, int, int]) -> None:
+        """A claim on one of our twins' claim topics (ownership.py): another daemon's is
+        answered once and, sent while we are connected, reported as a second publisher."""
+        try:
+            claim, answer, report = self.ownership.heard(topic, payload, self._connected_at)
+        except ValueError as exc:
+            log.warning("ignored a message on %s, which carries daemons' claims of the twin: "
+                        "%s", topic, exc)
+            return
+        finally:
+            self._ack(token)
+        if claim is None:
+            return
+        twin = self.ownership.topics[topic]
+        if report:
+            self.metrics.other_publishers.labels(twin).inc()
+            with twin_context(twin):
+                log.error("published by another daemon too: %s. Each sends its own estimates "
+                          "on %s, and a controller gets both, interleaved. Give the twin one "
+                          "owner (overlapping --twins lists? a plain `run` beside a fleet?) "
+                          "and stop the other", claim.who(), self.twins[twin].estimate_topic)
+        if answer:
+            self._send(topic, self.ownership.claim(self.clock.now()), retain=False)
+
     def _unsubscribe_stale(self, topic: str) -> None:
-        """A message on a topic no configured sensor has: the broker's persistent session
-        still holds the subscription of a sensor since removed from the configuration (a
-        twin removed or moved to another fleet instance), and would deliver and queue its
-        readings for good. Sensor topics have no wildcards, so unsubscribing the topic
-        takes nothing else away; said once per topic."""
+        """A message on a topic no configured sensor or twin has: the broker's persistent
+        session still holds the subscription of a sensor (or a twin's claim topic) since
+        removed from the configuration (a twin removed or moved to another fleet instance),
+        and would deliver and queue its messages for good. These topics have no wildcards,
+        so unsubscribing the topic takes nothing else away; said once per topic."""
         if topic in self._unsubscribed:
             return
         self._unsubscribed.add(topic)
         self.client.unsubscribe(topic)
-        log.warning("message on %s, which no configured sensor has (a sensor removed from the "
-                    "configuration, still subscribed in the broker's session): ignored, and "
-                    "the topic unsubscribed", topic)
+        log.warning("message on %s, which no configured sensor or twin has (one removed from "
+                    "the configuration, still subscribed in the broker's session): ignored, "
+                    "and the topic unsubscribed", topic)
 
     def _send_retained_again(self) -> None:
         n = 0
@@ -581,6 +623,8 @@ class Service:
                 return False
             if kind == "msg":
                 messages.append(item)
+            elif kind == "claim":
+                self._guarded("claim", self._handle_claim, *item[1:])
             # ("wake",): the broker took enough of what was sent; the loop goes on
             elif kind == "tick":  # readings before it go first, as they arrived
                 self._guarded("msg", self._handle_messages, messages)
@@ -1081,6 +1125,7 @@ class Service:
             log.info("fleet: %s; client id %s, state %s, status %s", self.member.describe(),
                      self.cfg.broker.client_id, self.cfg.state_dir, self.status_topic)
         self.up_since = self.backlog_since = self.clock.now()
+        self.ownership.start(self.up_since)
         if self.cfg.metrics.port is not None:  # a port in use fails before anything runs
             self.metrics.serve(self.cfg.metrics.host, self.cfg.metrics.port, "daemon")
         self.restore()
