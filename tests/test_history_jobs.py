@@ -157,6 +157,41 @@ def test_a_retained_reading_without_a_timestamp_is_not_taken_again_at_each_subsc
         pub.loop_stop()
 
 
+def test_the_recorder_unsubscribes_a_sensor_removed_from_the_configuration_once(
+    mosquitto, desk_artifact, tmp_path: Path, caplog
+) -> None:
+    """As the daemon: the persistent session kept a removed sensor's subscription, and the
+    recorder took every reading of it in and dropped it without a word, for good."""
+    path = write_config(tmp_path, mosquitto.port, desk_artifact,
+                        store=str(tmp_path / "history.db"))
+    base = path.read_text(encoding="utf-8")
+    path.write_text(base + '\n[[sensors]]\nid = "hall/temp"\ntopic = "house/hall/temp"\n'
+                           'unit = "°C"\nmin = -10\nmax = 50\n', encoding="utf-8")
+    first = Recorder(load_config(path), retry_seconds=0.2)
+    first.start(wait_connected=15)
+    first.stop()
+    path.write_text(base, encoding="utf-8")  # the hall sensor removed
+    caplog.set_level(logging.WARNING, logger="pseudotwin.edge.mqttconn")
+    said = lambda: [r for r in caplog.records if "house/hall/temp" in r.getMessage()]  # noqa: E731
+    pub = publisher(mosquitto.port, "hall-panel")
+    for n in (1, 2):  # the restart after the change, then the next
+        for k in range(2):  # the first restart's session keeps them; the next has none
+            pub.publish("house/hall/temp", reading(HOURS.at(DAY, 8.9), 20.0 + k),
+                        qos=1).wait_for_publish(10)
+        rec = Recorder(load_config(path), retry_seconds=0.2, flush_seconds=0.05)
+        rec.start(wait_connected=15)
+        try:
+            # one publisher's messages arrive in order: the hall's came before this one
+            pub.publish("house/dining/temp", reading(HOURS.at(DAY, 8.9 + n / 100), 20.0),
+                        qos=1).wait_for_publish(10)
+            wait_for(lambda r=rec: r.written == 1, what="the dining reading stored")
+        finally:
+            rec.stop()
+        assert len(said()) == 1 and "recorder" in said()[0].getMessage() \
+            and "unsubscribed" in said()[0].getMessage()  # said once, and gone at the next
+    pub.loop_stop()
+
+
 def test_a_spool_line_cut_short_costs_no_later_reading(tmp_path: Path) -> None:
     """A crash or a full disk mid-write leaves the spool's last line torn: the readings spooled
     after it (acknowledged, the store being away) must not be glued onto it and lost."""

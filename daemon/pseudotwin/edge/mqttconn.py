@@ -152,3 +152,24 @@ class Subscription:
             log.error("the broker refused the subscription to %s (its ACL?): no readings "
                       "from them", ", ".join(refused))
         self.ready()
+
+
+class StaleTopics:
+    """Topics the broker's persistent session still delivers though no configured sensor or
+    twin has them any more (one removed from the configuration, or moved to another fleet
+    instance): the session would deliver and queue their messages for good. Each is
+    unsubscribed once, with one log line; these topics have no wildcards, so unsubscribing
+    one takes nothing else away. ``who``: the process, for the log ("daemon", "recorder")."""
+
+    def __init__(self, who: str) -> None:
+        self.who = who
+        self._seen: set[str] = set()
+
+    def drop(self, client: mqtt.Client, topic: str) -> None:
+        if topic in self._seen:
+            return
+        self._seen.add(topic)
+        client.unsubscribe(topic)
+        log.warning("%s: message on %s, which no configured sensor or twin has (one removed "
+                    "from the configuration, still subscribed in the broker's session): "
+                    "ignored, and the topic unsubscribed", self.who, topic)

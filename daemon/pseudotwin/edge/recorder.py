@@ -31,6 +31,7 @@ from pseudotwin.core.series import write_history
 from pseudotwin.edge import readinglines
 from pseudotwin.edge.clock import Clock, SystemClock
 from pseudotwin.edge.mqttconn import (
+    StaleTopics,
     Subscription,
     make_client,
     refused_fatally,
@@ -174,6 +175,7 @@ class Recorder:
         self.client.on_disconnect = lambda *a: self.connected.clear()
         watch_takeover(self.client, f"{cfg.broker.client_id}-recorder")
         self.client.on_message = self._on_message
+        self._stale_topics = StaleTopics("recorder")
         self._subscription = Subscription([(s.topic, 1) for s in cfg.sensors.values()],
                                           self.connected)
         self.client.on_subscribe = self._subscription.on_subscribe
@@ -195,8 +197,8 @@ class Recorder:
         log.info("recorder connected; recording %d sensor topics", len(self.cfg.sensors))
 
     def _on_message(self, client: mqtt.Client, userdata: Any, msg: mqtt.MQTTMessage) -> None:
-        item = (self.cfg.sensor_for_topic(msg.topic), msg.payload, self.clock.now(),
-                (self._gen, msg.mid, msg.qos), bool(msg.retain))
+        item = (self.cfg.sensor_for_topic(msg.topic), msg.topic, msg.payload,
+                self.clock.now(), (self._gen, msg.mid, msg.qos), bool(msg.retain))
         while not self.stop_event.is_set():
             try:
                 self.queue.put(item, timeout=1.0)
@@ -418,7 +420,9 @@ class Recorder:
                 self._guarded_flush(batch, tokens)
                 return
             if item is not None:
-                sensor, payload, arrival, token, retained = item
+                sensor, topic, payload, arrival, token, retained = item
+                if sensor is None:  # (the daemon's twin claim topics are not subscribed)
+                    self._stale_topics.drop(self.client, topic)
                 r = self._parse(sensor, payload, arrival, retained)
                 if r is not None:
                     batch.append(r)

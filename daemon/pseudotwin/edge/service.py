@@ -43,6 +43,7 @@ from pseudotwin.edge.fleet import FleetMember
 from pseudotwin.edge.health import Health
 from pseudotwin.edge.journal import Journal
 from pseudotwin.edge.mqttconn import (
+    StaleTopics,
     Subscription,
     make_client,
     refused_fatally,
@@ -244,7 +245,7 @@ class Service:
         # JOURNAL_RETRY_SECONDS (bounded by the broker's in-flight window; see _hold).
         self._held: list[tuple[Reading, tuple[int, int, int]]] = []
         self._republish = threading.Event()  # set on a connect without our session
-        self._unsubscribed: set[str] = set()  # topics of sensors no longer configured
+        self._stale_topics = StaleTopics("daemon")
         self._journal_retry_at = 0.0
         self._journal_s = 0.0  # the current batch's journal writes [s] (_log_long_batch)
         self._journal_recreated = 0
@@ -582,20 +583,6 @@ class Service:
         if answer:
             self._send(topic, self.ownership.claim(self.clock.now()), retain=False)
 
-    def _unsubscribe_stale(self, topic: str) -> None:
-        """A message on a topic no configured sensor or twin has: the broker's persistent
-        session still holds the subscription of a sensor (or a twin's claim topic) since
-        removed from the configuration (a twin removed or moved to another fleet instance),
-        and would deliver and queue its messages for good. These topics have no wildcards,
-        so unsubscribing the topic takes nothing else away; said once per topic."""
-        if topic in self._unsubscribed:
-            return
-        self._unsubscribed.add(topic)
-        self.client.unsubscribe(topic)
-        log.warning("message on %s, which no configured sensor or twin has (one removed from "
-                    "the configuration, still subscribed in the broker's session): ignored, "
-                    "and the topic unsubscribed", topic)
-
     def _send_retained_again(self) -> None:
         n = 0
         for rt in self.twins.values():
@@ -775,7 +762,7 @@ class Service:
         """The message's reading, or None (rejected and counted; the caller acks).
         backlog: messages waiting behind this one (the health's flood detection)."""
         if sensor is None:
-            self._unsubscribe_stale(topic)
+            self._stale_topics.drop(self.client, topic)
             return None
         day = self.hours.day_of(arrival)
         try:
