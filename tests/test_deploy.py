@@ -195,7 +195,9 @@ def promql_metric_names() -> set[str]:
     exprs += [v["definition"] for v in dashboard()["templating"]["list"]
               if v["datasource"]["uid"] == PROM_UID]
     for expr in exprs:
-        expr = expr.replace("$__rate_interval", "1m").replace("$twin", ".*")
+        for variable, value in (("$__rate_interval", "1m"), ("$__range", "6h"),
+                                ("$twin", ".*")):
+            expr = expr.replace(variable, value)
         assert "$" not in expr, f"unexpanded Grafana variable in {expr!r}"
         m = re.fullmatch(r"label_values\((\w+), *\w+\)", expr)
         if m:  # a variable query: Grafana's function, not PromQL

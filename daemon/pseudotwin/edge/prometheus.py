@@ -180,6 +180,8 @@ class DaemonMetrics(_Metrics):
         self._estimates = {(t, str(q)): self.estimates.labels(t, str(q))
                            for t in twins for q in Quality
                            if q != Quality.INIT}  # never published
+        for t in twins:  # exported from 0: an alert on its increase needs the series
+            self.other_publishers.labels(t)
         self._last_estimate: dict[str, Gauge] = {}
         self._last_stamp: dict[str, float] = {}
 
