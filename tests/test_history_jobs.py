@@ -597,6 +597,21 @@ def test_daemon_warm_starts_from_the_store_without_a_checkpoint(
     again.journal.close()
 
 
+def test_a_warm_start_from_a_store_not_there_says_where_it_looked_and_makes_none(
+    mosquitto, desk_artifact, tmp_path: Path, caplog
+) -> None:
+    """The daemon only reads the store: a mistyped (or, after an upgrade, differently
+    resolved) path made an empty database there, and the log said "0 stored readings"."""
+    db = tmp_path / "history.db"
+    cfg = config(tmp_path, mosquitto.port, desk_artifact, store=str(db))
+    caplog.set_level(logging.WARNING, logger="pseudotwin.edge.service")
+    svc = Service(cfg, ReplayClock(HOURS.at(DAY, 12.0), 1.0))
+    assert svc.restore() == 0
+    svc.journal.close()
+    assert not db.exists()
+    assert f"no history store at {db} yet" in caplog.text
+
+
 def test_a_warm_start_takes_a_reading_stamped_ahead_within_max_skew(
     mosquitto, desk_artifact, tmp_path: Path
 ) -> None:

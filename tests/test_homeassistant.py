@@ -5,6 +5,7 @@ MQTT sensor schema: https://www.home-assistant.io/integrations/sensor.mqtt/)."""
 from __future__ import annotations
 
 import json
+import logging
 import queue
 import re
 import shutil
@@ -361,3 +362,24 @@ def test_a_twin_leaving_the_config_takes_its_retained_estimates_with_it(
         assert "pt/desk.two/estimate" in retained(mqtt_client, "pt/desk.two/#")
     finally:
         svc.stop()
+
+
+
+def test_a_state_dir_of_a_release_without_outputs_json_says_what_it_cannot_clear(
+    tmp_path, mosquitto, desk_artifact, caplog
+) -> None:
+    """An upgrade from a release before outputs.json: a twin removed in the same change kept
+    its retained estimate, `ok`, for good, and nothing said so."""
+    off = "[homeassistant]\nenabled = false"
+    svc = start(ha_config(tmp_path, mosquitto.port, desk_artifact, off))
+    svc.stop()
+    caplog.set_level(logging.WARNING, logger="pseudotwin.edge.service")
+    said = lambda: [r for r in caplog.records if "outputs.json is missing" in r.getMessage()]  # noqa: E731
+    svc = start(ha_config(tmp_path, mosquitto.port, desk_artifact, off))  # remembered now
+    svc.stop()
+    assert not said()
+    (tmp_path / "state" / "outputs.json").unlink()  # as an older release leaves the state
+    svc = start(ha_config(tmp_path, mosquitto.port, desk_artifact, off))
+    svc.stop()
+    assert len(said()) == 1 and "mosquitto_pub -r -n -t pt/<twin>/estimate" in said()[0].message
+    assert (tmp_path / "state" / "outputs.json").exists()  # and the next start knows

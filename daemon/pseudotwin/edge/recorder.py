@@ -24,6 +24,7 @@ import paho.mqtt.client as mqtt
 import pandas as pd
 
 from pseudotwin.config import SensorConfig, ServiceConfig
+from pseudotwin.config.validate import sqlite_file
 from pseudotwin.core import series
 from pseudotwin.core.files import write_replacing
 from pseudotwin.core.logpace import doubled
@@ -176,6 +177,7 @@ class Recorder:
         watch_takeover(self.client, f"{cfg.broker.client_id}-recorder")
         self.client.on_message = self._on_message
         self._stale_topics = StaleTopics("recorder")
+        self._said_new_store = False
         self._subscription = Subscription([(s.topic, 1) for s in cfg.sensors.values()],
                                           self.connected)
         self.client.on_subscribe = self._subscription.on_subscribe
@@ -238,6 +240,11 @@ class Recorder:
             self._drop_store()
         if self.store is None:
             assert self.store_url is not None
+            file = sqlite_file(self.store_url)
+            if file is not None and not Path(file).exists() and not self._said_new_store:
+                self._said_new_store = True  # once: a failing open is retried every few s
+                log.info("creating the history store %s (a new SQLite file; a relative path "
+                         "is from the configuration's folder)", file)
             self.store = open_store(self.store_url)
             self._store_ident = _file_ident(self.store)
         return self.store

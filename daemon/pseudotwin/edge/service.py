@@ -35,6 +35,7 @@ import paho.mqtt.client as mqtt
 from paho.mqtt.enums import MQTTErrorCode
 
 from pseudotwin.config import SensorConfig, ServiceConfig, TwinConfig
+from pseudotwin.config.validate import sqlite_file
 from pseudotwin.core.files import write_replacing
 from pseudotwin.core.twinlog import twin_context
 from pseudotwin.edge import homeassistant as ha
@@ -105,6 +106,7 @@ CLOCK_BACK_TOLERANCE = dt.timedelta(minutes=1)
 #: The last grid instant ticked (state_dir): how recent a retained estimate the run before
 #: this one may have left (TwinRuntime.published_floor).
 GRID_FILE = "grid.json"
+LOCK_FILE = "daemon.lock"  # one daemon per state dir (statelock.py)
 # A grid instant's estimates are made this long after it (clock time): a reading stamped
 # exactly at the instant (a bridge polling on the quarter hour) reaches the daemon a little
 # after it, and evaluate and backfill count it in. A reading stamped past the instant
@@ -227,7 +229,7 @@ class Service:
         self.stop_event = threading.Event()
         self.connected = threading.Event()
         self.journal = Journal(Path(cfg.state_dir) / "journal")
-        self.state_lock = StateLock(Path(cfg.state_dir) / "daemon.lock", "daemon")
+        self.state_lock = StateLock(Path(cfg.state_dir) / LOCK_FILE, "daemon")
         self.rejections = RejectionCounter(log, LOG_REJECTIONS_PER_KEY)
         self.health = Health(self._set_status, cfg.queue_size)
         self.metrics = DaemonMetrics(cfg.sensors, self.twins)  # served only with [metrics]
@@ -373,7 +375,20 @@ class Service:
         # Twins of other fleet instances are not gone: their owners publish them.
         theirs = tuple(self.cfg.twin_topic(t, "") for t in
                        (self.member.others if self.member else ()))
-        remembered = ha.load_published(Path(self.cfg.state_dir), OUTPUTS_FILE)
+        state = Path(self.cfg.state_dir)
+        remembered = ha.load_published(state, OUTPUTS_FILE)
+        # The daemon's own files (the recorder may share the folder, and start first).
+        used = any((state / f).exists() for f in (LOCK_FILE, GRID_FILE, ha.STATE_FILE)) \
+            or any(self.journal.folder.glob("*.jsonl"))
+        if used and not (state / OUTPUTS_FILE).exists():
+            # A state dir of an earlier run without the file: a release before it, or the
+            # file deleted. What that run published is unknown, so nothing can be cleared.
+            log.warning("%s is missing from %s, which an earlier run used (an older release, "
+                        "or the file deleted): the retained estimates and baselines of twins "
+                        "removed or renamed before this start are not known and stay retained "
+                        "as if current; clear each by hand (mosquitto_pub -r -n -t "
+                        "%s/<twin>/estimate, and .../baseline/<kind>). From now on they are "
+                        "remembered", OUTPUTS_FILE, state, self.cfg.base_topic)
         gone = sorted(t for t in remembered - set(current) if not t.startswith(theirs))
         return current, gone
 
@@ -1075,8 +1090,14 @@ class Service:
 
         sensors = sorted(self.by_sensor)
         assert self.cfg.store is not None
+        if (file := sqlite_file(self.cfg.store)) is not None and not Path(file).exists():
+            # The recorder makes it; an empty one made here would hide a mistyped path.
+            log.warning("warm start: no history store at %s yet (the recorder creates it; "
+                        "a relative path is from the configuration's folder); today's "
+                        "windows start empty", file)
+            return 0
         try:
-            with open_store(self.cfg.store) as store:
+            with open_store(self.cfg.store, existing=True) as store:
                 # as far ahead as restore() takes journaled readings: a sensor whose clock
                 # runs ahead has its latest reading stamped up to max_skew after now
                 frame = store.read_readings(sensors, since, now + self.cfg.max_skew
