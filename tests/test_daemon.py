@@ -1005,6 +1005,31 @@ def test_the_start_names_every_twin_its_primary_topic_and_training_age(
     svc.journal.close()
 
 
+def test_a_stale_topic_met_while_not_connected_is_unsubscribed_at_its_next_message(
+        mosquitto, caplog) -> None:
+    """paho sends no UNSUBSCRIBE without a connection: the topic was marked done and logged
+    as unsubscribed, and stayed subscribed for the rest of the run."""
+    from pseudotwin.edge.mqttconn import StaleTopics
+
+    client = mqtt.Client(CallbackAPIVersion.VERSION2)
+    stale = StaleTopics("daemon")
+    caplog.set_level(logging.WARNING)
+    stale.drop(client, "house/hall/temp")  # not connected (a message drained after a drop)
+    assert "house/hall/temp" not in caplog.text  # nothing sent, nothing said: tried again
+    connected = threading.Event()
+    client.on_connect = lambda c, u, f, rc, p: connected.set()
+    client.connect("127.0.0.1", mosquitto.port)
+    client.loop_start()
+    try:
+        assert connected.wait(10)
+        stale.drop(client, "house/hall/temp")  # the next message, connected
+        stale.drop(client, "house/hall/temp")
+    finally:
+        client.disconnect()
+        client.loop_stop()
+    assert caplog.text.count("house/hall/temp") == 1 and "unsubscribed" in caplog.text
+
+
 def test_a_sensor_removed_from_the_configuration_is_unsubscribed_once(
         mosquitto, desk_artifact, tmp_path: Path, caplog) -> None:
     """The persistent session kept a removed sensor's subscription: every reading of it was

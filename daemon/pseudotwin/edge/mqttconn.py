@@ -149,27 +149,30 @@ class Subscription:
         refused = [t for (t, _), rc in zip(self.topics, reason_codes, strict=False)
                    if rc.is_failure]
         if refused:
-            log.error("the broker refused the subscription to %s (its ACL?): no readings "
-                      "from them", ", ".join(refused))
+            log.error("the broker refused the subscription to %s (its ACL?): nothing "
+                      "arrives on them", ", ".join(refused))
         self.ready()
 
 
 class StaleTopics:
-    """Topics the broker's persistent session still delivers though no configured sensor or
-    twin has them any more (one removed from the configuration, or moved to another fleet
-    instance): the session would deliver and queue their messages for good. Each is
-    unsubscribed once, with one log line; these topics have no wildcards, so unsubscribing
-    one takes nothing else away. ``who``: the process, for the log ("daemon", "recorder")."""
+    """Topics the broker's persistent session still delivers though no configured sensor has
+    them any more (removed from the configuration, or its twin moved to another fleet
+    instance): the session would deliver and queue their readings for good. Each is
+    unsubscribed once, with one log line (tried again at its next message while the client
+    is not connected); sensor topics have no wildcards, so unsubscribing one takes nothing
+    else away. ``who``: the process, for the log ("daemon", "recorder")."""
 
     def __init__(self, who: str) -> None:
         self.who = who
-        self._seen: set[str] = set()
+        self._done: set[str] = set()
 
     def drop(self, client: mqtt.Client, topic: str) -> None:
-        if topic in self._seen:
+        if topic in self._done:
             return
-        self._seen.add(topic)
-        client.unsubscribe(topic)
-        log.warning("%s: message on %s, which no configured sensor or twin has (one removed "
-                    "from the configuration, still subscribed in the broker's session): "
-                    "ignored, and the topic unsubscribed", self.who, topic)
+        rc, _ = client.unsubscribe(topic)
+        if rc != mqtt.MQTT_ERR_SUCCESS:  # not connected: nothing was sent
+            return
+        self._done.add(topic)
+        log.warning("%s: message on %s, which no configured sensor has (a sensor removed from "
+                    "the configuration, still subscribed in the broker's session): ignored, "
+                    "and the topic unsubscribed", self.who, topic)
