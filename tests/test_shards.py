@@ -29,7 +29,7 @@ from pseudotwin.config import ServiceConfig, load_config
 from pseudotwin.edge import homeassistant as ha
 from pseudotwin.edge.clock import ReplayClock
 from pseudotwin.edge.fleet import FleetMember, Shard, narrow, shard_of
-from pseudotwin.edge.ownership import Claim, Ownership
+from pseudotwin.edge.ownership import STILL_THERE, Claim, Heard, Ownership, Run
 from pseudotwin.edge.service import Service
 from pseudotwin.errors import ConfigError
 from test_daemon import Viewer, publisher, reading
@@ -299,67 +299,74 @@ def test_two_sharded_daemons_publish_every_twin_once_and_lose_nothing_on_a_resta
         viewer.close()
 
 
-def claims(viewer: Viewer, twin: str) -> list[dict]:
+def claims(viewer: Viewer) -> list[dict]:
     with viewer.lock:
-        return [b for tp, b in viewer.msgs if tp == f"pt/{twin}/owner" and isinstance(b, dict)]
+        return [b for tp, b in viewer.msgs if tp == "pt/claims" and isinstance(b, dict)]
 
 
-def conflicts(svc: Service, twin: str) -> float:
-    return svc.metrics.registry.get_sample_value(
-        "pseudotwin_twin_other_publishers_total", {"twin": twin}) or 0.0
+def publishers(svc: Service, twin: str) -> float | None:
+    return svc.metrics.registry.get_sample_value("pseudotwin_twin_other_publishers",
+                                                 {"twin": twin})
 
 
 def test_two_daemons_owning_one_twin_both_say_so_and_a_claim_kept_while_away_is_answered(
     tmp_path: Path, mosquitto, desk_artifact: Path, caplog
 ) -> None:
-    """Overlapping --twins lists: office-2 is published by both instances. Each hears the
-    other's claim and logs it (the one that started first from the second's connect, the
-    second from the answer); the twins only one owns are not named. A claim the broker kept
-    for a stopped instance is answered at its return but not reported: its sender stopped."""
+    """Overlapping --twins lists: office-2 is published by both instances. The one started
+    first answers the second's claim, the second reports it and answers in turn, and the
+    first reports that: both say so, naming the other, and nothing more goes back and forth.
+    A claim the broker kept for a stopped instance is answered at its return but not
+    reported: its sender stopped meanwhile."""
     caplog.set_level(logging.ERROR, logger="pseudotwin.edge.service")
     cfg = load_config(site_config(tmp_path, mosquitto.port, desk_artifact))
-    t0 = off_grid(12.0)
 
-    def start_twins(twins: list[str], at: dt.datetime) -> Service:
+    def start_twins(twins: list[str]) -> Service:
         c, member = narrow(cfg, twins=twins)
-        svc = Service(c, clock=ReplayClock(at, 1.0), member=member)
+        svc = Service(c, clock=ReplayClock(off_grid(12.0), 1.0), member=member)
         svc.start(wait_connected=15)
         return svc
 
-    viewer = Viewer(mosquitto.port, "pt/+/owner")
-    a = start_twins(["office-1", "office-2"], t0)
-    b = start_twins(["office-2", "office-3"], t0)
+    def reports() -> list[logging.LogRecord]:
+        return [r for r in caplog.records if "published by another daemon too" in r.message]
+
+    viewer = Viewer(mosquitto.port, "pt/claims")
+    a = start_twins(["office-1", "office-2"])
+    b = start_twins(["office-2", "office-3"])
     later: list[Service] = []
     try:
-        wait_for(lambda: conflicts(a, "office-2") == 1 and conflicts(b, "office-2") == 1,
+        wait_for(lambda: publishers(a, "office-2") == 1 == publishers(b, "office-2"),
                  what=lambda: caplog.text)
-        ids = {a.cfg.broker.client_id, b.cfg.broker.client_id}
-        errors = [r for r in caplog.records if "published by another daemon too" in r.message]
-        assert {next(i for i in ids if repr(i) in r.message) for r in errors} == ids
-        assert all("office-2" in r.message and "pt/office-2/estimate" in r.message
-                   for r in errors) and len(errors) == 2
-        assert conflicts(a, "office-1") == conflicts(b, "office-3") == 0
-        # each connect's claim, and one answer each: nothing goes back and forth
-        wait_for(lambda: len(claims(viewer, "office-2")) == 4, what="claims and answers")
-        assert [c["client_id"] for c in claims(viewer, "office-1")] == [a.cfg.broker.client_id]
+        assert publishers(a, "office-1") == 0 == publishers(b, "office-3")
+        named = {svc.cfg.broker.client_id: [r.message for r in reports()
+                                             if repr(svc.cfg.broker.client_id) in r.message]
+                 for svc in (a, b)}
+        assert all(len(said) == 1 and "Twins: office-2" in said[0] for said in named.values())
+        # a's claim, b's, a's answer to b, b's answer to a
+        wait_for(lambda: len(claims(viewer)) == 4, what="claims and answers")
+        got = claims(viewer)
+        assert [(c["client_id"], c["to"] and c["to"]["client_id"], c["twins"]) for c in got] == [
+            (a.cfg.broker.client_id, None, ["office-1", "office-2"]),
+            (b.cfg.broker.client_id, None, ["office-2", "office-3"]),
+            (a.cfg.broker.client_id, b.cfg.broker.client_id, ["office-2"]),
+            (b.cfg.broker.client_id, a.cfg.broker.client_id, ["office-2"])]
 
         a.stop()  # a's session keeps b's next claim
         b.stop()
-        b2 = start_twins(["office-2", "office-3"], t0)
+        b2 = start_twins(["office-2", "office-3"])
         later.append(b2)
-        wait_for(lambda: len(claims(viewer, "office-2")) == 5, what="b's new claim")
+        wait_for(lambda: len(claims(viewer)) == 5, what="b's new claim")
         b2.stop()
         caplog.clear()
-        a2 = start_twins(["office-1", "office-2"], t0 + dt.timedelta(hours=1))
+        a2 = start_twins(["office-1", "office-2"])
         later.append(a2)
-        # a2's connect claim and its answer to b's kept claim (and to any of b's earlier
-        # ones that a's stop left unacknowledged), no report
-        since = a2.ownership.since
-        assert since is not None
-        wait_for(lambda: sum(c["since"] == since.isoformat()
-                             for c in claims(viewer, "office-2")) >= 2,
-                 what="a2's claim and answer")
-        assert conflicts(a2, "office-2") == 0 and "another daemon" not in caplog.text
+        run = a2.ownership.run
+        assert run is not None
+        # a2's claim, and its answer to b2's kept claim (to b's too, should a's stop have
+        # left it unacknowledged): no report, nobody to answer
+        wait_for(lambda: any(c["to"] == {"client_id": b2.cfg.broker.client_id,
+                                         "since": b2.ownership.run.since.isoformat()}
+                             for c in claims(viewer)), what="a2's answer to b2's kept claim")
+        assert publishers(a2, "office-2") == 0 and not reports()
     finally:
         for svc in (a, b, *later):
             if not svc.stop_event.is_set():
@@ -370,26 +377,49 @@ def test_two_daemons_owning_one_twin_both_say_so_and_a_claim_kept_while_away_is_
 @pytest.mark.parametrize("payload", [
     b"", b"not json", b"[]", b'{"client_id": "x"}',
     b'{"client_id": "x", "host": "h", "pid": "1", "since": "2024-01-01T00:00:00+00:00", '
-    b'"sent": "2024-01-01T00:00:00+00:00"}',
+    b'"twins": ["a"]}',
+    b'{"client_id": "x", "host": "h", "pid": 1, "since": "2024-01-01T00:00:00+00:00", '
+    b'"twins": "a"}',
     b'{"client_id": "x", "host": "h", "pid": 1, "since": "2024-01-01T00:00:00", '
-    b'"sent": "2024-01-01T00:00:00+00:00"}',
+    b'"twins": ["a"]}',
+    b'{"client_id": "x", "host": "h", "pid": 1, "since": "2024-01-01T00:00:00+00:00", '
+    b'"twins": ["a"], "to": "y"}',
 ])
 def test_a_claim_that_is_not_one_is_refused(payload: bytes) -> None:
-    with pytest.raises(ValueError, match="not a claim|timezone-aware"):
+    with pytest.raises(ValueError, match="not a claim"):
         Claim.parse(payload)
 
 
-def test_a_daemon_ignores_its_own_claims_and_those_of_its_previous_run() -> None:
-    own = Ownership("pt-a", "host", 1, {"pt/x/owner": "x"}, late=dt.timedelta(minutes=5))
+def test_claims_are_answered_once_reported_when_answered_and_forgotten_when_they_stop() -> None:
+    """The rules without a broker: own claims and other fleet instances' are ignored; another
+    run's claim is answered once; a report needs an answer addressed to this run; a reported
+    run counts while its periodic claims come."""
+    now = [0.0]
+    own = Ownership("pt-a", "host-a", 1, ["x", "y"], clock=lambda: now[0])
     own.start(NOON)
-    mine = Claim.parse(own.claim(NOON))
-    assert mine.client_id == "pt-a" and mine.since == mine.sent == NOON
-    earlier = Claim("pt-a", "host", 7, NOON - dt.timedelta(days=1), NOON - dt.timedelta(days=1))
-    for payload in (own.claim(NOON), earlier.payload()):
-        assert own.heard("pt/x/owner", payload, NOON) == (None, False, False)
-    other = Claim("pt-b", "other", 2, NOON, NOON - dt.timedelta(minutes=4))
-    assert own.heard("pt/x/owner", other.payload(), NOON) == (other, True, True)
-    assert own.heard("pt/x/owner", other.payload(), NOON) == (other, False, False)
+    ours = Run("pt-a", NOON)
+    assert Claim.parse(own.claim()) == Claim(ours, "host-a", 1, frozenset({"x", "y"}))
+    earlier = Claim(Run("pt-a", NOON - dt.timedelta(days=1)), "host-a", 7, frozenset({"x"}))
+    elsewhere = Claim(Run("pt-c", NOON), "host-c", 3, frozenset({"z"}))  # disjoint
+    for payload in (own.claim(), earlier.payload(), elsewhere.payload()):
+        assert own.heard(payload) == Heard(None, None, frozenset())
+    b = Claim(Run("pt-b", NOON), "host-b", 2, frozenset({"y", "z"}))
+    heard = own.heard(b.payload())  # kept, or new: answered, not reported
+    assert heard == Heard(Claim(ours, "host-a", 1, frozenset({"y"}), b.run), None,
+                          frozenset({"y"}))
+    assert own.heard(b.payload()).answer is None  # once
+    assert own.publishers() == {"x": 0, "y": 0}
+    answer = Claim(b.run, "host-b", 2, frozenset({"y"}), ours)
+    assert own.heard(answer.payload()) == Heard(None, answer, frozenset({"y"}))
+    assert own.publishers() == {"x": 0, "y": 1}
+    assert own.heard(answer.payload()).reported is None  # reported once
+    now[0] += STILL_THERE - 1
+    own.heard(b.payload())  # its periodic claim
+    now[0] += STILL_THERE - 1
+    assert own.gone() == [] and own.publishers()["y"] == 1
+    now[0] += 2
+    assert own.gone() == [b]  # the claim last heard
+    assert own.publishers() == {"x": 0, "y": 0} and own.gone() == []
 
 
 def test_an_instance_owning_no_twin_warns_and_stays_online(

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import os
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,7 @@ __all__ = [
     "MAX_TOPIC_BYTES",
     "ConfigProblems",
     "Found",
+    "absent_sqlite_file",
     "base_topic_problem",
     "expect",
     "field_defaults",
@@ -158,6 +160,13 @@ PATHLESS_SQLITE = "sqlite:///"
 def is_memory_url(url: str) -> bool:
     """Whether ``url`` names a SQLite store in memory, which keeps nothing once closed."""
     return url.strip() in (":memory:", "sqlite://", "sqlite:///:memory:")
+
+
+def absent_sqlite_file(url: str) -> str | None:
+    """The file a SQLite store URL names when it does not exist yet; None when it exists or
+    the store is no SQLite file."""
+    file = sqlite_file(url)
+    return file if file is not None and not os.path.exists(file) else None
 
 
 def sqlite_file(url: str) -> str | None:

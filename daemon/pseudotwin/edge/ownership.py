@@ -1,115 +1,182 @@
-"""Who publishes a twin: every daemon claims its twins at each connect and hears the others.
+"""Who publishes a twin: every daemon claims its twins and hears the other daemons' claims.
 
 Nothing in a fleet's configuration stops two daemons from owning the same twin (overlapping
 ``--twins`` lists, a plain ``run`` left enabled beside the fleet, a second host started from
 a copied image): both then publish ``<twin>/estimate``, perhaps from different artifacts,
-and a controller gets the two streams interleaved. Each daemon therefore sends a claim on
-``<base>/<twin>/owner`` (QoS 1, not retained: a stopped daemon leaves no claim behind) for
-each of its twins when it connects, and subscribes to its twins' claim topics. A claim of
-another MQTT client id is a second publisher of that twin. It is answered once (per twin and
-other daemon) with this daemon's own claim, so the daemon that started first learns of the
-second from its connect's claims, and the second of the first from that answer.
+and a controller gets the two streams interleaved. So each daemon sends one claim of all its
+twins on ``<base>/claims`` (QoS 1, not retained: a stopped daemon leaves none behind) when it
+connects and every ``CLAIM_EVERY``, and subscribes to that topic.
 
-A claim sent while this daemon was away (its persistent session kept it) may come from a
-daemon that has stopped since: it is answered but not reported; a publisher still running
-answers in turn, and that answer is reported.
+Whether the sender of a claim still runs is decided without comparing clocks: a daemon that
+hears a claim naming any of its twins answers it, once, with a claim addressed to the
+sender's run (``to``). An answer addressed to this run proves its sender alive now: it is
+reported (an error naming the other daemon and the twins), and answered once in turn, so
+both daemons report, whichever started first. A claim the broker kept for this daemon while
+it was away is answered, but never reported by itself: its sender may have stopped since,
+and one that still runs answers. A daemon reported once counts as publishing as long as its
+periodic claims come, ``STILL_THERE`` at most apart.
 """
 
 from __future__ import annotations
 
 import datetime as dt
 import json
-import math
+import threading
+import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Any
 
-CLAIM_SUFFIX = "owner"  # <base>/<twin>/owner
+CLAIMS_SUFFIX = "claims"  # <base>/claims
+CLAIM_EVERY = 3600.0  # [s] between a daemon's claims after the one at connect
+STILL_THERE = 2 * CLAIM_EVERY + 600.0  # [s] a reported daemon counts as running this long
+KEPT_RUNS = 1000  # other runs remembered at most (answered or reported): a crash-looping
+# daemon starts a new run every few seconds
 
 
 @dataclass(frozen=True)
-class Claim:
-    """One daemon's claim of a twin: its MQTT client id (unique per running daemon: two
-    on one id knock each other off the broker), host, process id and start [UTC]; ``sent``
-    [UTC] is when the claim was published."""
+class Run:
+    """One run of a daemon: its MQTT client id (unique per running daemon: two on one id
+    knock each other off the broker) and its start [UTC, wall clock]."""
 
     client_id: str
-    host: str
-    pid: int
     since: dt.datetime
-    sent: dt.datetime
 
     def __post_init__(self) -> None:
         if not self.client_id:
             raise ValueError("a claim needs a client id")
-        for name in ("since", "sent"):
-            t = getattr(self, name)
-            if t.tzinfo is None:
-                raise ValueError(f"a claim's {name} must be timezone-aware")
+        if self.since.tzinfo is None:
+            raise ValueError("a claim's since must be timezone-aware")
+
+
+@dataclass(frozen=True)
+class Claim:
+    """A run's claim of ``twins``, sent from ``host`` by process ``pid``; ``to``: the run it
+    answers (None: a claim of its own accord)."""
+
+    run: Run
+    host: str
+    pid: int
+    twins: frozenset[str]
+    to: Run | None = None
 
     def payload(self) -> bytes:
-        return json.dumps({"client_id": self.client_id, "host": self.host, "pid": self.pid,
-                           "since": self.since.isoformat(), "sent": self.sent.isoformat()},
+        def run(r: Run) -> dict[str, str]:
+            return {"client_id": r.client_id, "since": r.since.isoformat()}
+
+        return json.dumps({**run(self.run), "host": self.host, "pid": self.pid,
+                           "twins": sorted(self.twins),
+                           "to": run(self.to) if self.to else None},
                           separators=(",", ":")).encode()
 
     @classmethod
     def parse(cls, payload: bytes) -> Claim:
         """The claim in ``payload``; ValueError when it is not one."""
         try:
-            d: Any = json.loads(payload)
-            pid = d["pid"]
+            d = json.loads(payload)
+            pid, twins, to = d["pid"], d["twins"], d.get("to")
             if not isinstance(pid, int) or isinstance(pid, bool):
                 raise TypeError("pid")
-            return cls(str(d["client_id"]), str(d["host"]), pid,
-                       dt.datetime.fromisoformat(d["since"]),
-                       dt.datetime.fromisoformat(d["sent"]))
-        except (ValueError, TypeError, KeyError) as exc:
+            if not isinstance(twins, list) or not all(isinstance(t, str) for t in twins):
+                raise TypeError("twins")
+
+            def run(x: dict[str, object]) -> Run:
+                return Run(str(x["client_id"]), dt.datetime.fromisoformat(str(x["since"])))
+
+            return cls(run(d), str(d["host"]), pid, frozenset(twins),
+                       run(to) if to is not None else None)
+        except (ValueError, TypeError, KeyError, AttributeError) as exc:
             raise ValueError(f"not a claim ({exc!r})") from None
 
     def who(self) -> str:
-        return f"client id {self.client_id!r} on {self.host} (pid {self.pid}, up since " \
-               f"{self.since.isoformat(timespec='seconds')})"
+        return (f"client id {self.run.client_id!r} on host {self.host!r} (pid {self.pid}, up "
+                f"since {self.run.since.isoformat(timespec='seconds')})")
+
+
+@dataclass(frozen=True)
+class Heard:
+    """What to do with a claim heard: ``answer`` (a claim addressed to its run, or None),
+    ``reported``: the other run, newly known to publish ``twins`` of ours (None: nothing new
+    to tell)."""
+
+    answer: Claim | None
+    reported: Claim | None
+    twins: frozenset[str]
 
 
 class Ownership:
-    """This daemon's claims and what it heard of others'.
+    """This daemon's claims and what it heard of others' (thread-safe: claims are heard on
+    the MQTT network thread, the periodic claim is made on the worker).
 
-    own: this daemon's claim (``sent`` is replaced at each sending); topics: claim topic →
-    twin id; late: how far before this daemon's connect a claim may be stamped and still
-    count as sent while connected (clocks of two hosts differ) [s]."""
+    client_id, host, pid: this daemon's; twins: the twins it publishes; clock: monotonic
+    seconds (replaceable in tests)."""
 
-    def __init__(self, client_id: str, host: str, pid: int, topics: dict[str, str],
-                 late: dt.timedelta) -> None:
-        if late < dt.timedelta(0) or not math.isfinite(late.total_seconds()):
-            raise ValueError("late must be a finite, non-negative duration")
+    def __init__(self, client_id: str, host: str, pid: int, twins: Iterable[str],
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.client_id, self.host, self.pid = client_id, host, pid
-        self.topics = dict(topics)
-        self.late = late
-        self.since: dt.datetime | None = None  # set by start()
-        # (twin, client id, since) of the claims answered and of those reported
-        self._answered: set[tuple[str, str, dt.datetime]] = set()
-        self._reported: set[tuple[str, str, dt.datetime]] = set()
+        self.twins = frozenset(twins)
+        self._clock = clock
+        self._lock = threading.Lock()
+        self.run: Run | None = None  # set by start()
+        self._answered: dict[Run, float] = {}  # run → when answered
+        # run reported → (its claim, our twins it publishes, when last heard)
+        self._reported: dict[Run, tuple[Claim, frozenset[str], float]] = {}
 
     def start(self, now: dt.datetime) -> None:
-        self.since = now
+        """This run begins at ``now`` (wall clock, UTC: a run's identity)."""
+        self.run = Run(self.client_id, now)
 
-    def claim(self, now: dt.datetime) -> bytes:
-        """This daemon's claim, sent at ``now``."""
-        if self.since is None:
+    def claim(self, to: Run | None = None, twins: frozenset[str] | None = None) -> bytes:
+        if self.run is None:
             raise RuntimeError("Ownership.start() first")
-        return Claim(self.client_id, self.host, self.pid, self.since, now).payload()
+        return Claim(self.run, self.host, self.pid,
+                     self.twins if twins is None else twins, to).payload()
 
-    def heard(self, topic: str, payload: bytes, connected_at: dt.datetime
-              ) -> tuple[Claim | None, bool, bool]:
-        """A claim heard on ``topic``: (the other's claim or None when it is this daemon's
-        own, answer it with this daemon's claim, report it as a second publisher).
-        ValueError when the payload is not a claim."""
+    def heard(self, payload: bytes) -> Heard:
+        """A message on the claims topic; ValueError when it is not a claim."""
         claim = Claim.parse(payload)
-        if claim.client_id == self.client_id:  # our own, or our previous run's
-            return None, False, False
-        key = (self.topics.get(topic, topic), claim.client_id, claim.since)
-        answer = key not in self._answered
-        self._answered.add(key)
-        report = claim.sent >= connected_at - self.late and key not in self._reported
-        if report:
-            self._reported.add(key)
-        return claim, answer, report
+        ours = claim.twins & self.twins
+        if claim.run.client_id == self.client_id or not ours:  # our own (an echo, an earlier
+            return Heard(None, None, frozenset())  # run), or another fleet instance's
+        now = self._clock()
+        with self._lock:
+            other = claim.run
+            reported = None
+            if other in self._reported:  # still there: its periodic claim, or an answer
+                self._reported[other] = (claim, ours, now)
+            elif claim.to == self.run:  # an answer to this run: its sender runs now
+                self._reported[other] = (claim, ours, now)
+                reported = claim
+            answer = None
+            if other not in self._answered:
+                self._answered[other] = now
+                answer = Claim(self.run, self.host, self.pid, ours, other) \
+                    if self.run is not None else None
+            self._prune()
+        return Heard(answer, reported, ours)
+
+    def publishers(self) -> dict[str, int]:
+        """Twin → how many other daemons publish it (reported, and heard within
+        STILL_THERE); every twin of ours is a key."""
+        now = self._clock()
+        count = dict.fromkeys(self.twins, 0)
+        with self._lock:
+            for _, twins, heard in self._reported.values():
+                if now - heard <= STILL_THERE:
+                    for t in twins:
+                        count[t] += 1
+        return count
+
+    def gone(self) -> list[Claim]:
+        """Runs reported whose claims stopped coming (longer than STILL_THERE), each once."""
+        now = self._clock()
+        with self._lock:
+            out = [c for r, (c, _, heard) in self._reported.items()
+                   if now - heard > STILL_THERE]
+            for c in out:
+                del self._reported[c.run]
+        return out
+
+    def _prune(self) -> None:
+        for kept in (self._answered, self._reported):
+            while len(kept) > KEPT_RUNS:  # oldest first (insertion order)
+                del kept[next(iter(kept))]

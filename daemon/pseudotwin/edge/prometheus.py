@@ -165,11 +165,11 @@ class DaemonMetrics(_Metrics):
             "trained on: σ was measured before it, and months later it has measured too narrow; "
             "alert on time() minus this to plan a check with the desk sensor", ["twin"],
             registry=r)
-        self.other_publishers = Counter(
+        self.other_publishers = Gauge(
             "pseudotwin_twin_other_publishers",
-            "Claims of one of this daemon's twins by another daemon (another MQTT client id) "
-            "while connected, each other daemon counted once per twin: both publish the "
-            "twin's estimates; alert on any increase", ["twin"], registry=r)
+            "Other daemons (MQTT client ids) known to publish the twin too, from their claims "
+            "on <base>/claims: both publish its estimates; alert on > 0", ["twin"],
+            registry=r)
         self.journal_healthy = Gauge(
             "pseudotwin_journal_healthy",
             "1 while the journal can be written (status online), 0 while degraded",
@@ -180,8 +180,8 @@ class DaemonMetrics(_Metrics):
         self._estimates = {(t, str(q)): self.estimates.labels(t, str(q))
                            for t in twins for q in Quality
                            if q != Quality.INIT}  # never published
-        for t in twins:  # exported from 0: an alert on its increase needs the series
-            self.other_publishers.labels(t)
+        for t in twins:  # exported from 0, as every twin has its series
+            self.other_publishers.labels(t).set(0)
         self._last_estimate: dict[str, Gauge] = {}
         self._last_stamp: dict[str, float] = {}
 

@@ -24,7 +24,7 @@ import paho.mqtt.client as mqtt
 import pandas as pd
 
 from pseudotwin.config import SensorConfig, ServiceConfig
-from pseudotwin.config.validate import sqlite_file
+from pseudotwin.config.validate import absent_sqlite_file
 from pseudotwin.core import series
 from pseudotwin.core.files import write_replacing
 from pseudotwin.core.logpace import doubled
@@ -240,8 +240,8 @@ class Recorder:
             self._drop_store()
         if self.store is None:
             assert self.store_url is not None
-            file = sqlite_file(self.store_url)
-            if file is not None and not Path(file).exists() and not self._said_new_store:
+            file = absent_sqlite_file(self.store_url)
+            if file is not None and not self._said_new_store:
                 self._said_new_store = True  # once: a failing open is retried every few s
                 log.info("creating the history store %s (a new SQLite file; a relative path "
                          "is from the configuration's folder)", file)
@@ -428,7 +428,7 @@ class Recorder:
                 return
             if item is not None:
                 sensor, topic, payload, arrival, token, retained = item
-                if sensor is None:  # (the daemon's twin claim topics are not subscribed)
+                if sensor is None:
                     self._stale_topics.drop(self.client, topic)
                 r = self._parse(sensor, payload, arrival, retained)
                 if r is not None:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import logging
+import math
 import os
 import queue
 import socket
@@ -35,8 +36,9 @@ import paho.mqtt.client as mqtt
 from paho.mqtt.enums import MQTTErrorCode
 
 from pseudotwin.config import SensorConfig, ServiceConfig, TwinConfig
-from pseudotwin.config.validate import sqlite_file
+from pseudotwin.config.validate import absent_sqlite_file
 from pseudotwin.core.files import write_replacing
+from pseudotwin.core.logpace import doubled
 from pseudotwin.core.twinlog import twin_context
 from pseudotwin.edge import homeassistant as ha
 from pseudotwin.edge.clock import EX_TEMPFAIL, Clock, SystemClock
@@ -51,7 +53,7 @@ from pseudotwin.edge.mqttconn import (
     watch_takeover,
 )
 from pseudotwin.edge.outputs import estimate_payload, monitor_payload
-from pseudotwin.edge.ownership import CLAIM_SUFFIX, Ownership
+from pseudotwin.edge.ownership import CLAIM_EVERY, CLAIMS_SUFFIX, Ownership
 from pseudotwin.edge.prometheus import DaemonMetrics
 from pseudotwin.edge.sdnotify import notify, watchdog_interval
 from pseudotwin.edge.statelock import StateLock
@@ -278,15 +280,15 @@ class Service:
         self._gen = 0
         self._lock = threading.Lock()
         self._threads: list[threading.Thread] = []
-        # Each twin's claim topic: a second daemon publishing one of our twins is told.
-        self.ownership = Ownership(
-            cfg.broker.client_id, socket.gethostname(), os.getpid(),
-            {cfg.twin_topic(tid, CLAIM_SUFFIX): tid for tid in self.twins},
-            late=max(cfg.max_skew, CLOCK_BACK_TOLERANCE))
-        self._connected_at = self.clock.now()  # of the latest connect
+        # Claims of twins (ownership.py): a second daemon publishing one of ours is told.
+        self.claims_topic = f"{cfg.base_topic}/{CLAIMS_SUFFIX}"
+        self.ownership = Ownership(cfg.broker.client_id, socket.gethostname(), os.getpid(),
+                                   self.twins)
+        self._claims_refused = 0  # messages on the claims topic that were not claims
+        self._next_claim = math.inf  # monotonic time of the next periodic claim
         self._subscription = Subscription(
             [(s.topic, 1) for s in self.cfg.sensors.values()]
-            + [(topic, 1) for topic in self.ownership.topics], self.connected)
+            + ([(self.claims_topic, 1)] if self.twins else []), self.connected)
         self.client = self._make_client()
         self.wakeups = WakeCoalescer(self.client)
         self.discovery, self.undiscovery = self._plan_discovery()
@@ -317,7 +319,7 @@ class Service:
             return
         with self._lock:
             self._gen += 1
-        self.backlog_since = self._connected_at = self.clock.now()  # the broker's backlog comes now
+        self.backlog_since = self.clock.now()  # what the broker kept for us comes now
         with self._sent_lock:
             self._unwritten_qos0.clear()
         self._subscription.subscribe(client)
@@ -330,8 +332,9 @@ class Service:
             self._forget_unretained()
         for topic, body in self.discovery.items():
             self._send(topic, body)
-        for topic in self.ownership.topics:  # after the subscription: others answer to it
-            self._send(topic, self.ownership.claim(self._connected_at), retain=False)
+        if self.twins:  # after the subscription: the others' answers come to it
+            self._send(self.claims_topic, self.ownership.claim(), retain=False)
+            self._next_claim = time.monotonic() + CLAIM_EVERY
         if not flags.session_present:
             # A broker that lost our session (restarted without persistence) may have lost
             # the retained estimates too: the worker sends them again (in order with its
@@ -377,8 +380,9 @@ class Service:
                        (self.member.others if self.member else ()))
         state = Path(self.cfg.state_dir)
         remembered = ha.load_published(state, OUTPUTS_FILE)
-        # The daemon's own files (the recorder may share the folder, and start first).
-        used = any((state / f).exists() for f in (LOCK_FILE, GRID_FILE, ha.STATE_FILE)) \
+        # The daemon's own files: the recorder may share the folder and start first, and
+        # the lock is there after a first start that failed before publishing anything.
+        used = any((state / f).exists() for f in (GRID_FILE, ha.STATE_FILE)) \
             or any(self.journal.folder.glob("*.jsonl"))
         if used and not (state / OUTPUTS_FILE).exists():
             # A state dir of an earlier run without the file: a release before it, or the
@@ -419,16 +423,15 @@ class Service:
         if self.stop_event.is_set():
             return  # stopping: not queued, not acknowledged, redelivered on the next start
         token = (self._gen, msg.mid, msg.qos)
-        if msg.topic in self.ownership.topics:
-            self._enqueue(("claim", msg.topic, msg.payload, token))
+        if msg.topic == self.claims_topic:  # bookkeeping, not model work: done here
+            self._hear_claim(bytes(msg.payload))
+            self._ack(token)
             return
         self.health.received += 1
         sensor = self.cfg.sensor_for_topic(msg.topic)
         # perf_counter: the arrival the reading-to-estimate latency counts from.
-        self._enqueue(("msg", sensor, msg.topic, msg.payload, self.clock.now(),
-                       time.perf_counter(), token, bool(msg.retain)))
-
-    def _enqueue(self, item: tuple[Any, ...]) -> None:
+        item = ("msg", sensor, msg.topic, msg.payload, self.clock.now(), time.perf_counter(),
+                token, bool(msg.retain))
         while True:
             try:
                 self.queue.put(item, timeout=1.0)
@@ -533,6 +536,8 @@ class Service:
             if self._republish.is_set():
                 self._republish.clear()
                 self._guarded("reconnect", self._send_retained_again)
+            if time.monotonic() >= self._next_claim and self.connected.is_set():
+                self._guarded("claim", self._claim_again)
             if self._held and time.monotonic() >= self._journal_retry_at:
                 try:
                     self._retry_held()
@@ -574,29 +579,46 @@ class Service:
                                    "yet; a restart rebuilds them from the journal")
         return True
 
-    def _handle_claim(self, topic: str, payload: bytes, token: tuple[int, int, int]) -> None:
-        """A claim on one of our twins' claim topics (ownership.py): another daemon's is
-        answered once and, sent while we are connected, reported as a second publisher."""
+    def _hear_claim(self, payload: bytes) -> None:
+        """A message on the claims topic (network thread): another daemon's claim of twins of
+        ours is answered once, and reported once its sender is known to run (ownership.py)."""
         try:
-            claim, answer, report = self.ownership.heard(topic, payload, self._connected_at)
+            heard = self.ownership.heard(payload)
         except ValueError as exc:
-            log.warning("ignored a message on %s, which carries daemons' claims of the twin: "
-                        "%s", topic, exc)
+            self._claims_refused += 1
+            if doubled(self._claims_refused - 1, self._claims_refused):
+                log.warning("%d message(s) on %s that are not claims of twins, ignored; the "
+                            "latest: %s", self._claims_refused, self.claims_topic, exc)
             return
-        finally:
-            self._ack(token)
-        if claim is None:
-            return
-        twin = self.ownership.topics[topic]
-        if report:
-            self.metrics.other_publishers.labels(twin).inc()
-            with twin_context(twin):
-                log.error("published by another daemon too: %s. Each sends its own estimates "
-                          "on %s, and a controller gets both, interleaved. Give the twin one "
-                          "owner (overlapping --twins lists? a plain `run` beside a fleet?) "
-                          "and stop the other", claim.who(), self.twins[twin].estimate_topic)
-        if answer:
-            self._send(topic, self.ownership.claim(self.clock.now()), retain=False)
+        if heard.answer is not None:
+            self._send(self.claims_topic, heard.answer.payload(), retain=False)
+        if heard.reported is not None:
+            twins = sorted(heard.twins)
+            log.error("%d twin(s) of this daemon are published by another daemon too: %s. "
+                      "Each sends its own estimates, and a controller gets both, interleaved. "
+                      "Give each twin one owner (overlapping --twins lists? a plain `run` "
+                      "beside a fleet?) and stop the other. Twins: %s%s", len(twins),
+                      heard.reported.who(), ", ".join(twins[:10]),
+                      f" and {len(twins) - 10} more" if len(twins) > 10 else "")
+            self._count_publishers(heard.twins)
+
+    def _count_publishers(self, twins: frozenset[str] | None = None) -> None:
+        """The other-publishers gauge of ``twins`` (None: every twin)."""
+        counts = self.ownership.publishers()
+        for twin in counts if twins is None else twins:
+            self.metrics.other_publishers.labels(twin).set(counts[twin])
+
+    def _claim_again(self) -> None:
+        """The periodic claim (worker): the others see this daemon still runs; and those
+        reported whose claims stopped coming are said to be gone."""
+        self._next_claim = time.monotonic() + CLAIM_EVERY
+        self._send(self.claims_topic, self.ownership.claim(), retain=False)
+        gone = self.ownership.gone()
+        for claim in gone:
+            log.info("no claim from %s for two hours: it no longer publishes twins of this "
+                     "daemon", claim.who())
+        if gone:
+            self._count_publishers()
 
     def _send_retained_again(self) -> None:
         n = 0
@@ -625,8 +647,6 @@ class Service:
                 return False
             if kind == "msg":
                 messages.append(item)
-            elif kind == "claim":
-                self._guarded("claim", self._handle_claim, *item[1:])
             # ("wake",): the broker took enough of what was sent; the loop goes on
             elif kind == "tick":  # readings before it go first, as they arrived
                 self._guarded("msg", self._handle_messages, messages)
@@ -1090,7 +1110,7 @@ class Service:
 
         sensors = sorted(self.by_sensor)
         assert self.cfg.store is not None
-        if (file := sqlite_file(self.cfg.store)) is not None and not Path(file).exists():
+        if (file := absent_sqlite_file(self.cfg.store)) is not None:
             # The recorder makes it; an empty one made here would hide a mistyped path.
             log.warning("warm start: no history store at %s yet (the recorder creates it; "
                         "a relative path is from the configuration's folder); today's "
@@ -1133,7 +1153,7 @@ class Service:
             log.info("fleet: %s; client id %s, state %s, status %s", self.member.describe(),
                      self.cfg.broker.client_id, self.cfg.state_dir, self.status_topic)
         self.up_since = self.backlog_since = self.clock.now()
-        self.ownership.start(self.up_since)
+        self.ownership.start(dt.datetime.now(dt.UTC))  # a run's identity: not a replay's clock
         if self.cfg.metrics.port is not None:  # a port in use fails before anything runs
             self.metrics.serve(self.cfg.metrics.host, self.cfg.metrics.port, "daemon")
         self.restore()
