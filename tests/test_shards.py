@@ -317,7 +317,7 @@ def test_two_daemons_owning_one_twin_both_say_so_and_a_claim_kept_while_away_is_
     first reports that: both say so, naming the other, and nothing more goes back and forth.
     A claim the broker kept for a stopped instance is answered at its return but not
     reported: its sender stopped meanwhile."""
-    caplog.set_level(logging.ERROR, logger="pseudotwin.edge.service")
+    caplog.set_level(logging.WARNING, logger="pseudotwin.edge.service")
     cfg = load_config(site_config(tmp_path, mosquitto.port, desk_artifact))
 
     def start_twins(twins: list[str]) -> Service:
@@ -341,7 +341,10 @@ def test_two_daemons_owning_one_twin_both_say_so_and_a_claim_kept_while_away_is_
                                              if repr(svc.cfg.broker.client_id) in r.message]
                  for svc in (a, b)}
         assert all(len(said) == 1 and "Twins: office-2" in said[0] for said in named.values())
-        # a's claim, b's, a's answer to b, b's answer to a
+        viewer.c.publish("pt/claims", b"not a claim", qos=1)  # ignored, said, acknowledged
+        wait_for(lambda: caplog.text.count("1 message(s) on pt/claims that are not claims") == 2,
+                 what="the stray message noticed by both")
+        # a's claim, b's, a's answer to b, b's answer to a (and the stray message)
         wait_for(lambda: len(claims(viewer)) == 4, what="claims and answers")
         got = claims(viewer)
         assert [(c["client_id"], c["to"] and c["to"]["client_id"], c["twins"]) for c in got] == [
