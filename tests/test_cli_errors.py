@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import os
 import socket
+import stat
 import subprocess
 import sys
 from pathlib import Path
@@ -238,8 +240,31 @@ def test_train_out_is_checked_before_training(tmp_path: Path, capsys) -> None:
                    "a directory"
     line = _usage_error(capsys, *_train(tmp_path, "--out", f"{blocker}/a.json"))
     assert line.endswith(f"{blocker} is not a directory")
+    pipe = tmp_path / "pipe"  # as a device (--out /dev/null): never replaced by a file
+    os.mkfifo(pipe)
+    line = _usage_error(capsys, *_train(tmp_path, "--out", str(pipe)))
+    assert line.endswith(f"{pipe} exists and is not a regular file")
+    assert stat.S_ISFIFO(pipe.stat().st_mode)
+    pipe.unlink()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ok.csv", "somedir"]
     assert not list(folder.iterdir())
+
+
+def test_a_file_written_whole_never_replaces_a_device_or_a_pipe(tmp_path: Path, capsys
+                                                               ) -> None:
+    """convert --out /dev/null, run as root, made /dev/null a plain file of 3 MB."""
+    from pseudotwin.core.files import write_replacing
+
+    pipe = tmp_path / "pipe"
+    os.mkfifo(pipe)
+    link = tmp_path / "link"
+    link.symlink_to(pipe)
+    for path in (pipe, link):
+        with pytest.raises(OSError, match="not a regular file"):
+            write_replacing(path, lambda tmp: tmp.write_text("x"))
+        assert stat.S_ISFIFO(path.stat().st_mode)
+    assert main(["convert", "appliances", "--out", str(link)]) == 2
+    assert f"{pipe}: exists and is not a regular file (nothing written)" in capsys.readouterr().err
 
 
 def test_evaluate_out_must_be_a_folder(tmp_path: Path, capsys) -> None:

@@ -437,7 +437,8 @@ MAX_VARMA_P = 8  # five training days hold ~220 slots: a higher order fits noise
 
 _varma_order = whole_number(1, MAX_VARMA_P)
 _tcp_port = whole_number(1, 65535, "a port number")
-_lcm_terms = whole_number(1, what="a number of terms")
+# (more terms than a few cost hours of fitting and add nothing the references can tell)
+_lcm_terms = whole_number(1, 10, what="a number of terms")
 
 
 def _minutes_at_least_zero(text: str) -> float:
@@ -483,6 +484,8 @@ def _artifact_out(text: str) -> Path:
     if path.is_dir():
         raise argparse.ArgumentTypeError(f"{text} is a directory; give the artifact's file "
                                          f"name, e.g. {path / 'twin.json'}")
+    if path.exists() and not path.is_file():  # a device, a pipe: never replaced by a file
+        raise argparse.ArgumentTypeError(f"{text} exists and is not a regular file")
     return path
 
 

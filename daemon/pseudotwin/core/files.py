@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
+import stat
 from collections.abc import Callable
 from pathlib import Path
 
@@ -15,11 +17,22 @@ def write_replacing(path: Path, write: Callable[[Path], object]) -> Path:
     write leaves the earlier file whole, never half a file (a daemon loading an artifact, a
     history that would read as shorter). The temporary file has ``path``'s own name, in a
     folder of its own beside it, so pandas infers the same compression (.csv.gz) and archive
-    member name (.csv.zip) from it; a symlinked ``path`` is written through. An OSError
+    member name (.csv.zip) from it; a symlinked ``path`` is written through. Only a regular
+    file is replaced: a device, pipe or folder at ``path`` (say ``--out /dev/null``, which as
+    root would have made /dev/null a plain file) is an OSError, nothing written. An OSError
     names ``path``, not the temporary file (gone by then). Returns ``path``."""
     path = Path(path)
     if path.is_symlink():
         path = path.resolve()
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        mode = None
+    except OSError as exc:
+        raise OSError(exc.errno, exc.strerror, str(path)) from exc
+    if mode is not None and not stat.S_ISREG(mode):
+        raise OSError(errno.EEXIST, "exists and is not a regular file (nothing written)",
+                      str(path))
     path.parent.mkdir(parents=True, exist_ok=True)
     folder = path.with_name(f".tmp{os.getpid()}.{path.name}")
     tmp = folder / path.name
