@@ -542,6 +542,27 @@ def test_a_clock_stepped_back_past_the_grid_ends_the_daemon_for_a_restart(
         viewer.close()
 
 
+def test_the_first_grid_instant_after_the_spring_dst_gap_is_no_step_back(
+    desk_artifact, tmp_path: Path
+) -> None:
+    """A site with hours across 02:00–03:00 (say 00:00–24:00): at 03:00:02 on the spring
+    day, 03:00 minus max_skew in local time fell into the gap, read as 01:55 UTC, an hour
+    after the clock's 01:00:02 UTC, and the daemon exited 75 at every DST change."""
+    from zoneinfo import ZoneInfo
+
+    instant = dt.datetime(2012, 3, 25, 3, 0, tzinfo=ZoneInfo("Europe/Madrid"))
+    assert instant.utcoffset() == dt.timedelta(hours=2)
+    svc = Service(config(tmp_path, 1883, desk_artifact),
+                  clock=HandClock(instant + dt.timedelta(seconds=2)))
+    try:
+        svc._grid_started = instant
+        assert not svc._clock_went_back() and svc.fatal is None
+        svc.clock.set(instant.astimezone(dt.UTC) - dt.timedelta(minutes=10))  # a real one
+        assert svc._clock_went_back() and svc.fatal is not None
+    finally:
+        svc.journal.close()
+
+
 def test_two_daemons_on_one_client_id_are_told_that_they_take_each_others_session(
     mosquitto, desk_artifact, tmp_path: Path, caplog
 ) -> None:

@@ -570,7 +570,10 @@ class Service:
         if started is None or self.fatal is not None:
             return self.fatal is not None
         now = self.clock.now()
-        if now >= started - max(self.cfg.max_skew, CLOCK_BACK_TOLERANCE):
+        # In UTC: a local instant minus minutes can land in a DST gap (03:00 − 5 min on the
+        # spring day is 02:55, read as an hour earlier), which made the first grid instant
+        # after the gap a "step back" that ended the daemon.
+        if now >= started.astimezone(dt.UTC) - max(self.cfg.max_skew, CLOCK_BACK_TOLERANCE):
             return False
         # (logged by whoever ends the process: `run` says it with the exit status)
         self.fatal = (EX_TEMPFAIL, f"the clock went back to {now.isoformat()}, before grid "
