@@ -232,6 +232,23 @@ def test_relative_paths_resolve_against_config_folder_not_cwd(
 
 BAD: list[tuple[str, Mutation, str, str]] = [
     # broker
+    ("host-label-too-long", set_("broker", "host", "a" * 64 + ".example.com"), "broker.host",
+     "63 between dots"),
+    ("host-with-space", set_("broker", "host", "my broker"), "broker.host", "a space"),
+    ("username-nul", set_("broker", "username", "a\x00b"), "broker.username", "NUL"),
+    ("tz-region-folder", set_("service", "timezone", "Europe"), "service.timezone",
+     "unknown IANA time zone"),
+    ("tz-too-long", set_("service", "timezone", "Europe/" + "x" * 300), "service.timezone",
+     "unknown IANA time zone"),
+    ("publish-every-tiny", set_("service", "publish_every_minutes", 1e-300),
+     "service.publish_every_minutes", "does not divide a day"),
+    ("publish-every-huge", set_("service", "publish_every_minutes", 1e308),
+     "service.publish_every_minutes", "at most a day"),
+    ("stale-after-huge", set_("service", "stale_after_minutes", 1e308),
+     "service.stale_after_minutes", "at most a week"),
+    ("max-skew-huge", set_("service", "max_skew_seconds", 9223372036854775807),
+     "service.max_skew_seconds", "at most a day"),
+    ("sensor-id-hash", set_("sensors", 0, "id", "room#1/temp"), "sensors[0].id", "comment"),
     ("port-string", set_("broker", "port", "1883"), "broker.port", "expected an integer"),
     ("port-float", set_("broker", "port", 1883.0), "broker.port", "expected an integer"),
     ("port-zero", set_("broker", "port", 0), "broker.port", "1..65535"),
@@ -400,6 +417,17 @@ def test_each_rule_reports_its_location(
     mutate(doc)
     problems = problems_of(tmp_path, doc)
     assert has(problems, location, fragment), problems
+
+
+def test_a_name_too_long_for_the_file_system_is_a_problem_not_a_traceback(
+    tmp_path: Path
+) -> None:
+    doc = copy.deepcopy(base_doc())
+    doc["service"]["state_dir"] = "x" * 300
+    doc["twins"][0]["artifact"] = "y" * 300 + ".json"
+    problems = problems_of(tmp_path, doc, check=True)
+    assert has(problems, "service.state_dir", "too long"), problems
+    assert has(problems, "twins[0].artifact", "too long"), problems
 
 
 def test_unknown_key_without_close_match_has_no_suggestion(tmp_path: Path) -> None:

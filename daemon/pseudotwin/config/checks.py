@@ -46,6 +46,13 @@ def state_dir_problem(state_dir: Path) -> str | None:
     file, or a part of its path is, or it would be on a read-only file system. Whether the
     service's user may write there is left to :func:`prepare_state_dir` (systemd creates a
     StateDirectory for its own, often dynamic, user: the checking user's rights say nothing)."""
+    try:
+        return _state_dir_problem(state_dir)
+    except OSError as exc:  # a name too long, a loop of links: the OS's reason
+        return f"{state_dir}: {exc.strerror or exc}"
+
+
+def _state_dir_problem(state_dir: Path) -> str | None:
     if state_dir.exists():
         if not state_dir.is_dir():
             return f"{state_dir} exists and is not a directory"
@@ -89,6 +96,13 @@ class StartupLoader(Loader):
             if store is not None and "://" not in store and not Path(store).parent.is_dir():
                 self.add("service.store", f"directory {Path(store).parent} does not exist")
         for loc, twin in self.checked(twins):
+            try:
+                twin.artifact.stat()
+            except FileNotFoundError:
+                pass  # said below
+            except OSError as exc:  # a name too long, a loop of links
+                self.add(f"{loc}.artifact", f"{twin.artifact}: {exc.strerror or exc}")
+                continue
             if twin.artifact.is_dir():
                 self.add(f"{loc}.artifact", f"{twin.artifact} is a directory, not an "
                                             "artifact file")

@@ -287,7 +287,7 @@ class Loader:
         if tz is not None and nonempty(found, "timezone", tz):
             try:
                 ZoneInfo(tz)
-            except (ZoneInfoNotFoundError, ValueError):
+            except (ZoneInfoNotFoundError, ValueError, OSError):  # OSError: "Europe", a folder
                 found.append(("timezone", f"unknown IANA time zone {tz!r}{_suggest_tz(tz)}"))
         for where, msg in found:
             self.add(f"service.{where}", msg)

@@ -23,6 +23,7 @@ from pseudotwin.config.validate import (
     Found,
     base_topic_problem,
     expect,
+    host_problem,
     nonempty,
     raise_if,
     suggest,
@@ -79,6 +80,9 @@ _TWIN_UNITS = {"temperature": ("°C", "degC", "C"), "co2": ("ppm",)}
 _ENV_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 # Twin ids become one MQTT topic level, a file name stem and a DB key: keep them boring.
 _TWIN_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
+# Beyond these, durations overflow datetime arithmetic and mean nothing for a building.
+MAX_STALE_AFTER_MINUTES = 7 * 24 * 60
+MAX_SKEW_SECONDS = 24 * 3600
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -108,15 +112,17 @@ class BrokerConfig:
 
     def _problems(self) -> Found:
         found: Found = []
-        nonempty(found, "host", self.host)
+        if nonempty(found, "host", self.host) and (problem := host_problem(self.host)):
+            found.append(("host", problem))
         if expect(found, "port", self.port, "integer") and not 1 <= self.port <= 65535:
             found.append(("port", f"must be in 1..65535, got {self.port}"))
         expect(found, "tls", self.tls, "boolean")
         if self.ca_file is not None and expect(found, "ca_file", self.ca_file, "path"):
             if self.tls is not True:
                 found.append(("ca_file", "is only used with tls = true"))
-        if self.username is not None:
-            nonempty(found, "username", self.username)
+        if self.username is not None and nonempty(found, "username", self.username):
+            if "\x00" in self.username or len(self.username.encode()) > 65535:
+                found.append(("username", "must not contain NUL, and at most 65535 bytes"))
         if self.password_env is not None and expect(
             found, "password_env", self.password_env, "string"
         ):
@@ -219,6 +225,9 @@ class SensorConfig:
         if nonempty(found, "id", self.id):
             if self.id != self.id.strip() or any(ord(c) < 0x20 for c in self.id):
                 found.append(("id", f"{self.id!r} has surrounding blanks or control characters"))
+            elif "#" in self.id:  # history CSV files take '#' for a comment
+                found.append(("id", f"{self.id!r} contains '#', which history files (CSV) "
+                                    "read as the start of a comment"))
         if expect(found, "topic", self.topic, "string"):
             problem = topic_problem(self.topic)
             if problem:
@@ -356,7 +365,8 @@ class MetricsConfig:
 
     def __post_init__(self) -> None:
         found: Found = []
-        nonempty(found, "host", self.host)
+        if nonempty(found, "host", self.host) and (problem := host_problem(self.host)):
+            found.append(("host", problem))
         for name in ("port", "record_port"):
             value = getattr(self, name)
             if value is not None and expect(found, name, value, "integer") \
@@ -429,21 +439,24 @@ def service_scalar_problems(
     if expect(found, "publish_every_minutes", publish_every_minutes, "number"):
         assert isinstance(publish_every_minutes, int | float)
         seconds = publish_every_minutes * 60.0
-        if publish_every_minutes <= 0:
-            found.append(("publish_every_minutes", "must be positive"))
-        elif abs(seconds - round(seconds)) > 1e-6 or 86400 % round(seconds):
+        if not 0 < publish_every_minutes <= 24 * 60:
+            found.append(("publish_every_minutes", "must be positive and at most a day (1440)"))
+        elif abs(seconds - round(seconds)) > 1e-6 or round(seconds) < 1 \
+                or 86400 % round(seconds):
             # The grid is anchored at local midnight, so it must tile the day exactly.
             found.append(("publish_every_minutes",
                           f"{publish_every_minutes:g} min does not divide a day into whole "
                           "seconds (e.g. 1, 5, 10, 15, 30, 60)"))
     if expect(found, "stale_after_minutes", stale_after_minutes, "number"):
         assert isinstance(stale_after_minutes, int | float)
-        if stale_after_minutes <= 0:
-            found.append(("stale_after_minutes", "must be positive"))
+        if not 0 < stale_after_minutes <= MAX_STALE_AFTER_MINUTES:
+            found.append(("stale_after_minutes", "must be positive and at most a week "
+                                                 f"({MAX_STALE_AFTER_MINUTES})"))
     if expect(found, "max_skew_seconds", max_skew_seconds, "number"):
         assert isinstance(max_skew_seconds, int | float)
-        if max_skew_seconds < 0:
-            found.append(("max_skew_seconds", "must not be negative"))
+        if not 0 <= max_skew_seconds <= MAX_SKEW_SECONDS:
+            found.append(("max_skew_seconds", "must not be negative, and at most a day "
+                                              f"({MAX_SKEW_SECONDS})"))
     if expect(found, "queue_size", queue_size, "integer"):
         assert isinstance(queue_size, int)
         if queue_size < 1:

@@ -23,6 +23,7 @@ __all__ = [
     "Found",
     "absent_sqlite_file",
     "base_topic_problem",
+    "host_problem",
     "expect",
     "field_defaults",
     "is_int",
@@ -117,6 +118,25 @@ def nonempty(found: Found, name: str, value: object) -> bool:
         found.append((name, "must not be empty"))
         return False
     return True
+
+
+def host_problem(host: str) -> str | None:
+    """Why ``host`` (a name or an IP address) cannot be connected to, or None: what the
+    resolver refuses deep in a network thread (a label over 63 bytes, a name over 253),
+    where the error would only stop the thread and leave the process up, never connected."""
+    if any(c.isspace() or ord(c) < 0x20 for c in host):
+        return f"{host!r} contains a space or a control character"
+    name = host.strip("[]")  # an IPv6 address in brackets
+    if ":" in name:  # IPv6
+        return None
+    labels = name.rstrip(".").split(".")
+    if len(name.rstrip(".")) > 253 or any(len(label.encode()) > 63 for label in labels):
+        return f"{host!r} is not a host name (at most 253 characters, 63 between dots)"
+    try:
+        name.rstrip(".").encode("idna")
+    except UnicodeError:
+        return f"{host!r} is not a host name (an empty part between dots?)"
+    return None
 
 
 def topic_problem(topic: str, *, sensor: bool = True) -> str | None:

@@ -81,7 +81,7 @@ class OperatingHours:
             )
         try:
             ZoneInfo(self.timezone)
-        except (ZoneInfoNotFoundError, ValueError):
+        except (ZoneInfoNotFoundError, ValueError, OSError):  # OSError: "Europe", a folder
             raise ConfigError(f"unknown time zone {self.timezone!r}") from None
 
     @classmethod
