@@ -78,6 +78,27 @@ def test_a_model_s_own_error_names_the_artifact_file(trained, tmp_path: Path) ->
         Artifact.load(p)
 
 
+@pytest.mark.parametrize("mutate", [
+    lambda d: d.__setitem__("models", []),
+    lambda d: d.__setitem__("training", 5),
+    lambda d: d.__setitem__("validation", 0),
+    lambda d: d["hours"].__setitem__("day_start", 1e308),
+    lambda d: next(iter(d["calibration"].values())).__setitem__("bins", None),
+], ids=["models-list", "training-number", "validation-number", "day-start-huge", "bins-null"])
+def test_a_value_of_the_wrong_type_is_a_corrupt_artifact_not_a_traceback(
+    trained, tmp_path: Path, mutate
+) -> None:
+    """Fuzzed artifacts (a helper's): wrong JSON types raised AttributeError or
+    OverflowError out of check-config and run."""
+    _, path = trained
+    d = json.loads(path.read_text(encoding="utf-8"))
+    mutate(d)
+    p = tmp_path / "broken.json"
+    p.write_text(json.dumps(d))
+    with pytest.raises(ArtifactError, match=rf"^{p}: "):
+        Artifact.load(p)
+
+
 @pytest.mark.parametrize(
     "content,message",
     [

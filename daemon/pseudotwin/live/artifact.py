@@ -145,6 +145,9 @@ class Artifact(OfTwin):
                         if d.get("envelope") is not None else None)
             failover = {str(r): Failover.from_dict(str(r), f, spec)
                         for r, f in (d.get("failover") or {}).items()}
+            for key in ("training", "validation"):
+                if not isinstance(d.get(key, {}), dict):
+                    raise TypeError(f"{key} is not an object")
             return cls(spec, models, str(twin["primary"]), d.get("training", {}),
                        d.get("created", ""), calibration, d.get("validation", {}), envelope,
                        failover)
@@ -155,7 +158,8 @@ class Artifact(OfTwin):
             raise ArtifactError(f"{where}: {exc}") from None
         except ConfigError as exc:
             raise ArtifactError(f"{where}: {exc}") from None
-        except (KeyError, TypeError, ValueError, IndexError) as exc:
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError,
+                ArithmeticError) as exc:  # a value of the wrong JSON type, or out of range
             raise ArtifactError(f"{where}: artifact is incomplete or corrupt ({exc!r})") from None
 
     @classmethod
