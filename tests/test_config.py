@@ -430,6 +430,13 @@ def test_a_name_too_long_for_the_file_system_is_a_problem_not_a_traceback(
     assert has(problems, "twins[0].artifact", "too long"), problems
 
 
+def test_a_sqlite_store_that_is_a_directory_is_a_problem(tmp_path: Path) -> None:
+    doc = copy.deepcopy(base_doc())
+    doc["service"]["store"] = "."
+    assert has(problems_of(tmp_path, doc, check=True), "service.store",
+               "is a directory, not a SQLite file")
+
+
 def test_unknown_key_without_close_match_has_no_suggestion(tmp_path: Path) -> None:
     doc = base_doc()
     doc["service"]["zzz"] = 1

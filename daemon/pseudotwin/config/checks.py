@@ -95,6 +95,9 @@ class StartupLoader(Loader):
             # empty database): missing, the recorder would only ever spool.
             if store is not None and "://" not in store and not Path(store).parent.is_dir():
                 self.add("service.store", f"directory {Path(store).parent} does not exist")
+            elif store is not None and "://" not in store and Path(store).is_dir():
+                # (the recorder would spool for good, taking it for a store away)
+                self.add("service.store", f"{store} is a directory, not a SQLite file")
         for loc, twin in self.checked(twins):
             try:
                 twin.artifact.stat()
