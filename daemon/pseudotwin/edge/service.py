@@ -422,11 +422,12 @@ class Service:
     def _on_message(self, client: mqtt.Client, userdata: Any, msg: mqtt.MQTTMessage) -> None:
         if self.stop_event.is_set():
             return  # stopping: not queued, not acknowledged, redelivered on the next start
-        token = (self._gen, msg.mid, msg.qos)
         if msg.topic == self.claims_topic:  # bookkeeping, not model work: done here
             self._hear_claim(bytes(msg.payload))
-            self._ack(token)
+            if msg.qos > 0:  # (on this thread no reconnect can come between: no _lock)
+                client.ack(msg.mid, msg.qos)
             return
+        token = (self._gen, msg.mid, msg.qos)
         self.health.received += 1
         sensor = self.cfg.sensor_for_topic(msg.topic)
         # perf_counter: the arrival the reading-to-estimate latency counts from.
