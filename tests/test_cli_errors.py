@@ -216,6 +216,18 @@ def test_speed_must_be_positive(capsys, speed: str) -> None:
     assert "argument --speed" in line and "the speed must be positive" in line
 
 
+def test_a_speed_or_an_instant_the_clock_cannot_count_is_a_usage_error(capsys) -> None:
+    """(helper's fuzzing: OverflowError tracebacks)"""
+    line = _usage_error(capsys, "run", "--config", "c.toml",
+                        "--replay-from", "2012-03-20T06:30:00+01:00", "--speed", "1e308")
+    assert line == "pseudotwin run: error: argument --speed: 1e308: at most 1e+06 times real time"
+    for instant in ("0001-01-01T00:30:00+01:00", "9999-12-31T23:00:00+00:00"):
+        line = _usage_error(capsys, "run", "--config", "c.toml", "--replay-from", instant)
+        assert line.endswith(f"{instant!r}: expected a year in 2000..2200"), line
+        line = _usage_error(capsys, *REPLAY[:-1], instant)
+        assert "argument --start" in line and "expected a year" in line
+
+
 def test_speed_without_replay_from_is_an_error(capsys) -> None:
     line = _usage_error(capsys, "run", "--config", "c.toml", "--speed", "600")
     assert line.startswith("pseudotwin run: error: --speed needs --replay-from")

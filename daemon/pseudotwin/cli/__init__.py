@@ -448,10 +448,15 @@ def _minutes_at_least_zero(text: str) -> float:
     return minutes
 
 
+MAX_SPEED = 1e6  # a day in under a tenth of a second; beyond, the clock's arithmetic overflows
+
+
 def _speed(text: str) -> float:
     speed = _number(text)
     if not 0 < speed < math.inf:
         raise argparse.ArgumentTypeError(f"{text}: the speed must be positive")
+    if speed > MAX_SPEED:
+        raise argparse.ArgumentTypeError(f"{text}: at most {MAX_SPEED:g} times real time")
     return speed
 
 
@@ -549,6 +554,8 @@ def _aware(text: str) -> dt.datetime:
         raise argparse.ArgumentTypeError(f"{text!r} is not an ISO 8601 instant") from None
     if t.tzinfo is None:
         raise argparse.ArgumentTypeError(f"{text!r} needs a UTC offset, e.g. +01:00 or Z")
+    if not 2000 <= t.year <= 2200:  # (readings before 2000 are refused; year 1 overflowed)
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a year in 2000..2200")
     return t
 
 
