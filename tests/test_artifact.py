@@ -84,7 +84,10 @@ def test_a_model_s_own_error_names_the_artifact_file(trained, tmp_path: Path) ->
     lambda d: d.__setitem__("validation", 0),
     lambda d: d["hours"].__setitem__("day_start", 1e308),
     lambda d: next(iter(d["calibration"].values())).__setitem__("bins", None),
-], ids=["models-list", "training-number", "validation-number", "day-start-huge", "bins-null"])
+    lambda d: d["models"]["triv"]["std"].pop(),
+    lambda d: next(iter(d["models"]["triv"]["profiles"].values())).pop(),
+], ids=["models-list", "training-number", "validation-number", "day-start-huge", "bins-null",
+        "triv-std-short", "triv-profile-short"])
 def test_a_value_of_the_wrong_type_is_a_corrupt_artifact_not_a_traceback(
     trained, tmp_path: Path, mutate
 ) -> None:

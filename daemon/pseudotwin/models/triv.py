@@ -119,6 +119,9 @@ class TrivModel(TwinModel):
         S = len(hours.window_slots())
         if m.offsets_.shape != (len(m.references_), S):
             raise ValueError("TRIV offsets do not match the references and the slot grid")
+        # (a short array passed every check, then failed every estimate with an IndexError)
+        if m.std_.shape != (S,) or any(v.shape != (S,) for v in m.profiles_.values()):
+            raise ValueError("TRIV std or profiles do not match the slot grid")
         return m
 
 
