@@ -125,11 +125,11 @@ class Ownership:
         """This run begins at ``now`` (wall clock, UTC: a run's identity)."""
         self.run = Run(self.client_id, now)
 
-    def claim(self, to: Run | None = None, twins: frozenset[str] | None = None) -> bytes:
+    def claim(self) -> bytes:
+        """This run's claim of all its twins (answers are made by ``heard``)."""
         if self.run is None:
             raise RuntimeError("Ownership.start() first")
-        return Claim(self.run, self.host, self.pid,
-                     self.twins if twins is None else twins, to).payload()
+        return Claim(self.run, self.host, self.pid, self.twins).payload()
 
     def heard(self, payload: bytes) -> Heard:
         """A message on the claims topic; ValueError when it is not a claim."""

@@ -108,7 +108,6 @@ CLOCK_BACK_TOLERANCE = dt.timedelta(minutes=1)
 #: The last grid instant ticked (state_dir): how recent a retained estimate the run before
 #: this one may have left (TwinRuntime.published_floor).
 GRID_FILE = "grid.json"
-LOCK_FILE = "daemon.lock"  # one daemon per state dir (statelock.py)
 # A grid instant's estimates are made this long after it (clock time): a reading stamped
 # exactly at the instant (a bridge polling on the quarter hour) reaches the daemon a little
 # after it, and evaluate and backfill count it in. A reading stamped past the instant
@@ -231,7 +230,7 @@ class Service:
         self.stop_event = threading.Event()
         self.connected = threading.Event()
         self.journal = Journal(Path(cfg.state_dir) / "journal")
-        self.state_lock = StateLock(Path(cfg.state_dir) / LOCK_FILE, "daemon")
+        self.state_lock = StateLock(Path(cfg.state_dir) / "daemon.lock", "daemon")
         self.rejections = RejectionCounter(log, LOG_REJECTIONS_PER_KEY)
         self.health = Health(self._set_status, cfg.queue_size)
         self.metrics = DaemonMetrics(cfg.sensors, self.twins)  # served only with [metrics]
