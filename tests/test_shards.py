@@ -403,10 +403,11 @@ def test_claims_are_answered_once_reported_when_answered_and_forgotten_when_they
     own = Ownership("pt-a", "host-a", 1, ["x", "y"], clock=lambda: now[0])
     own.start(NOON)
     ours = Run("pt-a", NOON)
-    assert Claim.parse(own.claim()) == Claim(ours, "host-a", 1, frozenset({"x", "y"}))
+    assert [Claim.parse(p) for p in own.claim()] == [Claim(ours, "host-a", 1,
+                                                           frozenset({"x", "y"}))]
     earlier = Claim(Run("pt-a", NOON - dt.timedelta(days=1)), "host-a", 7, frozenset({"x"}))
     elsewhere = Claim(Run("pt-c", NOON), "host-c", 3, frozenset({"z"}))  # disjoint
-    for payload in (own.claim(), earlier.payload(), elsewhere.payload()):
+    for payload in (*own.claim(), earlier.payload(), elsewhere.payload()):
         assert own.heard(payload) == Heard(None, None, frozenset())
     b = Claim(Run("pt-b", NOON), "host-b", 2, frozenset({"y", "z"}))
     heard = own.heard(b.payload())  # kept, or new: answered, not reported
@@ -415,7 +416,7 @@ def test_claims_are_answered_once_reported_when_answered_and_forgotten_when_they
     assert own.heard(b.payload()).answer is None  # once
     assert own.publishers() == {"x": 0, "y": 0}
     answer = Claim(b.run, "host-b", 2, frozenset({"y"}), ours)
-    assert own.heard(answer.payload()) == Heard(None, answer, frozenset({"y"}))
+    assert own.heard(answer.payload()) == Heard(None, answer, frozenset({"y"}), frozenset({"y"}))
     assert own.publishers() == {"x": 0, "y": 1}
     assert own.heard(answer.payload()).reported is None  # reported once
     now[0] += STILL_THERE - 1

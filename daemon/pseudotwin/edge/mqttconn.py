@@ -73,6 +73,11 @@ def make_client(broker: BrokerConfig, client_id: str, status_topic: str,
     return c
 
 
+#: The largest packet a broker must take from pseudotwin's clients [bytes] (README: Broker):
+#: subscriptions and claims go in pieces well below it, and no single estimate, monitor or
+#: discovery message comes near it.
+BROKER_PACKET_BYTES = 16384
+
 #: Disconnects within this long of the connect that count towards a session taken over [s],
 #: and how many of them in TAKEOVER_WINDOW_S make the warning.
 TAKEOVER_AFTER_S = 5.0
@@ -107,8 +112,10 @@ def watch_takeover(client: mqtt.Client, client_id: str) -> None:
                 log.warning("the broker dropped client id %r %d times within %g s of "
                             "connecting: another client with the same id probably takes the "
                             "session over each time (two processes on one broker.client_id? "
-                            "give each its own)", client_id, len(state["quick"]),
-                            TAKEOVER_AFTER_S)
+                            "give each its own), or the broker refuses a packet this client "
+                            "sends (its max_packet_size below %d bytes? see its log)",
+                            client_id, len(state["quick"]), TAKEOVER_AFTER_S,
+                            BROKER_PACKET_BYTES)
         if on_disconnect is not None:
             on_disconnect(*args)
 
@@ -116,17 +123,40 @@ def watch_takeover(client: mqtt.Client, client_id: str) -> None:
     client.on_disconnect = disconnected
 
 
+#: Topic bytes per SUBSCRIBE packet at most: a broker with a ``max_packet_size`` drops a
+#: client that sends a larger packet, and one SUBSCRIBE of a fleet's thousands of sensor
+#: topics (tens of kB) had the daemon reconnect for good.
+SUBSCRIBE_BYTES = 8192
+
+
+def subscribe_packets(topics: list[tuple[str, int]], limit: int = SUBSCRIBE_BYTES
+                      ) -> list[list[tuple[str, int]]]:
+    """``topics`` in consecutive groups of at most ``limit`` bytes each as a SUBSCRIBE
+    packet's payload counts them (each topic's UTF-8 bytes, its 2-byte length and its QoS
+    byte; a single longer topic goes alone)."""
+    out: list[list[tuple[str, int]]] = []
+    size = 0
+    for topic, qos in topics:
+        n = len(topic.encode()) + 3
+        if not out or (out[-1] and size + n > limit):
+            out.append([])
+            size = 0
+        out[-1].append((topic, qos))
+        size += n
+    return out
+
+
 class Subscription:
-    """The sensor topics a client subscribes to on every connect; once the broker's SUBACK
-    is back (at once when there are none) ``connected`` is set and, the first time,
-    systemd hears READY=1: only then does a message published to them reach the client, so
-    "connected" (READY=1, ``start``'s wait) means receiving. Topics the broker refused (its
-    ACL) are logged as errors."""
+    """The sensor topics a client subscribes to on every connect (in packets of at most
+    SUBSCRIBE_BYTES); once the broker's SUBACKs are all back (at once when there are no
+    topics) ``connected`` is set and, the first time, systemd hears READY=1: only then does
+    a message published to them reach the client, so "connected" (READY=1, ``start``'s
+    wait) means receiving. Topics the broker refused (its ACL) are logged as errors."""
 
     def __init__(self, topics: list[tuple[str, int]], connected: threading.Event) -> None:
         self.topics = topics
         self.connected = connected
-        self._mid: int | None = None
+        self._pending: dict[int, list[tuple[str, int]]] = {}  # SUBSCRIBE mid → its topics
         self._notified = False
 
     def ready(self) -> None:
@@ -136,22 +166,28 @@ class Subscription:
         self.connected.set()
 
     def subscribe(self, client: mqtt.Client) -> None:
+        self._pending = {}  # a reconnect: the earlier connection's SUBACKs will not come
         if not self.topics:  # a fleet instance may own no twin (paho refuses an empty list)
             self.ready()
             return
-        _, self._mid = client.subscribe(self.topics)
+        for packet in subscribe_packets(self.topics):
+            rc, mid = client.subscribe(packet)
+            if rc != mqtt.MQTT_ERR_SUCCESS or mid is None:  # the connection went meanwhile:
+                return  # the next connect subscribes again
+            self._pending[mid] = packet
 
     def on_subscribe(self, client: mqtt.Client, userdata: Any, mid: int,
                      reason_codes: list[Any], properties: Any) -> None:
-        if mid != self._mid:
+        topics = self._pending.pop(mid, None)
+        if topics is None:
             return
-        self._mid = None
-        refused = [t for (t, _), rc in zip(self.topics, reason_codes, strict=False)
+        refused = [t for (t, _), rc in zip(topics, reason_codes, strict=False)
                    if rc.is_failure]
         if refused:
             log.error("the broker refused the subscription to %s (its ACL?): nothing "
                       "arrives on them", ", ".join(refused))
-        self.ready()
+        if not self._pending:
+            self.ready()
 
 
 class StaleTopics:

@@ -332,7 +332,8 @@ class Service:
         for topic, body in self.discovery.items():
             self._send(topic, body)
         if self.twins:  # after the subscription: the others' answers come to it
-            self._send(self.claims_topic, self.ownership.claim(), retain=False)
+            for part in self.ownership.claim():
+                self._send(self.claims_topic, part, retain=False)
             self._next_claim = time.monotonic() + CLAIM_EVERY
         if not flags.session_present:
             # A broker that lost our session (restarted without persistence) may have lost
@@ -594,7 +595,8 @@ class Service:
                             "latest: %s", self._claims_refused, self.claims_topic, exc)
             return
         if heard.answer is not None:
-            self._send(self.claims_topic, heard.answer.payload(), retain=False)
+            for part in heard.answer.payloads():
+                self._send(self.claims_topic, part, retain=False)
         if heard.reported is not None:
             twins = sorted(heard.twins)
             log.error("%d twin(s) of this daemon are published by another daemon too: %s. "
@@ -603,7 +605,8 @@ class Service:
                       "beside a fleet?) and stop the other. Twins: %s%s", len(twins),
                       heard.reported.who(), ", ".join(twins[:10]),
                       f" and {len(twins) - 10} more" if len(twins) > 10 else "")
-            self._count_publishers(heard.twins)
+        if heard.counted:
+            self._count_publishers(heard.counted)
 
     def _count_publishers(self, twins: frozenset[str] | None = None) -> None:
         """The other-publishers gauge of ``twins`` (None: every twin)."""
@@ -615,7 +618,8 @@ class Service:
         """The periodic claim (worker): the others see this daemon still runs; and those
         reported whose claims stopped coming are said to be gone."""
         self._next_claim = time.monotonic() + CLAIM_EVERY
-        self._send(self.claims_topic, self.ownership.claim(), retain=False)
+        for part in self.ownership.claim():
+            self._send(self.claims_topic, part, retain=False)
         gone = self.ownership.gone()
         for claim in gone:
             log.info("no claim from %s for two hours: it no longer publishes twins of this "
