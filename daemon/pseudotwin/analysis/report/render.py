@@ -313,6 +313,12 @@ PERFORMANCE = (
      "One UTC day of 1,000,000 readings of 100 sensors appended as the daemon's worker does "
      "(batches of 64): write rate, file size, the resident memory the journal adds, and the "
      "rebuild of a journal deleted under it, from its open files."),
+    ("bench_claims.txt", ".venv/bin/python scripts/bench_claims.py",
+     "Twin claims in a fleet",
+     "A daemon's claim of 1,000 to 100,000 twins (edge/ownership.py): its size and parts of "
+     "at most 8 kB, its encoding, the time the network thread spends hearing every part of "
+     "an echo, a fleet peer's claim and a second owner's, the longest part, and a claim's "
+     "trip through a real Mosquitto."),
     ("failover.txt", ".venv/bin/python scripts/failover.py",
      "Reference failover",
      "Each reference of the two-reference runs silenced for every test day: the estimate's "
