@@ -124,7 +124,7 @@ def select(envelope: Envelope, held_out: pd.DataFrame, primary: str,
     flagged = np.array([bool(f & kept) for f in fired_on], dtype=bool)
     if kept and calibration is not None and flagged.any():
         r = rows[flagged]
-        sigma = np.array([calibration.sigma(hours.hours_of(t), s)
+        sigma = np.array([calibration.sigma(hours.clock_of(t), s)
                           for t, s in zip(r["ts"], r["slope"], strict=True)])
         widen = max(1.0, float(np.sqrt(np.mean(err[flagged] ** 2) / np.mean(sigma ** 2))))
     return envelope.keeping(kept, widen, {k: j.to_dict() for k, j in judged.items()})

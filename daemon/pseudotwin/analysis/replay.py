@@ -96,7 +96,7 @@ def replay_estimates(
             continue
         if not sc:
             continue
-        h = hours.hours_of(t)
+        h = hours.clock_of(t)  # the twin's time of day (live/twin.py)
         answered = False
         for kind, e in twin.estimate(t).items():
             if not e.finite:

@@ -407,7 +407,7 @@ def _score(kind: str, rows: pd.DataFrame, spec: TwinSpec, offset_var: float,
            ) -> tuple[CandidateScore, SigmaCalibration, np.ndarray]:
     """``kind``'s held-out ``rows`` as its score, its σ calibration, and each row's nested σ
     (calibrated without the row's day: what the score's CRPS and coverage use) [n]."""
-    hours = np.array([spec.hours.hours_of(t) for t in rows["ts"]])
+    hours = np.array([spec.hours.clock_of(t) for t in rows["ts"]])
     err = (rows["value"] - rows["truth"]).to_numpy()
     calibration = SigmaCalibration.fit(rows["day"].to_numpy(), hours, err,
                                        rows["slope"].to_numpy(), offset_var)

@@ -11,7 +11,7 @@ import datetime as dt
 import math
 import re
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
 import numpy as np
@@ -22,6 +22,34 @@ from pseudotwin.errors import ConfigError
 _MINUTE = dt.timedelta(minutes=1)
 
 _HHMM = re.compile(r"(\d{1,2}):(\d{2})")
+
+
+@lru_cache(maxsize=64)
+def _folds(timezone: str, day: dt.date) -> tuple[tuple[float, float, float], ...]:
+    """The DST folds of local ``day`` (the wall-clock interval a fall-back shows twice), as
+    (first pass start [epoch s], length [s], wall-clock hours of its start): none on a day of
+    24 h or less. The transition is found by bisection on the UTC offset."""
+    tz = ZoneInfo(timezone)
+    start = dt.datetime.combine(day, dt.time(0), tzinfo=tz).timestamp()
+    end = dt.datetime.combine(day + dt.timedelta(days=1), dt.time(0), tzinfo=tz).timestamp()
+    if end - start <= 86400.0:
+        return ()
+
+    def offset(u: float) -> float:
+        off = dt.datetime.fromtimestamp(u, tz).utcoffset()
+        return 0.0 if off is None else off.total_seconds()
+
+    lo, hi = start, end  # offset(lo) is the day's first; the change lies in (lo, hi]
+    first = offset(lo)
+    while hi - lo > 0.5:
+        mid = (lo + hi) / 2.0
+        lo, hi = (mid, hi) if offset(mid) == first else (lo, mid)
+    t = float(round(hi))  # transitions fall on whole seconds (whole minutes, in practice)
+    length = first - offset(t)
+    if length <= 0:
+        return ()
+    loc = dt.datetime.fromtimestamp(t - length, tz)
+    return ((t - length, length, loc.hour + loc.minute / 60.0 + loc.second / 3600.0),)
 
 
 def parse_hhmm(text: str, what: str = "time of day") -> float:
@@ -181,6 +209,45 @@ class OperatingHours:
         loc = ts.astimezone(self.tz)
         hours = loc.hour + loc.minute / 60.0 + loc.second / 3600.0 + loc.microsecond / 3.6e9
         return loc.date(), hours
+
+    # -- the twins' time of day: wall clock, in time order through a DST fold ------------------
+    def clock_of(self, ts: dt.datetime) -> float:
+        """The hours [h] every twin's models see for ``ts``: its wall-clock hours
+        (:meth:`hours_of`), except in a DST fold, whose wall-clock interval the day shows twice
+        (02:00–03:00 on an autumn night in Berlin): both passes are mapped onto it in time
+        order at half speed, so the day's hours never go back. By wall clock the second pass
+        lies before the first one's end, and every model (sample-and-hold, the GP's inputs,
+        VARMA's slots) took its readings as older than the first pass's: an hour long the
+        estimate held the reference's value from before the change."""
+        return self.day_and_clock_of(ts)[1]
+
+    def day_and_clock_of(self, ts: dt.datetime) -> tuple[dt.date, float]:
+        """:meth:`day_of` and :meth:`clock_of`."""
+        day, hours = self.day_and_hours_of(ts)
+        for first, length, wall in _folds(self.timezone, day):
+            into = ts.timestamp() - first
+            if 0.0 <= into < 2.0 * length:
+                return day, wall + into / 7200.0
+        return day, hours
+
+    def day_and_clock(self, ts: pd.Series | pd.DatetimeIndex) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`day_and_hours` with the hours of :meth:`clock_of`."""
+        days, hours = self.day_and_hours(ts)
+        if len(days) == 0:
+            return days, hours
+        secs = None
+        for day in np.unique(days):
+            folds = _folds(self.timezone, day.astype(object))
+            if not folds:
+                continue
+            if secs is None:
+                secs = pd.DatetimeIndex(ts).as_unit("ns").asi8 / 1e9
+                hours = hours.copy()
+            for first, length, wall in folds:
+                into = secs - first
+                m = (days == day) & (into >= 0.0) & (into < 2.0 * length)
+                hours[m] = wall + into[m] / 7200.0
+        return days, hours
 
     def at(self, day: dt.date, hours: float) -> dt.datetime:
         """The aware instant of wall-clock ``hours`` on local ``day``.

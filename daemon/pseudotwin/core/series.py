@@ -350,7 +350,7 @@ def split_days(
     sub = df[df["sensor"].isin(sensors)]
     if sub.empty:
         return []
-    dayv, hrs = hours.day_and_hours(sub["ts"])
+    dayv, hrs = hours.day_and_clock(sub["ts"])  # the twin's hours, in time order
     ts_ns = pd.DatetimeIndex(sub["ts"]).as_unit("ns").asi8
     sens = sub["sensor"].values
     vals = sub["value"].values.astype(float)

@@ -289,7 +289,7 @@ class Twin:
 
     def _window_for(self, ts: dt.datetime) -> bool:
         """Make the window of ``ts``'s day current if ``ts`` lies in it; False otherwise."""
-        day, h = self.hours.day_and_hours_of(ts)
+        day, h = self.hours.day_and_clock_of(ts)
         if not self.hours.is_in_window(h):
             return False
         if day != self.day:
@@ -317,7 +317,7 @@ class Twin:
         if self._broken:
             self._repair()
         if action is Action.NEW:
-            self._feed(WindowReading(sensor, point_ts, self.hours.hours_of(point_ts), point_value))
+            self._feed(WindowReading(sensor, point_ts, self.hours.clock_of(point_ts), point_value))
         else:
             self._revise(sensor, point_ts, point_value)
         return True
@@ -437,7 +437,7 @@ class Twin:
             raise ValueError(f"the twin does not run {', '.join(sorted(unknown))}")
         if not self._window_for(ts):
             return {}
-        h = self.hours.hours_of(ts)
+        h = self.hours.clock_of(ts)
         out: dict[str, TwinEstimate] = {}
         triv = None
         predicted: dict[str, Estimate] = {}  # kind → its prediction at h (members are shared)
