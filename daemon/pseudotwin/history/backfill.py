@@ -321,7 +321,10 @@ def _seed(cfg: ServiceConfig, store: Store, sensors: list[str], init: dt.datetim
     last = store.last_readings_before(sensors, init)
     out = {s: x for s, x in last.items() if cfg.sensors[s].accepts(x[1])}
     if wild := [s for s in last if s not in out]:
-        frame = in_range(store.read_readings(wild, init - MAX_CARRY, init), cfg.sensors)
+        # In UTC: a local instant minus 24 h is wall-clock arithmetic, 23 h back across a
+        # spring DST change, where the twin's carry-over reaches 24 h (live/twin.py).
+        since = init.astimezone(dt.UTC) - MAX_CARRY
+        frame = in_range(store.read_readings(wild, since, init), cfg.sensors)
         for s, g in frame.groupby("sensor", sort=False):
             out[str(s)] = (g["ts"].iloc[-1].to_pydatetime(), float(g["value"].iloc[-1]))
     return out
