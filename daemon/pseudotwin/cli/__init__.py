@@ -689,7 +689,9 @@ def cmd_record(a: argparse.Namespace) -> int:
     from pseudotwin.edge.recorder import Recorder
 
     try:
-        cfg = check_config(a.config)
+        # No twin's artifact: the recorder needs sensors, broker and store only, and it runs
+        # before the twins are trained (the commissioning days are what train reads).
+        cfg = check_config(a.config, only_twins=frozenset())
         prepare_state_dir(cfg.state_dir)  # its spool lives there
         rec = Recorder(cfg)
     except ConfigError as exc:

@@ -1,0 +1,50 @@
+"""The commissioning path through the recorder: the desk sensor's days are recorded before
+any twin is trained (train --config reads them from the store). The recorder needs the
+sensors, broker and store of the configuration, never a twin's artifact (real Mosquitto,
+real SQLite, the real `pseudotwin record` process)."""
+
+from __future__ import annotations
+
+import datetime as dt
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+from daemon_support import REF, wait_for, write_config
+from pseudotwin.history.store import open_store
+from test_daemon import publisher, reading
+
+EXE = [sys.executable, "-m", "pseudotwin.cli"]
+
+
+def test_record_starts_before_the_twins_are_trained(mosquitto, tmp_path: Path) -> None:
+    """record refused a configuration whose artifacts did not exist yet ("train the twin
+    first"), and train --config said "import or record readings into it first": the
+    readings of the commissioning days could not be recorded at all."""
+    cfg = write_config(tmp_path, mosquitto.port, tmp_path / "artifacts" / "desk.json",
+                       store="history.db")
+    proc = subprocess.Popen([*EXE, "record", "--config", str(cfg)], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    pub = publisher(mosquitto.port, "commissioning-bridge")
+    try:
+        t = dt.datetime(2012, 3, 14, 9, 0, tzinfo=dt.UTC)
+        db = tmp_path / "history.db"
+
+        def stored() -> bool:
+            if proc.poll() is not None:
+                raise AssertionError(f"record exited {proc.returncode}: {proc.stdout.read()}")  # type: ignore[union-attr]
+            pub.publish("house/dining/temp", reading(t, 21.5), qos=1).wait_for_publish(10)
+            if not db.exists():
+                return False
+            with open_store(str(db), existing=True) as store:
+                return store.reading_range([REF]) is not None
+
+        wait_for(stored, timeout=30, what="the reading in the store")
+    finally:
+        pub.loop_stop()
+        pub.disconnect()
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0, out
