@@ -48,3 +48,28 @@ def test_record_starts_before_the_twins_are_trained(mosquitto, tmp_path: Path) -
             proc.send_signal(signal.SIGTERM)
         out, _ = proc.communicate(timeout=30)
     assert proc.returncode == 0, out
+
+
+def test_train_from_the_store_names_a_covariate_missing_on_the_training_days(
+        tmp_path: Path, capsys) -> None:
+    """The store held the covariate, on other days only (a bare-number sensor replayed
+    through the recorder is stamped on arrival): train said "sensor(s) … not found; file
+    has: …", of a store, and of a sensor it holds."""
+    from daemon_support import TARGET, sml
+    from pseudotwin.cli import main
+
+    df = sml()
+    df = df[df["ts"] < "2012-03-30T00:00Z"]
+    late = (df["sensor"] != "dining/co2") | (df["ts"] >= "2012-03-25T00:00Z")
+    db = tmp_path / "history.db"
+    with open_store(str(db)) as store:
+        store.write_readings(df[late])
+    rc = main(["--log-level", "WARNING", "train", "--store", str(db), "--references", REF,
+               "--target", TARGET, "--covariates", "dining/co2", "--quantity", "temperature",
+               "--timezone", "Europe/Madrid", "--models", "ref,triv,triv-cov",
+               "--out", str(tmp_path / "a.json")])
+    err = capsys.readouterr().err
+    assert rc != 0
+    assert "file has" not in err
+    assert "dining/co2" in err and "training days" in err
+    assert "stored from 2012-03-25" in err

@@ -428,4 +428,16 @@ def history_from_store(
             f"{n_days} needed"
         )
     df = pd.concat(kept, ignore_index=True).drop_duplicates(["sensor", "ts"])
+    # A covariate the store holds, but not on these days, was reported as "not found; file
+    # has: ..." (a bare-number sensor replayed through the recorder is stamped on arrival).
+    if absent := [c for c in extra if not (df["sensor"] == c).any()]:
+        spans = []
+        for c in absent:
+            got = store.reading_range([c])
+            spans.append(f"{c}: no readings in the store" if got is None else
+                         f"{c}: stored from {got[0].isoformat()} to {got[1].isoformat()}")
+        raise DataError(
+            f"covariate(s) {', '.join(absent)} have no readings on the training days "
+            f"{min(chosen)} … {max(chosen)} ({'; '.join(spans)}); leave them out of "
+            "--covariates, or train on days when they were recorded")
     return df.sort_values("ts", kind="stable").reset_index(drop=True), min([*chosen, *left_out])
