@@ -73,3 +73,30 @@ def test_train_from_the_store_names_a_covariate_missing_on_the_training_days(
     assert "file has" not in err
     assert "dining/co2" in err and "training days" in err
     assert "stored from 2012-03-25" in err
+
+
+def test_check_config_says_what_to_do_about_a_renamed_reference_or_time_zone(
+        mosquitto, tmp_path: Path, capsys) -> None:
+    """The second week: a reference renamed in the configuration, a time zone corrected.
+    check-config said only that they "differ from the artifact's"."""
+    from daemon_support import HOURS, TARGET, sml
+    from pseudotwin.analysis.training import train_twin
+    from pseudotwin.cli import _artifact_check
+    from pseudotwin.cli.check_config import main as check_config_main
+    from pseudotwin.core.spec import Quantity, TwinSpec
+
+    spec = TwinSpec((REF,), TARGET, Quantity.TEMPERATURE, HOURS)
+    art = train_twin(sml(), spec, dt.date(2012, 3, 14), 5, models=["ref", "triv"])
+    path = art.save(tmp_path / "desk.json")
+    cfg = write_config(tmp_path, mosquitto.port, path)
+    text = cfg.read_text()
+    cfg.write_text(text.replace(f'"{REF}"', '"wall/temp"'))
+    assert check_config_main([str(cfg)], artifact_check=_artifact_check) == 1
+    out = capsys.readouterr()
+    said = out.out + out.err
+    assert "differ from the artifact's" in said
+    assert "keep the id the twin was trained with" in said and "train --config" in said
+    cfg.write_text(text.replace('timezone = "Europe/Madrid"', 'timezone = "UTC"'))
+    assert check_config_main([str(cfg)], artifact_check=_artifact_check) == 1
+    out = capsys.readouterr()
+    assert "time zone" in out.out + out.err and "train --config" in out.out + out.err

@@ -190,7 +190,8 @@ def check_artifact(
     sensors' window policy, is compared with the one training learnt from (artifacts that
     record it)."""
     art = art or Artifact.load(twin.artifact)
-    problems = twin.spec(hours or art.hours, art.target).differences(art.spec, "the artifact's")
+    problems = [_with_remedy(p) for p in
+                twin.spec(hours or art.hours, art.target).differences(art.spec, "the artifact's")]
     learnt = art.training.get("min_interval_seconds", {})
     if thinning is None:
         return problems
@@ -203,6 +204,19 @@ def check_artifact(
                 f"min_interval_seconds = {seconds:.15g} on that sensor, or retrain for this "
                 f"window (train --config, which takes the sensors' own)")
     return problems
+
+
+def _with_remedy(problem: str) -> str:
+    """A difference between a twin's configuration and its artifact, with what to do: the
+    bare difference left a user who renamed a sensor or corrected the time zone stuck."""
+    retrain = "retrain the twin for this configuration (train --config, which takes its "
+    if problem.startswith(("references", "covariates")):
+        return (f"{problem}: a sensor's id names its history and the artifact's inputs, so "
+                "keep the id the twin was trained with if only the sensor's name or topic "
+                f"changed (the topic may change), else {retrain}sensors)")
+    if problem.startswith("operating hours"):
+        return f"{problem}: {retrain}time zone and hours; days recorded so far are reused)"
+    return f"{problem}: {retrain}sensors and hours) or point artifact at the right file"
 
 
 def artifact_hash(path: str | Path) -> str:
