@@ -100,3 +100,47 @@ def test_check_config_says_what_to_do_about_a_renamed_reference_or_time_zone(
     assert check_config_main([str(cfg)], artifact_check=_artifact_check) == 1
     out = capsys.readouterr()
     assert "time zone" in out.out + out.err and "train --config" in out.out + out.err
+
+
+def test_a_retrained_artifact_is_told_to_wait_for_a_restart(
+        mosquitto, tmp_path: Path, caplog) -> None:
+    """Retrained with more days while the daemon ran, the artifact file changed and the
+    daemon went on with the one it had loaded: no line said so, and the monitor's
+    `artifact` was the one thing that told (the old hash)."""
+    import logging
+    import shutil
+
+    from daemon_support import DAY, HOURS, TARGET, config, off_grid, sml
+    from pseudotwin.analysis.training import train_twin
+    from pseudotwin.core.spec import Quantity, TwinSpec
+    from pseudotwin.edge.clock import ReplayClock
+    from pseudotwin.edge.service import Service
+    from test_daemon import Viewer
+
+    spec = TwinSpec((REF,), TARGET, Quantity.TEMPERATURE, HOURS)
+    first = train_twin(sml(), spec, dt.date(2012, 3, 14), 5, models=["ref", "triv"])
+    more = train_twin(sml(), spec, dt.date(2012, 3, 14), 6, models=["ref", "triv"])
+    path = first.save(tmp_path / "desk.json")
+    retrained = more.save(tmp_path / "retrained.json")
+    svc = Service(config(tmp_path, mosquitto.port, path),
+                  clock=ReplayClock(off_grid(12.0), 1.0))
+    viewer = Viewer(mosquitto.port, "pt/desk/monitor")
+    caplog.set_level(logging.WARNING)
+    svc.start(wait_connected=15)
+    try:
+        svc.queue.put(("tick", HOURS.at(DAY, 10.0)))
+        wait_for(lambda: len(viewer.on("/monitor")) >= 1, what="the 10:00 monitor")
+        assert "changed on disk" not in caplog.text
+        shutil.copyfile(retrained, tmp_path / "new.json")
+        (tmp_path / "new.json").replace(path)  # as train writes it: a new file over the old
+        svc.queue.put(("tick", HOURS.at(DAY, 11.0)))
+        wait_for(lambda: len(viewer.on("/monitor")) >= 2, what="the 11:00 monitor")
+        wait_for(lambda: "changed on disk" in caplog.text, timeout=5,
+                 what="the line on the retrained artifact")
+        assert "next restart" in caplog.text
+        svc.queue.put(("tick", HOURS.at(DAY, 12.0)))
+        wait_for(lambda: len(viewer.on("/monitor")) >= 3, what="the 12:00 monitor")
+        assert caplog.text.count("changed on disk") == 1  # once per new file
+    finally:
+        viewer.close()
+        svc.stop()

@@ -151,6 +151,10 @@ class TwinRuntime:
     # Reference → its silences on silence_day (local day), to log a flapping one only so often.
     silence_day: dt.date | None = None
     silence_told: Counter[str] = field(default_factory=Counter)
+    # The artifact file as loaded ((mtime_ns, size, inode), its hash) and the hash on disk
+    # last told: a retrained artifact is only taken at a restart, which the log says.
+    artifact_file: tuple[int, int, int] | None = None
+    artifact_told: str | None = None
     # Time [unix s] of the last reading that moved the twin: the grid work goes to the
     # twins that heard from their sensors longest ago first (see Service._start_tick).
     last_input: float = 0.0
@@ -217,6 +221,7 @@ class Service:
                 tc, twin, monitor, cfg.per_reading_kinds(art.primary),
                 cfg.twin_topic(tid, "estimate"), cfg.twin_topic(tid, "monitor"),
                 {k: cfg.twin_topic(tid, "baseline", k) for k in twin.kinds if k != art.primary})
+            rt.artifact_file = _file_state(tc.artifact)
             self.twins[tid] = rt
             end, today = art.training_end, self.hours.day_of(self.clock.now())
             age = "" if end is None else f"; trained through {end} ({(today - end).days} days ago)"
@@ -998,11 +1003,33 @@ class Service:
                 return
             health = self.health.snapshot()  # ... but why the estimate changed must not wait
         rt.monitor_state = state
+        self._artifact_replaced(rt)
         rejected = self.rejections.of_day(self.hours.day_of(instant))
         self._publish(rt.monitor_topic,
                       monitor_payload({**rt.monitor.snapshot(instant, rejected),
                                        "ended": tw.take_ended_spells(), "health": health}),
                       retain=False, qos=MONITORING_QOS)
+
+    def _artifact_replaced(self, rt: TwinRuntime) -> None:
+        """Log, once per new file, that the twin's artifact on disk is no longer the one
+        this daemon runs (retrained while it ran): the daemon keeps the one it loaded, and
+        nothing else would say that the new one waits for a restart."""
+        now = _file_state(rt.cfg.artifact)
+        if now is None or now == rt.artifact_file:
+            return
+        try:
+            disk = artifact_hash(rt.cfg.artifact)
+        except OSError:
+            return
+        if disk == rt.monitor.artifact_hash:
+            rt.artifact_file = now  # touched or copied, the same artifact
+            return
+        if disk != rt.artifact_told:
+            rt.artifact_told = disk
+            log.warning("twin %s: %s changed on disk (now %s; this daemon runs %s, loaded at "
+                        "start): the new artifact is taken at the next restart, after "
+                        "check-config", rt.cfg.id, rt.cfg.artifact, disk[:16],
+                        rt.monitor.artifact_hash[:16])
 
     # -- timers ---------------------------------------------------------------------------
     def _next_grid(self, after: dt.datetime) -> dt.datetime:
@@ -1246,3 +1273,13 @@ class Service:
         log.info("stopped: %d readings accepted, %d messages published, %d rejected",
                  self.accepted, self.published, self.rejections.run_total)
 
+
+
+def _file_state(path: Path) -> tuple[int, int, int] | None:
+    """(mtime_ns, size, inode) of ``path``, None when it cannot be read: what tells a file
+    replaced (train writes a new file over the old one) without reading it."""
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return (st.st_mtime_ns, st.st_size, st.st_ino)
