@@ -144,3 +144,27 @@ def test_a_retrained_artifact_is_told_to_wait_for_a_restart(
     finally:
         viewer.close()
         svc.stop()
+
+
+def test_replay_says_a_recorder_stamps_bare_numbers_on_its_own_clock(
+        mosquitto, tmp_path: Path, caplog) -> None:
+    """Replayed through the broker to `record`, a bare-number sensor's commissioning days
+    were stored at today's time (stamped on arrival), and nothing said so until train
+    --config could not find the sensor on the training days."""
+    import logging
+
+    from pseudotwin.config import load_config
+    from pseudotwin.edge.replay import replay
+
+    cfg = write_config(tmp_path, mosquitto.port, tmp_path / "desk.json")
+    cfg.write_text(cfg.read_text().replace('topic = "house/dining/temp"',
+                                           'topic = "house/dining/temp"\nformat = "number"'))
+    t0 = dt.datetime(2012, 3, 14, 9, 0, tzinfo=dt.UTC)
+    import pandas as pd
+    history = pd.DataFrame({"sensor": [REF, REF], "ts": [t0, t0 + dt.timedelta(minutes=1)],
+                            "value": [21.0, 21.1]})
+    caplog.set_level(logging.WARNING)
+    n = replay(load_config(cfg), history, t0, t0 + dt.timedelta(minutes=2), 600.0)
+    assert n == 2
+    assert f"sensor(s) {REF} have no timestamp of their own" in caplog.text
+    assert "`record` stamps them on arrival" in caplog.text

@@ -65,6 +65,16 @@ def replay(
                   & (history["ts"] < end)].sort_values("ts", kind="stable")
     if sub.empty:
         raise DataError(f"no readings of the configured sensors between {start} and {end}")
+    # A bare number carries no instant: a daemon in replay mode stamps it on its own replay
+    # clock, but a recorder stamps it on the real one, so the store took replayed
+    # commissioning days of such a sensor at today's time, and train --config missed them.
+    if unstamped := sorted(s for s in set(sub["sensor"])
+                           if known[s].format == "number" or not known[s].ts_key):
+        log.warning("replay: sensor(s) %s have no timestamp of their own (format = "
+                    "\"number\" or no ts_key): a daemon in replay mode stamps their readings "
+                    "on its replay clock, but `record` stamps them on arrival, at today's "
+                    "time, not the replayed one (to store them, import the history instead)",
+                    ", ".join(unstamped))
     # PID and a random part: in containers every replay may be PID 1
     client_id = client_id or f"{cfg.broker.client_id}-replay-{os.getpid()}-{secrets.token_hex(2)}"
     c = mqtt.Client(CallbackAPIVersion.VERSION2, client_id=client_id, clean_session=True)
