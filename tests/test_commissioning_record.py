@@ -168,3 +168,31 @@ def test_replay_says_a_recorder_stamps_bare_numbers_on_its_own_clock(
     assert n == 2
     assert f"sensor(s) {REF} have no timestamp of their own" in caplog.text
     assert "`record` stamps them on arrival" in caplog.text
+
+
+def test_backfill_notes_days_the_artifact_trained_on(mosquitto, tmp_path: Path,
+                                                     capsys) -> None:
+    """Retrained with more days, a backfill wrote the new artifact's in-sample estimates of
+    its training days over the causal ones of the earlier artifact, and said nothing."""
+    from daemon_support import HOURS, TARGET, sml
+    from pseudotwin.analysis.training import train_twin
+    from pseudotwin.cli import main
+    from pseudotwin.core.spec import Quantity, TwinSpec
+
+    df = sml()
+    df = df[df["ts"] < "2012-03-22T00:00Z"]
+    spec = TwinSpec((REF,), TARGET, Quantity.TEMPERATURE, HOURS)
+    art = train_twin(df, spec, dt.date(2012, 3, 14), 5, models=["ref", "triv"])
+    assert art.training["days"][-1] == "2012-03-18"
+    path = art.save(tmp_path / "desk.json")
+    with open_store(str(tmp_path / "history.db")) as store:
+        store.write_readings(df)
+    cfg = write_config(tmp_path, mosquitto.port, path, store="history.db")
+    assert main(["backfill", "--config", str(cfg), "--twin", "desk", "--from", "2012-03-18",
+                 "--to", "2012-03-19", "--jobs", "1", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "desk: 2012-03-18 is a day its artifact was trained on" in err
+    assert "2012-03-19" not in err
+    assert main(["backfill", "--config", str(cfg), "--twin", "desk", "--from", "2012-03-20",
+                 "--to", "2012-03-20", "--jobs", "1", "--quiet"]) == 0
+    assert "trained on" not in capsys.readouterr().err

@@ -8,8 +8,12 @@ import datetime as dt
 import os
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from pseudotwin.cli.util import whole_number
+
+if TYPE_CHECKING:
+    from pseudotwin.config import ServiceConfig
 
 EX_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports for Ctrl-C
 
@@ -75,6 +79,7 @@ def run(a: argparse.Namespace) -> int:
         twins = [t.strip() for arg in a.twin for t in arg.split(",") if t.strip()]
         if not twins:
             raise ConfigError("--twin: no twin id given")
+    _say_training_days(cfg, twins, a.start, a.end)
     freeze_long_lived()
     with open_store(cfg.store, existing=True) as store:
         summary = backfill_twins(cfg, twins, a.start, a.end, store, jobs=a.jobs,
@@ -87,3 +92,26 @@ def run(a: argparse.Namespace) -> int:
               "command resumes with the others", file=sys.stderr)
         return EX_INTERRUPTED
     return 1 if summary.failures else 0
+
+
+def _say_training_days(cfg: ServiceConfig, twins: list[str], start: dt.date, end: dt.date) -> None:
+    """A note per twin whose artifact trained on days of the range: their estimates are
+    in-sample, and after a retrain with more days they replaced the causal ones the earlier
+    artifact wrote, with nothing said."""
+    from pseudotwin.errors import ArtifactError
+    from pseudotwin.live.artifact import Artifact
+
+    for tid in twins:
+        tc = cfg.twins.get(tid)
+        if tc is None:
+            continue  # the backfill names an unknown twin itself
+        try:
+            days = Artifact.load(tc.artifact).training.get("days", [])
+        except (ArtifactError, OSError):
+            continue  # said by the backfill itself
+        if inside := [d for d in days if start <= dt.date.fromisoformat(d) <= end]:
+            print(f"pseudotwin backfill: note: {tid}: {', '.join(inside)} "
+                  f"{'is a day' if len(inside) == 1 else 'are days'} its artifact was trained "
+                  "on: their estimates are in-sample (better than the twin does on days it "
+                  "never saw), and they replace any the twin's earlier artifact wrote",
+                  file=sys.stderr)
