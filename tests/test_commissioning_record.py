@@ -196,3 +196,34 @@ def test_backfill_notes_days_the_artifact_trained_on(mosquitto, tmp_path: Path,
     assert main(["backfill", "--config", str(cfg), "--twin", "desk", "--from", "2012-03-20",
                  "--to", "2012-03-20", "--jobs", "1", "--quiet"]) == 0
     assert "trained on" not in capsys.readouterr().err
+
+
+def test_train_config_refuses_to_overwrite_a_twin_artifact_its_configuration_refuses(
+        mosquitto, tmp_path: Path, capsys) -> None:
+    """train --config F --out <a twin's artifact> with other references wrote over the
+    artifact the daemon runs one that check-config then refused (the next start exits 78)."""
+    from daemon_support import HOURS, TARGET, sml
+    from pseudotwin.analysis.training import train_twin
+    from pseudotwin.cli import main
+    from pseudotwin.core.spec import Quantity, TwinSpec
+
+    df = sml()
+    df = df[df["ts"] < "2012-03-22T00:00Z"]
+    spec = TwinSpec((REF,), TARGET, Quantity.TEMPERATURE, HOURS)
+    path = train_twin(df, spec, dt.date(2012, 3, 14), 5, models=["ref", "triv"]).save(
+        tmp_path / "desk.json")
+    before = path.read_bytes()
+    with open_store(str(tmp_path / "history.db")) as store:
+        store.write_readings(df)
+    cfg = write_config(tmp_path, mosquitto.port, path, store="history.db")
+    cfg.write_text(cfg.read_text() + '\n[[sensors]]\nid = "dining/co2"\n'
+                   'topic = "house/dining/co2"\nunit = "ppm"\nmin = 0\nmax = 5000\n')
+    train = ["--log-level", "WARNING", "train", "--config", str(cfg), "--target", TARGET,
+             "--quantity", "temperature", "--models", "ref,triv"]
+    rc = main([*train, "--references", REF, "--covariates", "dining/co2", "--models",
+               "ref,triv,triv-cov", "--out", str(path)])
+    assert rc != 0
+    err = capsys.readouterr().err
+    assert "is the artifact of twin desk" in err and "covariates" in err
+    assert path.read_bytes() == before
+    assert main([*train, "--references", REF, "--out", str(path)]) == 0  # as configured

@@ -239,6 +239,22 @@ def _check_live_sensors(a: argparse.Namespace, cfg: ServiceConfig) -> None:
                 f"{suggest(unknown[0], cfg.sensors)}; the twin could not be fed live")
 
 
+def _check_twin_of_out(a: argparse.Namespace, spec: TwinSpec, cfg: ServiceConfig) -> None:
+    """--out naming a configured twin's artifact must be trained as that twin is configured:
+    another set of references wrote over the artifact the daemon runs one its configuration
+    refuses (the next start exits 78), after minutes of training."""
+    for tc in cfg.twins.values():
+        if not _same_file(tc.artifact, a.out):
+            continue
+        # (the hours are checked against the configuration's already)
+        if problems := tc.spec(spec.hours, spec.target).differences(spec, "this training's"):
+            raise ConfigError(
+                f"--out {a.out} is the artifact of twin {tc.id} in {a.config}, and "
+                f"{'; '.join(problems)}: the daemon would refuse the artifact at its next "
+                "start. Train with that twin's references, covariates and quantity, or "
+                "change the twin in the configuration first, or write another file")
+
+
 def _training_history(a: argparse.Namespace, hours: OperatingHours,
                       cfg: ServiceConfig | None) -> tuple[pd.DataFrame, dt.date]:
     """The history to train on and the first candidate day: --history, else --store, else
@@ -327,6 +343,7 @@ def cmd_train(a: argparse.Namespace) -> int:
     cfg = None if a.config is None else load_named_config(a.config)
     if cfg is not None:  # what contradicts the configuration fails before any reading
         _check_live_sensors(a, cfg)
+        _check_twin_of_out(a, spec, cfg)
         if cfg.store and (file := sqlite_file(cfg.store)) and _same_file(Path(file), a.out):
             raise ConfigError(f"--out would overwrite the store of {a.config}, {cfg.store}")
     thinning = _train_thinning(a, cfg)
