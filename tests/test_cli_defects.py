@@ -519,3 +519,28 @@ def test_estimates_csv_keeps_a_sub_second_reading_stamp(sml: Path, tmp_path: Pat
     truth = read_history(shifted)
     assert set(pd.to_datetime(est["ts"], format="ISO8601")) <= set(
         truth.loc[truth["sensor"] == "room/temp", "ts"])
+
+
+def test_evaluate_reads_the_history_store_as_it_reads_the_same_history_from_a_file(
+    sml: Path, tmp_path: Path, capsys
+) -> None:
+    """A site that recorded its commissioning days has them in the store, not in a file:
+    evaluate had only --history. From the store it scores exactly what it scores from the
+    file the store was imported from; a sensor the store lacks is named."""
+    db = tmp_path / "h.db"
+    assert run("import", str(sml), "--store", str(db)) == 0
+    assert _evaluate(sml, tmp_path / "file") == 0
+    stored = [a if a != str(sml) else str(db) for a in desk_twin("evaluate", sml)]
+    stored[stored.index("--history")] = "--store"
+    assert run(*stored, "--models", "triv", "--out", str(tmp_path / "store")) == 0
+    for name in ("daily.csv", "estimates.csv"):
+        from_file = pd.read_csv(tmp_path / "file" / name)
+        assert len(from_file) > 0
+        pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "store" / name), from_file)
+    capsys.readouterr()
+    stored[stored.index("room/temp")] = "desk/temp"
+    assert run(*stored, "--models", "triv", "--out", str(tmp_path / "none")) == 2
+    assert f"the history store {db} has no readings of desk/temp" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:  # one source, not both
+        run(*desk_twin("evaluate", sml), "--store", str(db), "--out", str(tmp_path / "x"))
+    assert exc.value.code == 2

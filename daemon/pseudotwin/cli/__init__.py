@@ -27,7 +27,7 @@ from pseudotwin.cli.util import (
 from pseudotwin.config.model import LOG_LEVELS
 from pseudotwin.config.validate import sqlite_file
 from pseudotwin.core.spec import Quantity, TwinSpec
-from pseudotwin.errors import ConfigError, PseudotwinError, StateInUseError
+from pseudotwin.errors import ConfigError, DataError, PseudotwinError, StateInUseError
 from pseudotwin.gp.kernels import KERNEL_REGISTRY
 from pseudotwin.models.registry import ALL_MODELS, MODELS
 
@@ -102,8 +102,13 @@ def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
                             "would not fit it), references and covariates among its sensors; "
                             "the history from its store unless --history or --store is given")
     else:
-        p.add_argument("--history", required=True, type=Path,
-                       help="canonical history file (CSV or Parquet): sensor,ts,value")
+        src = p.add_mutually_exclusive_group(required=True)
+        src.add_argument("--history", type=Path,
+                         help="canonical history file (CSV or Parquet): sensor,ts,value")
+        src.add_argument("--store", metavar="URL",
+                         help="history store (what `record` and `import` wrote): SQLite file, "
+                              "postgresql://host/db or crate://host:4200; every stored "
+                              "reading of the references, target and covariates is read")
     p.add_argument("--references", required=True, type=_csv,
                    help="reference sensor(s), comma-separated, e.g. hmi/temp,ceiling/temp")
     p.add_argument("--target", required=True, help="the desk sensor to pseudo-measure")
@@ -401,13 +406,28 @@ def cmd_train(a: argparse.Namespace) -> int:
     return 0
 
 
+def _stored_history(a: argparse.Namespace) -> pd.DataFrame:
+    """Every reading of the twin's sensors in the store --store: what evaluate reads from a
+    history file (a site that recorded its commissioning days had no file to give)."""
+    from pseudotwin.history.store import open_store
+
+    sensors = [*a.references, a.target, *a.covariates]
+    with open_store(a.store, existing=True) as store:
+        # (covariates are read where there are some, as from a file)
+        if silent := [s for s in sensors[:len(a.references) + 1]
+                      if store.reading_range([s]) is None]:
+            raise DataError(f"the history store {a.store} has no readings of "
+                            f"{', '.join(silent)}")
+        return store.read_readings(sensors)
+
+
 def cmd_evaluate(a: argparse.Namespace) -> int:
     from pseudotwin.analysis.evaluate import evaluate, summary_table
     from pseudotwin.core.series import read_history
     from pseudotwin.core.thinning import Thinning
     from pseudotwin.core.twinlog import twin_context
 
-    df = read_history(a.history)
+    df = read_history(a.history) if a.history is not None else _stored_history(a)
     with twin_context(a.target):  # evaluate has no twin id: its desk sensor names it
         ev = evaluate(df, _spec(a), a.train_start, a.train_days, a.models, a.out,
                       _options(a), a.plot_day, a.primary,
