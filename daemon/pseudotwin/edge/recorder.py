@@ -40,6 +40,7 @@ from pseudotwin.edge.mqttconn import (
 )
 from pseudotwin.edge.prometheus import RecorderMetrics
 from pseudotwin.edge.sdnotify import notify
+from pseudotwin.edge.silence import SilenceWatch
 from pseudotwin.edge.statelock import StateLock
 from pseudotwin.errors import ConfigError, PseudotwinError
 from pseudotwin.history.store import RowsRejected, Store, open_store, to_ms
@@ -59,6 +60,7 @@ OLDEST = series.OLDEST.to_pydatetime()
 
 #: In the state dir: readings the store refused one by one (canonical CSV, appended).
 REFUSED_FILE = "recorder-refused.csv"
+SILENCE_CHECK = dt.timedelta(minutes=1)  # how often silent sensors are looked for
 
 
 #: Readings the spool hands to the store at a time: a spool of days (a long store outage)
@@ -181,6 +183,10 @@ class Recorder:
         self._subscription = Subscription([(s.topic, 1) for s in cfg.sensors.values()],
                                           self.connected)
         self.client.on_subscribe = self._subscription.on_subscribe
+        # Sensors silent in operating hours (a dead desk sensor on a commissioning day):
+        # watched from the start on (_start), checked by the worker once a minute.
+        self.silence: SilenceWatch | None = None
+        self._next_silence_check: dt.datetime | None = None
         self._worker = threading.Thread(target=self._run, name="recorder", daemon=True)
         self.metrics.watch(queue_size=self.queue.qsize, connected=self.connected.is_set,
                            spool=self.spool.path)
@@ -434,12 +440,23 @@ class Recorder:
                 if r is not None:
                     batch.append(r)
                     tokens.append(token)
+                    if self.silence is not None and not retained:  # (a retained one is old)
+                        self.silence.heard(r.sensor, arrival)
                 else:
                     self._ack(token)
+            self._check_silence()
             if time.monotonic() >= deadline or len(batch) >= self.batch_max:
                 if self._guarded_flush(batch, tokens):
                     batch, tokens = [], []
                 deadline = time.monotonic() + self.flush_seconds
+
+    def _check_silence(self) -> None:
+        if self.silence is None:
+            return
+        now = self.clock.now()
+        if self._next_silence_check is None or now >= self._next_silence_check:
+            self._next_silence_check = now + SILENCE_CHECK
+            self.silence.check(now)
 
     def _guarded_flush(self, batch: list[Reading], tokens: list[tuple[int, int, int]]) -> bool:
         try:
@@ -457,6 +474,8 @@ class Recorder:
     def _start(self, wait_connected: float | None) -> None:
         if self.cfg.metrics.record_port is not None:
             self.metrics.serve(self.cfg.metrics.host, self.cfg.metrics.record_port, "recorder")
+        self.silence = SilenceWatch(self.cfg.sensors, self.cfg.hours, self.cfg.stale_after,
+                                    self.clock.now())
         self._worker.start()
         b = self.cfg.broker
         self.client.connect_async(b.host, b.port, keepalive=b.keepalive)
