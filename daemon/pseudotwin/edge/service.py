@@ -349,9 +349,9 @@ class Service:
                 self.queue.put_nowait(("wake",))
             except queue.Full:
                 pass  # busy anyway: it looks at the flag before its next batch
-        log.info("connected to %s:%d (session present: %s); subscribing to %d sensor topics",
+        log.info("connected to %s:%d (session present: %s); subscribing to %d sensor topics%s",
                  self.cfg.broker.host, self.cfg.broker.port, flags.session_present,
-                 len(self._subscription.topics))
+                 len(self.cfg.sensors), f" and {self.claims_topic}" if self.twins else "")
 
     def _plan_discovery(self) -> tuple[dict[str, bytes], list[str]]:
         """Home Assistant discovery: (config topic → payload, config topics to clear)."""
