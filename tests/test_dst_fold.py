@@ -66,3 +66,19 @@ def test_days_without_a_fold_keep_the_wall_clock() -> None:
     for t in (dt.datetime(2016, 3, 27, 1, 30, tzinfo=dt.UTC),  # the spring day
               dt.datetime(2016, 7, 1, 12, 7, tzinfo=dt.UTC)):
         assert hours.clock_of(t) == hours.hours_of(t)
+
+
+def test_the_grid_goes_through_both_passes_of_a_fold_and_skips_a_gap() -> None:
+    """Every 15 min of the 25-h day in time order (the second pass had no instant: 75 min
+    without baselines and monitor), and of the 23-h one, where the gap's instants are
+    not on the clock."""
+    hours = OperatingHours(0.0, 24.0, 0.0, 15.0, "Europe/Berlin")
+    for day, n in ((dt.date(2016, 10, 30), 100), (dt.date(2016, 3, 27), 92)):
+        grid = hours.grid(day, 0.25)
+        utc = [t.astimezone(dt.UTC) for t in grid]
+        assert len(grid) == n
+        steps = {b - a for a, b in zip(utc[:-1], utc[1:], strict=True)}
+        assert steps == {dt.timedelta(minutes=15)}
+        assert all(grid[i] < grid[i + 1] for i in range(len(grid) - 1))  # as compared
+        assert all(hours.day_of(t) == day for t in grid)
+    assert len(hours.grid(dt.date(2016, 7, 1), 0.25)) == 96

@@ -278,11 +278,22 @@ class OperatingHours:
         midnight from day start to day end, before the next midnight (wall clock, so a DST
         day has the same instants on the clock). Anchored at midnight, a 15-min grid is on
         the quarter hours whatever the day start: what an MPC samples). The instants a DST
-        gap swallows are not on it: the clock never shows them."""
+        gap swallows are not on it: the clock never shows them; those of a fold are on it
+        twice, the second pass's at its fixed UTC offset (so that every comparison of two
+        instants is in UTC: two of one ZoneInfo compare by wall clock), in time order. The
+        fold's second hour had no instant: its baselines and monitor skipped 75 minutes."""
         first = math.ceil(self.day_start / step_hours - 1e-9)
         last = math.floor(min(self.day_end, 24.0 - 1e-6) / step_hours + 1e-9)
         instants = [(k * step_hours, self.at(day, k * step_hours)) for k in range(first, last + 1)]
-        return [t for h, t in instants if abs(self.hours_of(t) - h) < 1e-6]
+        out = []
+        for h, t in instants:
+            if abs(self.hours_of(t) - h) >= 1e-6:
+                continue  # in a gap
+            out.append(t)
+            second = t.replace(fold=1)
+            if (offset := second.utcoffset()) != t.utcoffset() and offset is not None:
+                out.append(second.astimezone(dt.timezone(offset)))
+        return sorted(out, key=lambda t: t.timestamp()) if len(out) > len(instants) else out
 
     def in_operating_hours(self, hours: np.ndarray | float) -> np.ndarray:
         h = np.asarray(hours, dtype=float)
