@@ -6,6 +6,7 @@ sessions, QoS 1 redelivery, reconnects after a broker restart — only show agai
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pwd
 import queue
@@ -83,25 +84,36 @@ def _accepts(port: int) -> bool:
         return False
 
 
+@contextlib.contextmanager
+def own_broker(folder: Path, settings: str, what: str) -> Iterator[int]:
+    """A Mosquitto of its own on a free port with ``settings`` (mosquitto.conf lines), for
+    the test's duration; its port. ``what`` names it when it does not start."""
+    from daemon_support import wait_for
+
+    port = closed_port()
+    conf = folder / f"mosquitto-{port}.conf"
+    conf.write_text(f"listener {port} 127.0.0.1\n{settings}"
+                    f"user {pwd.getpwuid(os.getuid()).pw_name}\n")
+    proc = subprocess.Popen([shutil.which("mosquitto") or "/usr/sbin/mosquitto", "-c", str(conf)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        wait_for(lambda: _accepts(port), what=what)
+        yield port
+    finally:
+        proc.terminate()
+        proc.wait(10)
+
+
 @pytest.fixture
 def password_broker(tmp_path: Path) -> Iterator[int]:
     """A Mosquitto of its own that takes user ``pt`` with password ``right`` only; its
     port."""
-    from daemon_support import wait_for
-
     pw = tmp_path / "passwd"
     subprocess.run(["mosquitto_passwd", "-b", "-c", str(pw), "pt", "right"], check=True,
                    capture_output=True)
-    port = closed_port()
-    conf = tmp_path / "mosquitto-auth.conf"
-    conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous false\npassword_file {pw}\n"
-                    f"user {pwd.getpwuid(os.getuid()).pw_name}\n")
-    proc = subprocess.Popen([shutil.which("mosquitto") or "/usr/sbin/mosquitto", "-c", str(conf)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    wait_for(lambda: _accepts(port), what="auth broker")
-    yield port
-    proc.terminate()
-    proc.wait(10)
+    with own_broker(tmp_path, f"allow_anonymous false\npassword_file {pw}\n",
+                    "auth broker") as port:
+        yield port
 
 
 class MosquittoBroker:

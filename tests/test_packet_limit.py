@@ -7,15 +7,12 @@ from __future__ import annotations
 
 import logging
 import os
-import pwd
-import shutil
-import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from conftest import _accepts, closed_port
+from conftest import own_broker
 from daemon_support import REF, TZ, off_grid, wait_for
 from pseudotwin.config import load_config
 from pseudotwin.edge.clock import ReplayClock
@@ -33,16 +30,9 @@ SENSORS = [f"room-{i:03d}/wall/temp" for i in range(400)]
 @pytest.fixture
 def small_packet_broker(tmp_path: Path) -> Iterator[int]:
     """A Mosquitto of its own that drops a client sending a packet above LIMIT; its port."""
-    port = closed_port()
-    conf = tmp_path / "mosquitto-small.conf"
-    conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\n"
-                    f"max_packet_size {LIMIT}\nuser {pwd.getpwuid(os.getuid()).pw_name}\n")
-    proc = subprocess.Popen([shutil.which("mosquitto") or "/usr/sbin/mosquitto", "-c", str(conf)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    wait_for(lambda: _accepts(port), what="the broker with a packet limit")
-    yield port
-    proc.terminate()
-    proc.wait(10)
+    with own_broker(tmp_path, f"allow_anonymous true\nmax_packet_size {LIMIT}\n",
+                    "the broker with a packet limit") as port:
+        yield port
 
 
 def site(folder: Path, port: int, artifact: Path) -> Path:
