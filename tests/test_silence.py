@@ -23,8 +23,9 @@ def test_silence_is_told_in_operating_hours_once_per_silence_and_so_often_a_day(
     caplog.set_level(logging.INFO, logger="pseudotwin.edge.silence")
     watch = SilenceWatch([REF, TARGET], HOURS, dt.timedelta(minutes=30), at(6.0))
     assert watch.check(at(7.9)) == []  # before the day start: a sensor may rest
-    assert watch.check(at(8.0)) == [REF, TARGET]  # unheard of since the start
-    assert watch.check(at(8.5)) == []  # told once
+    assert watch.check(at(8.4)) == []  # silence counts from the day start, not the night
+    assert watch.check(at(8.51)) == [REF, TARGET]  # unheard of since
+    assert watch.check(at(8.55)) == []  # told once
     watch.heard(REF, at(8.6))
     assert "sensor dining/temp reports again" in caplog.text
     assert watch.check(at(9.0)) == []  # heard 24 min ago
@@ -36,6 +37,15 @@ def test_silence_is_told_in_operating_hours_once_per_silence_and_so_often_a_day(
     assert f"silent {LINES_PER_DAY} times today" in said[-1]
     watch.heard(REF, at(18.0))
     assert watch.check(at(19.5)) == []  # after the day end
+
+
+def test_silence_counts_from_the_latest_reconnect() -> None:
+    """While the listener was away from the broker nothing could be heard: that is no
+    sensor's silence."""
+    watch = SilenceWatch([REF], HOURS, dt.timedelta(minutes=30), at(8.0))
+    watch.listening(at(9.0))  # back after an hour away
+    assert watch.check(at(9.4)) == []
+    assert watch.check(at(9.6)) == [REF]
 
 
 def test_the_recorder_tells_a_desk_sensor_silent_in_operating_hours_and_its_return(

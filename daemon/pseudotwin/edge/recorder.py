@@ -200,6 +200,8 @@ class Recorder:
                       "; giving up (fix the credentials)" if self.fatal else "; retrying")
             return
         self._gen += 1
+        if self.silence is not None:  # nothing could be heard while away
+            self.silence.listening(self.clock.now())
         self._subscription.subscribe(client)
         self._send_status()
         log.info("recorder connected; recording %d sensor topics", len(self.cfg.sensors))
@@ -451,7 +453,7 @@ class Recorder:
                 deadline = time.monotonic() + self.flush_seconds
 
     def _check_silence(self) -> None:
-        if self.silence is None:
+        if self.silence is None or not self.connected.is_set():  # (away: nothing is heard)
             return
         now = self.clock.now()
         if self._next_silence_check is None or now >= self._next_silence_check:

@@ -5,7 +5,9 @@ estimate goes stale and nothing else notices a dead desk sensor. Its days were t
 at ``train`` time, days after the fact. A sensor that sends no valid reading for longer than
 ``stale_after_minutes`` (the daemon's own measure of a silent reference) while the clock is
 in operating hours is told, once per silence, and again when it reports; at most
-``LINES_PER_DAY`` silences per sensor and local day, then that it flaps.
+``LINES_PER_DAY`` silences per sensor and local day, then that it flaps. Silence is counted
+from the day start at the earliest (a sensor may rest at night) and from the latest
+(re)connect of the listener (while it was away from the broker, nothing could be heard).
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ class SilenceWatch:
         self.after = after
         self.who = who
         self._last: dict[str, dt.datetime] = dict.fromkeys(sensors, start)
+        self._listening = start  # the latest (re)connect
         self._silent: dict[str, bool] = {}  # silent sensor → whether its silence was told
         self._day: dt.date | None = None
         self._told: Counter[str] = Counter()
@@ -46,14 +49,19 @@ class SilenceWatch:
             log.info("%s: sensor %s reports again after %.0f min without a reading", self.who,
                      sensor, (at - since).total_seconds() / 60.0)
 
+    def listening(self, since: dt.datetime) -> None:
+        """The listener (re)connected at ``since``: silence counts from there."""
+        self._listening = since
+
     def check(self, now: dt.datetime) -> list[str]:
         """Tell the sensors newly silent at ``now`` (only in operating hours: outside them
-        a sensor may rest); returns them."""
+        a sensor may rest); returns them. Call only while connected."""
         day, hours = self.hours.day_and_hours_of(now)
         if not self.hours.day_start <= hours <= self.hours.day_end:
             return []
+        floor = max(self._listening, self.hours.at(day, self.hours.day_start))
         went = [s for s, last in self._last.items()
-                if s not in self._silent and now - last > self.after]
+                if s not in self._silent and now - max(last, floor) > self.after]
         if not went:
             return []
         if day != self._day:
