@@ -4,8 +4,9 @@ meanwhile, for daemons of N twins.
 
 Per N: the size of one claim and the parts it goes in (at most CLAIM_BYTES each); the time
 to encode it (at connect and hourly, on the worker); the time ``Ownership.heard`` takes for
-all parts of the three claims a daemon hears (its own echo, a fleet peer's claim of other
-twins, and a second daemon claiming all of its twins, answered with a claim of as many), and
+all parts of the four claims a daemon hears (its own echo, a fleet peer's claim of other
+twins, a second daemon claiming all of its twins, answered with a claim of as many, and that
+daemon's answer, which reports it and counts every twin in the other-publishers gauge), and
 the longest one part holds the network thread; and, through a real Mosquitto on a free port,
 the time from publishing a claim's parts to the last one's arrival at a subscriber of
 ``<base>/claims`` (median of the round trips, the broker and both clients on this host). Not
@@ -33,7 +34,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from brokerutil import exit_on_signals, free_port, start_broker, stop_process  # noqa: E402
-from pseudotwin.edge.ownership import Ownership  # noqa: E402
+from pseudotwin.edge.ownership import Claim, Ownership  # noqa: E402
 
 TOPIC = "pseudotwin/claims"
 
@@ -54,27 +55,39 @@ def daemon(client_id: str, twins: list[str]) -> Ownership:
 
 
 def heard_ms(n: int, repeat: int) -> dict[str, float]:
-    """Median ms of heard() of all parts on the daemon with twins 0..n-1, per kind of claim,
+    """Median ms of what the network thread does with all parts of a claim on the daemon with
+    twins 0..n-1 (``Ownership.heard``, and the other-publishers gauge's counts of the twins a
+    part names once their sender is reported, as edge/service.py does), per kind of claim,
     and the longest part of them (``longest_part``)."""
     twins = [f"site/room{i:06d}-desk" for i in range(n)]
     peer_twins = [f"site/room{i:06d}-desk" for i in range(n, 2 * n)]
     ours = daemon("pseudotwin-1", twins)
     echo = ours.claim()
     peer = daemon("pseudotwin-2", peer_twins).claim()
-    second = daemon("pseudotwin-dup", twins).claim()
+    second = daemon("pseudotwin-dup", twins)
     longest = 0.0
 
     def hear(o: Ownership, parts: list[bytes]) -> None:
         nonlocal longest
         for p in parts:
             t0 = time.perf_counter()
-            o.heard(p)
+            h = o.heard(p)
+            if h.counted:
+                o.publishers(h.counted)
             longest = max(longest, time.perf_counter() - t0)
 
+    def answered(o: Ownership) -> list[bytes]:  # the second owner's answer to ``o``'s claim
+        assert o.run is not None and second.run is not None
+        return Claim(second.run, "bench-host", 4243, frozenset(twins), o.run).payloads()
+
+    # a new first daemon each time: its first hearing answers, or reports
+    fresh = [daemon("pseudotwin-1", twins) for _ in range(2 * repeat)]
+    pairs = [(o, answered(o)) for o in fresh[repeat:]]
+    claimed = second.claim()
     out = {"echo": median_ms(lambda: hear(ours, echo), repeat),
            "peer": median_ms(lambda: hear(ours, peer), repeat),
-           # a new first daemon each time: its first hearing answers
-           "duplicate": median_ms(lambda: hear(daemon("pseudotwin-1", twins), second), repeat)}
+           "duplicate": median_ms(lambda: hear(fresh.pop(), claimed), repeat),
+           "reported": median_ms(lambda: hear(*pairs.pop()), repeat)}
     out["longest_part"] = longest * 1000
     return out
 
@@ -155,15 +168,15 @@ def main() -> None:
     print(f"claims (edge/ownership.py), median of {a.repeat}, all parts of a claim; heard() "
           "runs on the network thread; twin ids like 'site/room000123-desk'")
     print("| twins | claim [kB] | parts | largest part [kB] | encode [ms] | heard: echo [ms] | "
-          "heard: fleet peer [ms] | heard: duplicate, answered [ms] | longest part [ms] | "
-          "broker round trip [ms] |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+          "heard: fleet peer [ms] | heard: second owner, answered [ms] | heard: its answer, "
+          "reported and counted [ms] | longest part [ms] | broker round trip [ms] |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         h = r["heard_ms"]
         print(f"| {r['twins']} | {r['claim_bytes'] / 1000:.1f} | {r['parts']} | "
               f"{r['largest_part_bytes'] / 1000:.1f} | {r['encode_ms']:.2f} | "
               f"{h['echo']:.2f} | {h['peer']:.2f} | {h['duplicate']:.2f} | "
-              f"{h['longest_part']:.2f} | {r['round_trip_ms']:.2f} |")
+              f"{h['reported']:.2f} | {h['longest_part']:.2f} | {r['round_trip_ms']:.2f} |")
     print(json.dumps({"bench_claims": rows}))
 
 

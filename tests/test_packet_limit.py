@@ -1,7 +1,7 @@
 """A broker with a ``max_packet_size`` drops a client that sends a larger packet. A daemon of
 hundreds of twins sent one SUBSCRIBE of all its sensor topics and one claim of all its twins,
 both tens of kB: it reconnected for good and never came online. Subscriptions and claims now
-go in pieces small enough for a broker that allows packets of 16 kB (README: Broker)."""
+go in pieces small enough for a broker that allows packets of 16 kB (README: Packet size)."""
 
 from __future__ import annotations
 

@@ -340,7 +340,8 @@ def test_two_daemons_owning_one_twin_both_say_so_and_a_claim_kept_while_away_is_
         named = {svc.cfg.broker.client_id: [r.message for r in reports()
                                              if repr(svc.cfg.broker.client_id) in r.message]
                  for svc in (a, b)}
-        assert all(len(said) == 1 and "Twins: office-2" in said[0] for said in named.values())
+        assert all(len(said) == 1 and said[0].endswith("counts them all): office-2")
+                   for said in named.values())
         viewer.c.publish("pt/claims", b"not a claim", qos=1)  # ignored, said, acknowledged
         wait_for(lambda: caplog.text.count("1 message(s) on pt/claims that are not claims") == 2,
                  what="the stray message noticed by both")
@@ -426,6 +427,11 @@ def test_claims_are_answered_once_reported_when_answered_and_forgotten_when_they
     now[0] += 2
     assert own.gone() == [b]  # the claim last heard
     assert own.publishers() == {"x": 0, "y": 0} and own.gone() == []
+    # back from an outage longer than STILL_THERE (its claims kept meanwhile say nothing of
+    # it running): its next claim is answered, and its answer reports it again
+    assert own.heard(b.payload()).answer is not None
+    assert own.heard(answer.payload()).reported == answer
+    assert own.publishers() == {"x": 0, "y": 1} and own.publishers(["y"]) == {"y": 1}
 
 
 def test_an_instance_owning_no_twin_warns_and_stays_online(

@@ -208,15 +208,16 @@ class Ownership:
             self._prune()
         return Heard(answer, reported, counted if reported else ours, counted)
 
-    def publishers(self) -> dict[str, int]:
+    def publishers(self, twins: Iterable[str] | None = None) -> dict[str, int]:
         """Twin → how many other daemons publish it (reported, and heard within
-        STILL_THERE); every twin of ours is a key."""
+        STILL_THERE), for ``twins`` (None: every twin of ours; a part of a claim asks for
+        its own only: all of 100,000 per part held the network thread for seconds)."""
         now = self._clock()
-        count = dict.fromkeys(self.twins, 0)
+        count = dict.fromkeys(self.twins if twins is None else twins, 0)
         with self._lock:
-            for _, twins, heard in self._reported.values():
+            for _, theirs, heard in self._reported.values():
                 if now - heard <= STILL_THERE:
-                    for t in twins:
+                    for t in count.keys() & theirs if twins is not None else theirs:
                         count[t] += 1
         return count
 
@@ -226,8 +227,10 @@ class Ownership:
         with self._lock:
             out = [c for r, (c, _, heard) in self._reported.items()
                    if now - heard > STILL_THERE]
-            for c in out:
-                del self._reported[c.run]
+            for c in out:  # forgotten whole: should it claim again (back from an outage
+                del self._reported[c.run]  # longer than STILL_THERE), it is answered
+                self._told.pop(c.run, None)  # and so reported again
+                self._seen.pop(c.run, None)
         return out
 
     def _prune(self) -> None:

@@ -607,7 +607,9 @@ class Service:
             log.error("%d twin(s) of this daemon are published by another daemon too: %s. "
                       "Each sends its own estimates, and a controller gets both, interleaved. "
                       "Give each twin one owner (overlapping --twins lists? a plain `run` "
-                      "beside a fleet?) and stop the other. Twins: %s%s", len(twins),
+                      "beside a fleet?) and stop the other. Twins (those heard yet: a claim "
+                      "of many comes in parts, and the gauge "
+                      "pseudotwin_twin_other_publishers counts them all): %s%s", len(twins),
                       heard.reported.who(), ", ".join(twins[:10]),
                       f" and {len(twins) - 10} more" if len(twins) > 10 else "")
         if heard.counted:
@@ -615,9 +617,8 @@ class Service:
 
     def _count_publishers(self, twins: frozenset[str] | None = None) -> None:
         """The other-publishers gauge of ``twins`` (None: every twin)."""
-        counts = self.ownership.publishers()
-        for twin in counts if twins is None else twins:
-            self.metrics.other_publishers.labels(twin).set(counts[twin])
+        for twin, n in self.ownership.publishers(twins).items():
+            self.metrics.other_publishers.labels(twin).set(n)
 
     def _claim_again(self) -> None:
         """The periodic claim (worker): the others see this daemon still runs; and those
