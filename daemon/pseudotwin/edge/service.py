@@ -1022,8 +1022,8 @@ class Service:
             disk = artifact_hash(rt.cfg.artifact)
         except OSError:
             return
-        if disk == rt.monitor.artifact_hash:
-            rt.artifact_file = now  # touched or copied, the same artifact
+        rt.artifact_file = now  # hashed once per state of the file, not at every monitor
+        if disk == rt.monitor.artifact_hash:  # touched or copied, the same artifact
             return
         if disk != rt.artifact_told:
             rt.artifact_told = disk
