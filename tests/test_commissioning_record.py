@@ -196,6 +196,10 @@ def test_backfill_notes_days_the_artifact_trained_on(mosquitto, tmp_path: Path,
     assert main(["backfill", "--config", str(cfg), "--twin", "desk", "--from", "2012-03-20",
                  "--to", "2012-03-20", "--jobs", "1", "--quiet"]) == 0
     assert "trained on" not in capsys.readouterr().err
+    # the training day done already with this artifact is skipped, and so not named
+    assert main(["backfill", "--config", str(cfg), "--twin", "desk", "--from", "2012-03-18",
+                 "--to", "2012-03-19", "--jobs", "1", "--quiet"]) == 0
+    assert "trained on" not in capsys.readouterr().err
 
 
 def test_train_config_refuses_to_overwrite_a_twin_artifact_its_configuration_refuses(

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 from pseudotwin.cli.util import whole_number
 
 if TYPE_CHECKING:
-    from pseudotwin.config import ServiceConfig
+    from pseudotwin.history.backfill import TwinJob
 
 EX_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports for Ctrl-C
 
@@ -67,6 +67,7 @@ def run(a: argparse.Namespace) -> int:
     from pseudotwin.cli.util import load_named_config
     from pseudotwin.core.heap import freeze_long_lived
     from pseudotwin.errors import ConfigError
+    from pseudotwin.history.backfill import plan
     from pseudotwin.history.backfill_pool import backfill_twins
     from pseudotwin.history.store import open_store
 
@@ -79,9 +80,10 @@ def run(a: argparse.Namespace) -> int:
         twins = [t.strip() for arg in a.twin for t in arg.split(",") if t.strip()]
         if not twins:
             raise ConfigError("--twin: no twin id given")
-    _say_training_days(cfg, twins, a.start, a.end)
     freeze_long_lived()
     with open_store(cfg.store, existing=True) as store:
+        # the days still to do, as the backfill plans them (done ones are skipped)
+        _say_training_days(plan(cfg, twins, a.start, a.end, store, redo=a.redo))
         summary = backfill_twins(cfg, twins, a.start, a.end, store, jobs=a.jobs,
                                  progress=not a.quiet, redo=a.redo)
     print("\n".join(summary.lines()))
@@ -94,23 +96,16 @@ def run(a: argparse.Namespace) -> int:
     return 1 if summary.failures else 0
 
 
-def _say_training_days(cfg: ServiceConfig, twins: list[str], start: dt.date, end: dt.date) -> None:
-    """A note per twin whose artifact trained on days of the range: their estimates are
-    in-sample, and after a retrain with more days they replaced the causal ones the earlier
-    artifact wrote, with nothing said."""
-    from pseudotwin.errors import ArtifactError
+def _say_training_days(jobs: list[TwinJob]) -> None:
+    """A note per twin whose artifact trained on days the backfill is to do: their
+    estimates are in-sample, and after a retrain with more days they replace the causal ones
+    the earlier artifact wrote, with nothing said."""
     from pseudotwin.live.artifact import Artifact
 
-    for tid in twins:
-        tc = cfg.twins.get(tid)
-        if tc is None:
-            continue  # the backfill names an unknown twin itself
-        try:
-            days = Artifact.load(tc.artifact).training.get("days", [])
-        except (ArtifactError, OSError):
-            continue  # said by the backfill itself
-        if inside := [d for d in days if start <= dt.date.fromisoformat(d) <= end]:
-            print(f"pseudotwin backfill: note: {tid}: {', '.join(inside)} "
+    for job in jobs:
+        trained = Artifact.load(job.artifact_path).training.get("days", [])
+        if inside := [str(d) for d in job.todo if str(d) in trained]:
+            print(f"pseudotwin backfill: note: {job.twin_id}: {', '.join(inside)} "
                   f"{'is a day' if len(inside) == 1 else 'are days'} its artifact was trained "
                   "on: their estimates are in-sample (better than the twin does on days it "
                   "never saw), and they replace any the twin's earlier artifact wrote",
