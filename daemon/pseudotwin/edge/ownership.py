@@ -39,6 +39,15 @@ CLAIM_EVERY = 3600.0  # [s] between a daemon's claims after the one at connect
 STILL_THERE = 2 * CLAIM_EVERY + 600.0  # [s] a reported daemon counts as running this long
 KEPT_RUNS = 1000  # other runs remembered at most (answered or reported): a crash-looping
 # daemon starts a new run every few seconds
+#: A claim's client id and host at most [UTF-8 bytes]. An answer echoes the client id (``to``)
+#: and every run heard is kept with it: a claim with an id of 16 kB was answered with a packet
+#: above a broker's max_packet_size 16384, which dropped the daemon at every reconnect for
+#: good (the claim redelivered), and KEPT_RUNS runs of 1 MB ids held 1 GB.
+MAX_ID_BYTES = 1024
+#: A claims message larger than this [bytes] is refused unparsed: a part is at most
+#: CLAIM_BYTES (more only for one twin of a longer id), and parsing a claim of 40 MB (3
+#: million twins) took the network thread half a gigabyte.
+MAX_CLAIM_MESSAGE = 256 * 1024
 
 
 @dataclass(frozen=True)
@@ -109,7 +118,11 @@ class Claim:
 
     @classmethod
     def parse(cls, payload: bytes) -> Claim:
-        """The claim in ``payload``; ValueError when it is not one."""
+        """The claim in ``payload``; ValueError when it is not one (or one larger than
+        MAX_CLAIM_MESSAGE, or with a client id or host longer than MAX_ID_BYTES)."""
+        if len(payload) > MAX_CLAIM_MESSAGE:
+            raise ValueError(f"not a claim (a message of {len(payload)} bytes, more than "
+                             f"{MAX_CLAIM_MESSAGE})")
         try:
             d = json.loads(payload)
             pid, twins, to, part = d["pid"], d["twins"], d.get("to"), d.get("part", 0)
@@ -120,10 +133,17 @@ class Claim:
             if not isinstance(twins, list) or not all(isinstance(t, str) for t in twins):
                 raise TypeError("twins")
 
-            def run(x: dict[str, object]) -> Run:
-                return Run(str(x["client_id"]), dt.datetime.fromisoformat(str(x["since"])))
+            def bounded(name: str, value: object) -> str:
+                text = str(value)
+                if len(text.encode("utf-8", "surrogatepass")) > MAX_ID_BYTES:
+                    raise ValueError(f"{name} longer than {MAX_ID_BYTES} bytes")
+                return text
 
-            return cls(run(d), str(d["host"]), pid, frozenset(twins),
+            def run(x: dict[str, object]) -> Run:
+                return Run(bounded("client_id", x["client_id"]),
+                           dt.datetime.fromisoformat(str(x["since"])))
+
+            return cls(run(d), bounded("host", d["host"]), pid, frozenset(twins),
                        run(to) if to is not None else None, part)
         except (ValueError, TypeError, KeyError, AttributeError) as exc:
             raise ValueError(f"not a claim ({exc!r})") from None
