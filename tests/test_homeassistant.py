@@ -366,6 +366,33 @@ def test_a_twin_leaving_the_config_takes_its_retained_estimates_with_it(
 
 
 
+def test_remembered_topics_that_are_not_the_daemons_are_neither_cleared_nor_fatal(
+    tmp_path, mosquitto, mqtt_client, desk_artifact, caplog
+) -> None:
+    """A damaged or planted outputs.json / homeassistant.json: a wildcard in it made paho
+    raise in on_connect, which killed the network thread (the daemon stayed up, offline, and
+    said nothing), and another service's retained topic would have been wiped."""
+    caplog.set_level(logging.WARNING, logger="pseudotwin.edge.homeassistant")
+    state = tmp_path / "state"
+    state.mkdir()
+    (state / "outputs.json").write_text(json.dumps({"published": [
+        "pt/gone/estimate", "pt/+/estimate", "other/service/state", 7]}))
+    (state / "homeassistant.json").write_text(json.dumps({"published": ["#"]}))
+    mqtt_client().publish("other/service/state", b"keep me", retain=True)
+    mqtt_client().publish("pt/gone/estimate", b'{"value": 1}', retain=True)
+    svc = start(ha_config(tmp_path, mosquitto.port, desk_artifact,
+                          "[homeassistant]\nenabled = false"))
+    try:
+        assert svc.connected.is_set() and svc.unretain == ["pt/gone/estimate"]
+        assert retained(mqtt_client, "pt/gone/#") == {}
+        assert retained(mqtt_client, "other/service/#") == {"other/service/state": b"keep me"}
+    finally:
+        svc.stop()
+    said = [r.getMessage() for r in caplog.records if "not topics this daemon" in r.getMessage()]
+    assert len(said) == 2 and "'pt/+/estimate'" in said[0] + said[1] and "'#'" in said[0] + said[1]
+    mqtt_client().publish("other/service/state", b"", retain=True)
+
+
 def test_a_state_dir_of_a_release_without_outputs_json_says_what_it_cannot_clear(
     tmp_path, mosquitto, mqtt_client, desk_artifact, caplog
 ) -> None:

@@ -35,14 +35,17 @@ suggested with ``default_entity_id`` (``sensor.<unique_id>``) instead.
 from __future__ import annotations
 
 import json
+import logging
 import re
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from pseudotwin import __version__
 from pseudotwin.core.files import write_replacing
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "AVAILABILITY_TEMPLATE",
@@ -184,16 +187,35 @@ def _twin_slug(topic: str) -> str:
     return levels[-2].rsplit("_", 1)[0] if len(levels) >= 2 else ""
 
 
-def load_published(state_dir: Path, name: str = STATE_FILE) -> set[str]:
+def load_published(state_dir: Path, name: str = STATE_FILE,
+                   ours: Callable[[str], bool] = lambda t: t.endswith("/config")) -> set[str]:
     """The topics remembered in ``state_dir`` (empty when none or unreadable); ``name``: the
     file (default the discovery config topics; the daemon keeps its retained outputs in
-    another)."""
+    another). Only topics one can publish to and that ``ours`` takes for the file's kind
+    are kept, the others said: each is cleared (an empty retained message) at the next
+    connect, and a wildcard in a damaged or planted file killed the MQTT network thread
+    there (paho raises), where another service's topic would have had its retained
+    message wiped."""
     try:
         data = json.loads((state_dir / name).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return set()
     topics = data.get("published") if isinstance(data, dict) else None
-    return {t for t in topics if isinstance(t, str)} if isinstance(topics, list) else set()
+    if not isinstance(topics, list):
+        return set()
+    kept = {t for t in topics if isinstance(t, str) and publishable(t) and ours(t)}
+    if dropped := [t for t in topics if t not in kept]:
+        log.warning("%s: %d entr(y/ies) that are not topics this daemon publishes, ignored "
+                    "(the file damaged, or written by something else?): %s", state_dir / name,
+                    len(dropped), ", ".join(repr(t)[:80] for t in dropped[:5]))
+    return kept
+
+
+def publishable(topic: str) -> bool:
+    """Whether a message can be published to ``topic`` (MQTT: no wildcard, no NUL, not
+    empty, at most 65,535 bytes of UTF-8)."""
+    return bool(topic) and not {"+", "#", "\0"} & set(topic) \
+        and len(topic.encode("utf-8", "surrogatepass")) <= 65535
 
 
 def save_published(state_dir: Path, topics: Iterable[str], name: str = STATE_FILE) -> None:
