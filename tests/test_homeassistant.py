@@ -20,7 +20,7 @@ from pseudotwin.config.model import HomeAssistantConfig
 from pseudotwin.edge import homeassistant as ha
 from pseudotwin.edge.clock import ReplayClock
 from pseudotwin.edge.outputs import estimate_payload
-from pseudotwin.edge.service import Service
+from pseudotwin.edge.service import Service, output_topic
 from pseudotwin.live.twin import Quality, TwinEstimate
 from test_daemon import reading
 
@@ -212,8 +212,10 @@ def test_payloads_per_quantity() -> None:
 
 def test_published_topics_are_remembered(tmp_path) -> None:
     assert ha.load_published(tmp_path) == set()
-    ha.save_published(tmp_path / "state", ["a/b", "c/d", "a/b"])
-    assert ha.load_published(tmp_path / "state") == {"a/b", "c/d"}
+    ha.save_published(tmp_path / "state", ["ha/sensor/a/config", "ha/sensor/b/config",
+                                           "ha/sensor/a/config"])
+    assert ha.load_published(tmp_path / "state") == {"ha/sensor/a/config",
+                                                     "ha/sensor/b/config"}
     (tmp_path / "state" / ha.STATE_FILE).write_text("{not json", encoding="utf-8")
     assert ha.load_published(tmp_path / "state") == set()
 
@@ -355,7 +357,8 @@ def test_a_twin_leaving_the_config_takes_its_retained_estimates_with_it(
     finally:
         svc.stop()
     # cleared once, then forgotten: another daemon may publish under that id later
-    assert ha.load_published(tmp_path / "state", "outputs.json") == set(svc.outputs)
+    assert ha.load_published(tmp_path / "state", "outputs.json", output_topic) \
+        == set(svc.outputs)
     mqtt_client().publish("pt/desk.two/estimate", b'{"value": 1}', retain=True)
     svc = start(ha_config(tmp_path, mosquitto.port, desk_artifact, off))
     try:

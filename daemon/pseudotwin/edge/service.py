@@ -384,7 +384,7 @@ class Service:
         theirs = tuple(self.cfg.twin_topic(t, "") for t in
                        (self.member.others if self.member else ()))
         state = Path(self.cfg.state_dir)
-        remembered = ha.load_published(state, OUTPUTS_FILE, _output_topic)
+        remembered = ha.load_published(state, OUTPUTS_FILE, output_topic)
         # The daemon's own files: the recorder may share the folder and start first, and
         # the lock is there after a first start that failed before publishing anything.
         used = any((state / f).exists() for f in (GRID_FILE, ha.STATE_FILE)) \
@@ -1286,7 +1286,7 @@ def _file_state(path: Path) -> tuple[int, int, int] | None:
     return (st.st_mtime_ns, st.st_size, st.st_ino)
 
 
-def _output_topic(topic: str) -> bool:
+def output_topic(topic: str) -> bool:
     """Whether ``topic`` has the shape of a twin's retained output: ``<base>/<twin>/estimate``
     or ``<base>/<twin>/baseline/<kind>`` (of any base: one changed since is cleared too)."""
     levels = topic.split("/")
