@@ -238,3 +238,48 @@ def test_recorder_endpoint_counts_stored_spooled_rejected_repeated_and_store_err
         rec.stop()
     with pytest.raises(urllib.error.URLError):
         scrape(port)
+
+
+def test_idle_connections_cannot_take_the_endpoints_file_descriptors() -> None:
+    """Connections that never send a request each held a thread and a file descriptor for
+    good (hostile-input audit: some hundreds left the daemon none to reconnect to the broker
+    with). At most MAX_SCRAPERS are served at once, the others closed at once; once the idle
+    ones go, a scrape is served."""
+    import os
+
+    from pseudotwin.edge.prometheus import MAX_SCRAPERS
+
+    metrics = DaemonMetrics([REF], ["desk"])
+    server = metrics.serve("127.0.0.1", free_port(), "daemon")
+
+    def fds() -> int:
+        return len(os.listdir("/proc/self/fd"))
+
+    def closed_by_server(s: socket.socket) -> bool:
+        try:
+            return s.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+        except BlockingIOError:
+            return False
+
+    try:
+        before = fds()
+        idle = [socket.create_connection(("127.0.0.1", server.port))
+                for _ in range(4 * MAX_SCRAPERS)]
+        try:
+            wait_for(lambda: sum(map(closed_by_server, idle)) == 3 * MAX_SCRAPERS,
+                     what=lambda: f"{sum(map(closed_by_server, idle))} closed by the server")
+            held = fds() - before - len(idle)  # the server's side of the open ones
+            assert held <= MAX_SCRAPERS
+        finally:
+            for s in idle:
+                s.close()
+        def served() -> bool:
+            try:  # (a slot is free once its thread saw its connection end)
+                return sample(scrape(server.port), "pseudotwin_readings_accepted_total",
+                              sensor=REF) == 0
+            except (urllib.error.URLError, ConnectionError):
+                return False
+
+        wait_for(served, what="a scrape served once the idle connections went")
+    finally:
+        metrics.close()

@@ -21,8 +21,12 @@ import datetime as dt
 import logging
 import math
 import os
+import socket
+import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
+from typing import Any
+from wsgiref.simple_server import WSGIRequestHandler, make_server
 
 from prometheus_client import (
     CollectorRegistry,
@@ -30,9 +34,10 @@ from prometheus_client import (
     Gauge,
     Histogram,
     disable_created_metrics,
-    start_http_server,
+    make_wsgi_app,
 )
 from prometheus_client.core import CounterMetricFamily
+from prometheus_client.exposition import ThreadingWSGIServer
 from prometheus_client.registry import Collector
 
 from pseudotwin.errors import ConfigError
@@ -56,13 +61,66 @@ LATENCY_BUCKETS = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0
 REJECTION_REASONS = (*(str(r) for r in Reason), UNPROCESSABLE)
 
 
+#: Scrapes served at once at most; a connection beyond them is closed at once.
+MAX_SCRAPERS = 8
+#: A scrape's connection may be silent this long [s] before it is closed.
+SCRAPE_TIMEOUT = 10.0
+
+
+class _QuietHandler(WSGIRequestHandler):
+    """No access log line per scrape; a connection silent for SCRAPE_TIMEOUT is closed."""
+
+    timeout = SCRAPE_TIMEOUT
+
+    def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 (the stdlib's name)
+        pass
+
+
+class _BoundedServer(ThreadingWSGIServer):
+    """prometheus_client's thread-per-connection server, with at most MAX_SCRAPERS
+    connections at once: idle connections that never sent a request each held a thread
+    and a file descriptor for good, and some hundreds of them left the daemon none to
+    reconnect to the broker or open tomorrow's journal with."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        self._slots = threading.BoundedSemaphore(MAX_SCRAPERS)
+        super().__init__(*args, **kwargs)
+
+    def process_request(self, request: Any, client_address: Any) -> None:
+        if not self._slots.acquire(blocking=False):
+            self.shutdown_request(request)  # busy: the scraper retries at its next interval
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            self._slots.release()
+            raise
+
+    def process_request_thread(self, request: Any, client_address: Any) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self._slots.release()
+
+
+def _serve(registry: CollectorRegistry, host: str, port: int
+           ) -> tuple[_BoundedServer, threading.Thread]:
+    family = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0][0]
+    server_class = type("MetricsHTTPServer", (_BoundedServer,), {"address_family": family})
+    server: _BoundedServer = make_server(host, port, make_wsgi_app(registry), server_class,
+                                         handler_class=_QuietHandler)
+    thread = threading.Thread(target=server.serve_forever, name="metrics", daemon=True)
+    thread.start()
+    return server, thread
+
+
 class MetricsServer:
-    """The HTTP endpoint of one registry; :meth:`close` stops it (prometheus_client ≥ 0.17
-    returns the server and its thread)."""
+    """The HTTP endpoint of one registry (at most MAX_SCRAPERS connections at once, each
+    closed after SCRAPE_TIMEOUT of silence); :meth:`close` stops it."""
 
     def __init__(self, registry: CollectorRegistry, host: str, port: int, what: str) -> None:
         try:
-            self._server, self._thread = start_http_server(port, addr=host, registry=registry)
+            self._server, self._thread = _serve(registry, host, port)
         except OSError as exc:
             hint = "; each daemon on one host needs its own: `run --metrics-port`" \
                 if what == "daemon" else ""
