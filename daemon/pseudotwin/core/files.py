@@ -12,7 +12,8 @@ from pathlib import Path
 __all__ = ["write_replacing"]
 
 
-def write_replacing(path: Path, write: Callable[[Path], object]) -> Path:
+def write_replacing(path: Path, write: Callable[[Path], object],
+                    follow_symlinks: bool = True) -> Path:
     """``write`` a temporary file, then rename it over ``path``: an interrupted or failed
     write leaves the earlier file whole, never half a file (a daemon loading an artifact, a
     history that would read as shorter). The temporary file has ``path``'s own name, in a
@@ -20,17 +21,20 @@ def write_replacing(path: Path, write: Callable[[Path], object]) -> Path:
     member name (.csv.zip) from it; a symlinked ``path`` is written through. Only a regular
     file is replaced: a device, pipe or folder at ``path`` (say ``--out /dev/null``, which as
     root would have made /dev/null a plain file) is an OSError, nothing written. An OSError
-    names ``path``, not the temporary file (gone by then). Returns ``path``."""
+    names ``path``, not the temporary file (gone by then). Returns ``path``.
+    ``follow_symlinks`` False (the daemon's own state files): a symlink at ``path`` is
+    replaced, never written through (one planted in a state dir had a daemon run as root
+    overwrite the file it pointed to)."""
     path = Path(path)
-    if path.is_symlink():
+    if path.is_symlink() and follow_symlinks:
         path = path.resolve()
     try:
-        mode = path.stat().st_mode
+        mode = path.stat(follow_symlinks=follow_symlinks).st_mode
     except FileNotFoundError:
         mode = None
     except OSError as exc:
         raise OSError(exc.errno, exc.strerror, str(path)) from exc
-    if mode is not None and not stat.S_ISREG(mode):
+    if mode is not None and not (stat.S_ISREG(mode) or stat.S_ISLNK(mode)):
         raise OSError(errno.EEXIST, "exists and is not a regular file (nothing written)",
                       str(path))
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -221,4 +221,5 @@ def publishable(topic: str) -> bool:
 def save_published(state_dir: Path, topics: Iterable[str], name: str = STATE_FILE) -> None:
     """Remember ``topics`` (never half a file: core/files.py)."""
     text = json.dumps({"published": sorted(set(topics))}, indent=1) + "\n"
-    write_replacing(state_dir / name, lambda tmp: tmp.write_text(text, encoding="utf-8"))
+    write_replacing(state_dir / name, lambda tmp: tmp.write_text(text, encoding="utf-8"),
+                    follow_symlinks=False)

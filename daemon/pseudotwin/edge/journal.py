@@ -119,7 +119,7 @@ class Journal:
                 # path, where the retry would take it for the rebuilt file. The descriptors
                 # stay open until every copy is in place (OSError: the caller retries).
                 size = os.fstat(fh.fileno()).st_size
-                write_replacing(path, functools.partial(_copy_open, fh))
+                write_replacing(path, functools.partial(_copy_open, fh), follow_symlinks=False)
                 rebuilt.append(f"{d} ({size / 1e3:.0f} kB)")
         if rebuilt:
             log.error("journal file %s was deleted while running (state dir removed?); "
@@ -154,7 +154,10 @@ class Journal:
         self.prune(day)
 
     def _open(self, day: dt.date) -> None:
-        fh = open(self._path(day), "a+b", buffering=0)  # noqa: SIM115
+        # never through a symlink planted in the state dir (a root daemon appended there)
+        fd = os.open(self._path(day), os.O_RDWR | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW,
+                     0o600)
+        fh = open(fd, "a+b", buffering=0)  # noqa: SIM115
         try:
             if readinglines.torn(fh):  # a crash cut the last line short: never glue the next
                 fh.write(b"\n")        # one onto it

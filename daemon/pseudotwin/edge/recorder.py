@@ -124,7 +124,8 @@ class Spool:
     def consume(self, offset: int) -> None:
         """Mark the spool's first ``offset`` bytes as taken by the store."""
         text = str(offset)
-        write_replacing(self.offset_path, lambda tmp: tmp.write_text(text, encoding="ascii"))
+        write_replacing(self.offset_path, lambda tmp: tmp.write_text(text, encoding="ascii"),
+                        follow_symlinks=False)
 
     def clear(self) -> None:
         # The mark first: a crash in between leaves a spool written again whole (kept once

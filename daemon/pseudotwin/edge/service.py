@@ -1136,7 +1136,8 @@ class Service:
         path = Path(self.cfg.state_dir) / GRID_FILE
         text = json.dumps({"ticked": instant.isoformat()})
         try:
-            write_replacing(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
+            write_replacing(path, lambda tmp: tmp.write_text(text, encoding="utf-8"),
+                            follow_symlinks=False)
         except OSError as exc:
             log.debug("cannot remember the grid instant in %s: %s", path, exc)
 

@@ -38,7 +38,8 @@ class StateLock:
         when the lock file cannot be opened (the state dir's owner or file system)."""
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
+            # never through a symlink planted there: a root daemon truncated its target
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600)
         except OSError as exc:
             raise ConfigError(f"{self.path}: the {self.role}'s lock file cannot be opened "
                               f"({exc.strerror or exc}); is the state dir another user's? "
