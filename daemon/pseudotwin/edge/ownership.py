@@ -14,10 +14,11 @@ hears a claim naming any of its twins answers it with a claim addressed to the s
 (``to``) of those of its twins it has not told that run of yet (so the answers end). An
 answer addressed to this run proves its sender alive now: it is reported (an error naming
 the other daemon and the twins), and answered in turn, so both daemons report, whichever
-started first. A claim the broker kept for this daemon while
-it was away is answered, but never reported by itself: its sender may have stopped since,
-and one that still runs answers. A daemon reported once counts as publishing as long as its
-periodic claims come, ``STILL_THERE`` at most apart.
+started first. A claim the broker kept for this daemon while it was away is answered, but
+never reported by itself: its sender may have stopped since, and one that still runs
+answers. A daemon reported once counts as publishing as long as its periodic claims come,
+``STILL_THERE`` at most apart; then it is forgotten whole, so that a later claim of it is
+answered and reported anew.
 """
 
 from __future__ import annotations

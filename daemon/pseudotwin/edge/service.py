@@ -1276,7 +1276,6 @@ class Service:
                  self.accepted, self.published, self.rejections.run_total)
 
 
-
 def _file_state(path: Path) -> tuple[int, int, int] | None:
     """(mtime_ns, size, inode) of ``path``, None when it cannot be read: what tells a file
     replaced (train writes a new file over the old one) without reading it."""
