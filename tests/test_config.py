@@ -256,6 +256,8 @@ BAD: list[tuple[str, Mutation, str, str]] = [
     ("tls-string", set_("broker", "tls", "yes"), "broker.tls", "expected a boolean"),
     ("keepalive-zero", set_("broker", "keepalive", 0), "broker.keepalive", "1..65535"),
     ("client-id-empty", set_("broker", "client_id", ""), "broker.client_id", "empty"),
+    ("client-id-long", set_("broker", "client_id", "p" * 257), "broker.client_id",
+     "longer than 256 bytes"),
     ("host-empty", set_("broker", "host", ""), "broker.host", "empty"),
     ("host-missing", del_("broker", "host"), "broker.host", "missing required key"),
     ("broker-missing", del_("broker"), "broker", "missing table"),

@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import Literal
 
 from pseudotwin.config.validate import (
-    MAX_TOPIC_BYTES,
     ConfigProblems,
     Found,
     base_topic_problem,
@@ -85,6 +84,12 @@ MAX_STALE_AFTER_MINUTES = 7 * 24 * 60
 MAX_SKEW_SECONDS = 24 * 3600
 
 
+#: A broker.client_id at most [bytes of UTF-8]: daemons refuse a claim of twins whose client
+#: id exceeds edge/ownership.py's MAX_ID_BYTES (1 kB), and the recorder, fleet instances and
+#: replays add suffixes of their own to it.
+MAX_CLIENT_ID_BYTES = 256
+
+
 @dataclass(frozen=True, kw_only=True)
 class BrokerConfig:
     """Where and how to reach the MQTT broker.
@@ -141,8 +146,9 @@ class BrokerConfig:
         if nonempty(found, "client_id", self.client_id):
             if any(ord(c) < 0x20 for c in self.client_id):
                 found.append(("client_id", "must not contain NUL or control characters"))
-            elif len(self.client_id.encode("utf-8")) > MAX_TOPIC_BYTES:
-                found.append(("client_id", f"is longer than {MAX_TOPIC_BYTES} bytes"))
+            elif len(self.client_id.encode("utf-8")) > MAX_CLIENT_ID_BYTES:
+                found.append(("client_id", f"is longer than {MAX_CLIENT_ID_BYTES} bytes (the "
+                              "other daemons refuse a claim of twins by a longer id)"))
         if expect(found, "keepalive", self.keepalive, "integer") and not (
             1 <= self.keepalive <= 65535
         ):
