@@ -374,6 +374,13 @@ def first_full_day(first: dt.datetime, hours: OperatingHours) -> dt.date:
     return day + dt.timedelta(days=1)
 
 
+def require_stored(store: Store, sensors: Sequence[str],
+                   name: str = "the history store") -> None:
+    """DataError naming those of ``sensors`` without any reading in ``store`` (``name``)."""
+    if silent := [s for s in sensors if store.reading_range([s]) is None]:
+        raise DataError(f"{name} has no readings of {', '.join(silent)}")
+
+
 def history_from_store(
     store: Store,
     sensors: Sequence[str],
@@ -397,8 +404,7 @@ def history_from_store(
     """
     # One sensor without any reading (a typo, a sensor never recorded) is named, rather than
     # counted as too few usable days.
-    if silent := [s for s in sensors if store.reading_range([s]) is None]:
-        raise DataError(f"the history store has no readings of {', '.join(silent)}")
+    require_stored(store, sensors)
     span = store.reading_range(list(sensors))
     assert span is not None  # every sensor has readings
     first = start or first_full_day(span[0], hours)

@@ -27,7 +27,7 @@ from pseudotwin.cli.util import (
 from pseudotwin.config.model import LOG_LEVELS
 from pseudotwin.config.validate import sqlite_file
 from pseudotwin.core.spec import Quantity, TwinSpec
-from pseudotwin.errors import ConfigError, DataError, PseudotwinError, StateInUseError
+from pseudotwin.errors import ConfigError, PseudotwinError, StateInUseError
 from pseudotwin.gp.kernels import KERNEL_REGISTRY
 from pseudotwin.models.registry import ALL_MODELS, MODELS
 
@@ -409,16 +409,13 @@ def cmd_train(a: argparse.Namespace) -> int:
 def _stored_history(a: argparse.Namespace) -> pd.DataFrame:
     """Every reading of the twin's sensors in the store --store: what evaluate reads from a
     history file (a site that recorded its commissioning days had no file to give)."""
+    from pseudotwin.analysis.training import require_stored
     from pseudotwin.history.store import open_store
 
-    sensors = [*a.references, a.target, *a.covariates]
     with open_store(a.store, existing=True) as store:
         # (covariates are read where there are some, as from a file)
-        if silent := [s for s in sensors[:len(a.references) + 1]
-                      if store.reading_range([s]) is None]:
-            raise DataError(f"the history store {a.store} has no readings of "
-                            f"{', '.join(silent)}")
-        return store.read_readings(sensors)
+        require_stored(store, [*a.references, a.target], f"the history store {a.store}")
+        return store.read_readings([*a.references, a.target, *a.covariates])
 
 
 def cmd_evaluate(a: argparse.Namespace) -> int:

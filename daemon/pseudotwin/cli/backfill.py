@@ -82,10 +82,11 @@ def run(a: argparse.Namespace) -> int:
             raise ConfigError("--twin: no twin id given")
     freeze_long_lived()
     with open_store(cfg.store, existing=True) as store:
-        # the days still to do, as the backfill plans them (done ones are skipped)
-        _say_training_days(plan(cfg, twins, a.start, a.end, store, redo=a.redo))
+        # planned once: the note names the days still to do (done ones are skipped)
+        planned = plan(cfg, twins, a.start, a.end, store, redo=a.redo)
+        _say_training_days(planned)
         summary = backfill_twins(cfg, twins, a.start, a.end, store, jobs=a.jobs,
-                                 progress=not a.quiet, redo=a.redo)
+                                 progress=not a.quiet, redo=a.redo, planned=planned)
     print("\n".join(summary.lines()))
     for res in summary.failures:
         print(f"pseudotwin backfill: error: {res.failure_line()}", file=sys.stderr)

@@ -75,7 +75,7 @@ def make_client(broker: BrokerConfig, client_id: str, status_topic: str,
 
 #: The largest packet a broker must take from pseudotwin's clients [bytes] (README: Packet
 #: size): subscriptions and claims go in pieces well below it; a monitor grows with its
-#: twin's sensors (about 6 kB at most for two references and four covariates).
+#: twin's sensors.
 BROKER_PACKET_BYTES = 16384
 
 #: Disconnects within this long of the connect that count towards a session taken over [s],

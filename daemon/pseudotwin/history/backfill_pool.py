@@ -34,6 +34,7 @@ from pseudotwin.history.backfill import (
     BackfillSummary,
     Chunk,
     ChunkResult,
+    TwinJob,
     chunk_size,
     chunks,
     plan,
@@ -120,6 +121,7 @@ def backfill_twins(
     stream: TextIO | None = None,
     now: dt.datetime | None = None,
     redo: bool = False,
+    planned: list[TwinJob] | None = None,
 ) -> RunSummary:
     """Backfill ``twin_ids`` for local days start … end with up to ``jobs`` processes.
 
@@ -129,14 +131,16 @@ def backfill_twins(
     they are in the summary's ``failures``. Ctrl-C returns a summary with ``interrupted``.
     Progress lines go to ``stream`` (default stderr). ``now`` (default: the clock) decides
     which days have ended: one not ended is estimated but not marked done. redo: estimate
-    the days done already again too (their rows are written again).
+    the days done already again too (their rows are written again). planned: the jobs
+    :func:`~pseudotwin.history.backfill.plan` gave for these arguments (None: planned here).
     """
     if jobs < 1:
         raise ConfigError(f"--jobs must be at least 1, not {jobs}")
     if chunk_days is not None and chunk_days < 1:
         raise ConfigError(f"chunk_days must be at least 1, not {chunk_days}")
     t0 = time.perf_counter()
-    twin_jobs = plan(cfg, twin_ids, start, end, store, now, redo)
+    twin_jobs = planned if planned is not None else plan(cfg, twin_ids, start, end, store,
+                                                         now, redo)
     total = sum(len(j.todo) for j in twin_jobs)
     work = chunks(twin_jobs, chunk_days or chunk_size(total, jobs))
     run = RunSummary(workers=max(1, min(jobs, len(work))))
