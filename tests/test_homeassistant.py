@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import json
 import logging
-import queue
 import re
 import shutil
+import uuid
 from pathlib import Path
 
 import jinja2
@@ -111,19 +111,29 @@ def start(path: Path) -> Service:
     return svc
 
 
-def retained(mqtt_client, topic: str, settle: float = 1.0) -> dict[str, bytes]:
-    """What the broker keeps under ``topic`` once the daemon's publishing settled: a new
-    subscriber's retained messages, updated by what still arrives (the daemon may publish
-    just after ``start`` returns); an empty payload deletes (topic → payload)."""
+def drain(client, topic: str) -> dict[str, bytes]:
+    """What ``client``, just subscribed to ``topic`` (a filter ending in ``/#``), got from the
+    broker so far, in order (topic → latest payload): a marker published after the
+    subscription ends it, as the broker hands a subscriber messages in order (its retained
+    ones at the subscription)."""
+    marker = f"{topic.removesuffix('#')}end-{uuid.uuid4().hex[:8]}"
+    client.publish(marker, b"end")
+    out: dict[str, bytes] = {}
+    while (m := client.get(timeout=15)).topic != marker:
+        out[m.topic] = m.payload
+    return out
+
+
+def retained(mqtt_client, topic: str, svc: Service | None = None) -> dict[str, bytes]:
+    """What the broker keeps under ``topic`` (a filter ending in ``/#``): a new subscriber's
+    retained messages, once every message the running daemon ``svc`` sent is acknowledged
+    (it may publish just after ``start`` returns); an empty payload deletes
+    (topic → payload)."""
+    if svc is not None:
+        wait_for(lambda: svc.unconfirmed() == 0, what="the daemon's messages acknowledged")
     c = mqtt_client()
     c.subscribe(topic)
-    out: dict[str, bytes] = {}
-    while True:
-        try:
-            m = c.get(timeout=settle)
-        except queue.Empty:
-            break
-        out[m.topic] = m.payload
+    out = drain(c, topic)
     c.disconnect()
     return {t: p for t, p in out.items() if p}
 
@@ -232,7 +242,7 @@ def test_discovery_messages_are_retained_valid_and_describe_real_payloads(
     svc = start(path)
     try:
         art = svc.twins["desk"].twin.artifact
-        configs = {t: json.loads(p) for t, p in retained(mqtt_client, f"{prefix}/#").items()}
+        configs = {t: json.loads(p) for t, p in retained(mqtt_client, f"{prefix}/#", svc).items()}
         kinds = [k for k in art.published if k != art.primary]
         assert len(configs) == 1 + len(kinds) and kinds
         for topic, body in configs.items():
@@ -283,11 +293,7 @@ def test_a_twin_leaving_the_config_is_removed_from_home_assistant(
 
     watcher = mqtt_client()
     watcher.subscribe(f"{prefix}/#")
-    while True:  # drop the retained copies
-        try:
-            watcher.get(timeout=0.5)
-        except queue.Empty:
-            break
+    drain(watcher, f"{prefix}/#")  # drop the retained copies
     svc = start(ha_config(tmp_path, mosquitto.port, desk_artifact, table))  # desk.two gone
     try:
         live: dict[str, bytes] = {}
@@ -296,7 +302,7 @@ def test_a_twin_leaving_the_config_is_removed_from_home_assistant(
             live[m.topic] = m.payload
         assert live[gone] == b""  # the empty retained payload deletes the entity
         check_sensor_config(kept, json.loads(live[kept]), prefix)
-        assert set(retained(mqtt_client, f"{prefix}/#")) == {kept}
+        assert set(retained(mqtt_client, f"{prefix}/#", svc)) == {kept}
     finally:
         svc.stop()
 
@@ -304,7 +310,7 @@ def test_a_twin_leaving_the_config_is_removed_from_home_assistant(
     svc = start(ha_config(tmp_path, mosquitto.port, desk_artifact,
                           "[homeassistant]\nenabled = false"))
     try:
-        assert retained(mqtt_client, f"{prefix}/#") == {}
+        assert retained(mqtt_client, f"{prefix}/#", svc) == {}
     finally:
         svc.stop()
 
@@ -352,8 +358,8 @@ def test_a_twin_leaving_the_config_takes_its_retained_estimates_with_it(
         # its baselines too (they go out on the grid, which this test does not wait for)
         assert set(svc.unretain) == {"pt/desk.two/estimate",
                                      *(f"pt/desk.two/baseline/{k}" for k in kinds)}
-        assert retained(mqtt_client, "pt/desk.two/#") == {}
-        assert "pt/desk/estimate" in retained(mqtt_client, "pt/desk/#")
+        assert retained(mqtt_client, "pt/desk.two/#", svc) == {}
+        assert "pt/desk/estimate" in retained(mqtt_client, "pt/desk/#", svc)
     finally:
         svc.stop()
     # cleared once, then forgotten: another daemon may publish under that id later
@@ -363,7 +369,7 @@ def test_a_twin_leaving_the_config_takes_its_retained_estimates_with_it(
     svc = start(ha_config(tmp_path, mosquitto.port, desk_artifact, off))
     try:
         assert svc.unretain == []
-        assert "pt/desk.two/estimate" in retained(mqtt_client, "pt/desk.two/#")
+        assert "pt/desk.two/estimate" in retained(mqtt_client, "pt/desk.two/#", svc)
     finally:
         svc.stop()
 
@@ -387,8 +393,8 @@ def test_remembered_topics_that_are_not_the_daemons_are_neither_cleared_nor_fata
                           "[homeassistant]\nenabled = false"))
     try:
         assert svc.connected.is_set() and svc.unretain == ["pt/gone/estimate"]
-        assert retained(mqtt_client, "pt/gone/#") == {}
-        assert retained(mqtt_client, "other/service/#") == {"other/service/state": b"keep me"}
+        assert retained(mqtt_client, "pt/gone/#", svc) == {}
+        assert retained(mqtt_client, "other/service/#", svc) == {"other/service/state": b"keep me"}
     finally:
         svc.stop()
     said = [r.getMessage() for r in caplog.records if "not topics this daemon" in r.getMessage()]
