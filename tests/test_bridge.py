@@ -902,18 +902,19 @@ def test_a_plc_that_drops_packets_is_said_unreachable_and_a_stop_is_not_held_up(
     bridge = Bridge(env.config(host=host, timeout_seconds=1, reconnect_max_seconds=1))
     try:
         bridge.start()
-        t0 = time.monotonic()
+        # the timeout is a liveness bound: the kernel's connect blocks for two minutes
         _wait_for(lambda: "unreachable within 1 s" in caplog.text,
                   "the unreachable PLC in the log", timeout=20)
-        assert time.monotonic() - t0 < 10  # not the kernel's two minutes
+        # the watchdog's own criterion is the heartbeat's age; the supervisor refreshes it
+        # at least every second here (probe timeout and back-off 1 s): 5 s catches a stall
         assert time.monotonic() - bridge._heartbeat < 5  # the watchdog is still fed
     finally:
-        t1 = time.monotonic()
         bridge.stop()
-        assert time.monotonic() - t1 < 8
         for s in fillers:
             s.close()
         listener.close()
+    # not held up: the supervisor ended within stop()'s join, not left in a connect
+    assert bridge.finished.is_set()
 
 
 # How the test server's connection thread ends without an answer: by an exception.
