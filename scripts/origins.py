@@ -48,7 +48,8 @@ from pseudotwin.errors import DataError
 from pseudotwin.history.convert import load
 from tables import print_markdown, print_table
 
-QUICK = ("ref", "triv", "triv-shrunk", "triv-week", "triv-cov", "blend", "varma")
+QUICK = ("ref", "triv", "triv-shrunk", "triv-smooth", "triv-week", "triv-cov", "blend",
+         "varma")
 TRIV_RATIO = 0.9  # Trust II: the estimate ≤ this × TRIV's mean daily NRMSE
 SLACK_DAYS = 16  # calendar days beyond the test days: training skips days a sensor missed
 

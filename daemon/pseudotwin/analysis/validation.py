@@ -7,13 +7,14 @@ honest errors on a day it has not seen:
 
 - the **primary** is the candidate with the lowest mean held-out daily NRMSE, except that the
   simplest candidate within ``TIE_RELATIVE`` of it wins (the registry's order, ref < triv <
-  triv-shrunk < triv-week < triv-cov < corrgp-triv < corrgp-multi < corrgp-lcm): five days cannot
-  tell a 3 % difference from noise, and the simpler model fails in simpler ways. The blend
-  (models/blend.py) is not refit per fold: its held-out rows combine the members' with weights
-  chosen on the other held-out days. It is measured against the held-out error of that choice
-  of one candidate, nested the same way (each held-out day scored by the candidate the other
-  days choose), not against the lowest single score, which is optimistic (the winner's curse
-  of picking the minimum of several noisy scores); it wins when more than 3 % below it;
+  triv-shrunk < triv-smooth < triv-week < triv-cov < corrgp-triv < corrgp-multi < corrgp-lcm):
+  five days cannot tell a 3 % difference from noise, and the simpler model fails in simpler
+  ways. The blend (models/blend.py) is not refit per fold: its held-out rows combine the
+  members' with weights chosen on the other held-out days. It is measured against the held-out
+  error of that choice of one candidate, nested the same way (each held-out day scored by the
+  candidate the other days choose), not against the lowest single score, which is optimistic
+  (the winner's curse of picking the minimum of several noisy scores); it wins when more than
+  3 % below it;
 - every model's **σ** is calibrated on its held-out errors (:mod:`pseudotwin.live.calibration`).
 
 Days after the training period are never looked at. Every model is refit in each fold, so the

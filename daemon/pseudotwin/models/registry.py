@@ -8,13 +8,14 @@ from pseudotwin.models.blend import BlendModel
 from pseudotwin.models.corrgp import CorrGpLcm, CorrGpMulti, CorrGpTriv
 from pseudotwin.models.covariate import TrivCovModel
 from pseudotwin.models.ref import RefModel
-from pseudotwin.models.triv import TrivModel, TrivShrunkModel, TrivWeekModel
+from pseudotwin.models.triv import TrivModel, TrivShrunkModel, TrivSmoothModel, TrivWeekModel
 from pseudotwin.models.varma import VarmaModel
 
 # From the simplest: validation prefers the earlier of two models that score alike.
 MODELS: dict[str, type[TwinModel]] = {
-    cls.kind: cls for cls in (RefModel, TrivModel, TrivShrunkModel, TrivWeekModel, TrivCovModel,
-                              CorrGpTriv, CorrGpMulti, CorrGpLcm, BlendModel, VarmaModel)
+    cls.kind: cls for cls in (RefModel, TrivModel, TrivShrunkModel, TrivSmoothModel,
+                              TrivWeekModel, TrivCovModel, CorrGpTriv, CorrGpMulti, CorrGpLcm,
+                              BlendModel, VarmaModel)
 }
 ALL_MODELS: tuple[str, ...] = tuple(MODELS)
 

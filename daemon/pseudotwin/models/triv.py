@@ -10,10 +10,14 @@ import datetime as dt
 from typing import Any, ClassVar, Self
 
 import numpy as np
+from statsmodels.nonparametric.smoothers_lowess import lowess
 
 from pseudotwin.core.spec import TwinSpec
 from pseudotwin.errors import DataError
-from pseudotwin.models.base import DayEstimator, Estimate, TrainingSet, TwinModel
+from pseudotwin.models.base import DayEstimator, Estimate, TrainingSet, Tuned, TwinModel
+
+#: triv-smooth's spans [min], from the smoothest (validation prefers the earlier of two alike)
+SMOOTH_SPANS: tuple[int, ...] = (240, 120, 60)
 
 
 def fill_slots(profile: np.ndarray) -> np.ndarray:
@@ -174,6 +178,66 @@ class TrivShrunkModel(TrivModel):
     def from_dict(cls, d: dict[str, Any], spec: TwinSpec) -> Self:
         m = super().from_dict(d, spec)
         m.shrink_ = [float(x) for x in d.get("shrink", [])]
+        return m
+
+
+
+def smooth_profile(profile: np.ndarray, points: int) -> np.ndarray:
+    """A day's profile [S] smoothed across its slots: at each slot a straight line fitted to
+    the ``points`` nearest slots, tricube-weighted (LOWESS without its robustness
+    iterations: a linear smoother, so a straight profile comes back unchanged, and at the
+    day's start and end the line follows the profile's slope rather than flattening it)."""
+    n = len(profile)
+    if points >= n:
+        points = n
+    if points < 3 or n < 3:  # a line through fewer points is the points themselves
+        return profile.copy()
+    x = np.arange(n, dtype=float)
+    # frac·n is floored by statsmodels: a hair above it so that exactly ``points`` are used
+    return np.asarray(lowess(profile, x, frac=(points + 1e-6) / n, it=0, delta=0.0,
+                             return_sorted=False), dtype=float)
+
+
+class TrivSmoothModel(TrivModel):
+    """TRIV whose offset profile is smoothed across the slots of the day (LOWESS, a local
+    straight line over ``span`` minutes of slots; :func:`smooth_profile`).
+
+    A slot's offset is the mean of as many values as there are training days, so a few days
+    leave its 15-minute wiggles partly noise: one day's door opened at 10:15 becomes a dent
+    the profile repeats every day. Smoothing trades that noise for bias where the offset
+    really turns within ``span``. The span is chosen on the training days like VARMA's
+    order (``tuned``: the widest, the smoothest, within noise of the lowest held-out error
+    wins); 60 minutes, the narrowest, where too few days are held out to choose.
+    Fitted: offsets_ the smoothed profiles.
+    """
+
+    kind = "triv-smooth"
+    options: ClassVar[tuple[str, ...]] = ("references", "span")
+    tuned = Tuned("span", SMOOTH_SPANS)
+    live_baseline = False
+
+    def __init__(self, references: tuple[str, ...] | None = None,
+                 span: int = SMOOTH_SPANS[-1]) -> None:
+        super().__init__(references)
+        self.span = span
+
+    def _offset_profile(self, diffs: np.ndarray) -> np.ndarray:
+        if not (isinstance(self.span, int) and self.span > 0):
+            raise ValueError(f"triv-smooth's span must be a positive number of minutes, "
+                             f"got {self.span!r}")
+        points = int(round(self.span / (self.hours_.slot_hours * 60))) + 1
+        return smooth_profile(super()._offset_profile(diffs), points)
+
+    def fit_summary(self) -> str:
+        return f"offset profile smoothed over {self.span} min (LOWESS)"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**super().to_dict(), "span": self.span}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], spec: TwinSpec) -> Self:
+        m = super().from_dict(d, spec)
+        m.span = int(d["span"])
         return m
 
 

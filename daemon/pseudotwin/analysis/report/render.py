@@ -124,7 +124,10 @@ HOW_TO_READ = f"""\
   training offset profile (per 15-min slot, from each slot's time-weighted level on the
   training days) + live reference, averaged over references; `triv-shrunk` = TRIV
   with its offset profile shrunk towards the mean offset as far as the training days
-  disagree on its shape (James–Stein; the factor is in the artifact); `triv-week` = TRIV
+  disagree on its shape (James–Stein; the factor is in the artifact); `triv-smooth` = TRIV
+  with its offset profile smoothed across the slots (LOWESS, a local straight line over a
+  span of 240, 120 or 60 minutes, the span chosen on the training days like VARMA's order:
+  the widest within noise of the lowest held-out error); `triv-week` = TRIV
   with an offset profile of its own for Saturdays and Sundays, learnt from the training's
   weekend days (weekdays keep all days' profile; it is TRIV with fewer than two weekend
   days among the training days, which validation could not test); `triv-cov` = TRIV plus
@@ -347,8 +350,8 @@ def _performance() -> list[str]:
 
 
 # TRIV and the models that try to beat it with information TRIV does not use.
-_TRIED = ("triv", "triv-shrunk", "triv-week", "triv-cov", "corrgp-triv", "corrgp-multi",
-          "corrgp-lcm", "blend")
+_TRIED = ("triv", "triv-shrunk", "triv-smooth", "triv-week", "triv-cov", "corrgp-triv",
+          "corrgp-multi", "corrgp-lcm", "blend")
 
 
 def _helped(results: Sequence[RunResult]) -> str:
