@@ -60,6 +60,11 @@ def test_evaluate_sml2010_writes_tables_and_plots(sml: Path, tmp_path: Path, cap
     monthly = pd.read_csv(out / "monthly.csv")
     assert list(monthly.columns) == ["month", "model", "nrmse_pct"]
     assert set(monthly["month"]) == {"2012-03"}
+    # what the daemon publishes is scored by the month too: the mean of its daily NRMSE
+    est_month = monthly.loc[monthly["model"] == "estimate", "nrmse_pct"]
+    assert len(est_month) == 1
+    assert est_month.iloc[0] == pytest.approx(
+        daily.loc[daily["model"] == "estimate", "nrmse_pct"].mean())
     est = pd.read_csv(out / "estimates.csv")
     assert list(est.columns)[:5] == ["ts", "model", "value", "std", "truth"]
     gp = est[est["model"] == "corrgp-triv"]

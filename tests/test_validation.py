@@ -18,6 +18,7 @@ import pytest
 
 from pseudotwin.analysis.replay import ESTIMATE, replay_estimates
 from pseudotwin.analysis.training import train_twin
+from pseudotwin.analysis.validation import CandidateScore, _withheld
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.live import metrics
@@ -169,7 +170,9 @@ def test_artifact_round_trip_keeps_validation_and_calibration_and_old_ones_still
     path = art.save(tmp_path / "a.json")
     back = Artifact.load(path)
     assert back.primary == art.primary
-    assert back.validation == json.loads(path.read_text())["validation"]
+    # against what training made, not the file: a field lost on saving is caught
+    assert back.validation == json.loads(json.dumps(art.validation))
+    assert {"scores", "primary", "reason", "method", "withheld"} <= set(back.validation)
     assert back.calibration == art.calibration and set(back.calibration) == {"ref", "triv"}
     t = pd.Timestamp(DAY0 + dt.timedelta(days=5), tz="UTC") + pd.Timedelta(hours=12)
     a_est = replay_estimates(art, df, DAY0 + dt.timedelta(days=5))
@@ -220,6 +223,28 @@ def test_a_target_copying_its_reference_withholds_no_baseline_for_rounding_noise
     assert "varma" not in withheld, withheld
     scores = art.validation["scores"]
     assert scores["triv"]["nrmse_pct"] < 0.005 and scores["varma"]["nrmse_pct"] < 0.005
+
+
+def test_a_baseline_far_worse_than_triv_on_the_held_out_days_is_withheld_with_its_reason(
+) -> None:
+    """VARMA is not published live when its held-out NRMSE exceeds 1.5× TRIV's (issue Trust I,
+    item 5), as the scores are shown (two decimals); one that could not be validated is
+    withheld too; the primary and candidates never are."""
+    def scores(varma: float, **more: CandidateScore) -> dict[str, CandidateScore]:
+        return {"triv": CandidateScore("triv", True, nrmse_pct=1.0),
+                "varma": CandidateScore("varma", False, nrmse_pct=varma), **more}
+
+    withheld = _withheld(scores(1.51), "triv")
+    assert set(withheld) == {"varma"}
+    assert withheld["varma"] == ("held-out daily NRMSE 1.51 % on the training days is more "
+                                 "than 1.5× TRIV's 1.00 %")
+    assert _withheld(scores(1.50), "triv") == {}
+    assert _withheld(scores(1.504), "triv") == {}  # shown as 1.50 %: not beyond the limit
+    failed = CandidateScore("varma", False, error="fails on 4 days: singular")
+    assert "could not be validated" in _withheld({"varma": failed}, "triv")["varma"]
+    bad_candidate = CandidateScore("corrgp-triv", True, nrmse_pct=9.0)
+    assert _withheld(scores(1.0, **{"corrgp-triv": bad_candidate}), "triv") == {}
+    assert _withheld(scores(9.0), "varma") == {}  # the primary is always published
 
 
 def test_validation_reports_each_held_out_day_as_it_ends(caplog: pytest.LogCaptureFixture) -> None:
