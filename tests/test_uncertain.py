@@ -17,6 +17,9 @@ from daemon_support import DAY, HOURS, REF, day_readings, sml
 from pseudotwin.analysis.criteria import MIN_DAYS, MIN_RATIO, MIN_ROWS, criteria_table, select
 from pseudotwin.analysis.replay import UNLIKE_SEP
 from pseudotwin.analysis.selfaware import criteria_on_test, selfaware, training_share
+from pseudotwin.analysis.training import train_twin
+from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.edge.outputs import monitor_payload
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.envelope import MARGIN, Q_HI, Q_LO, WIDEN, Envelope
@@ -306,3 +309,46 @@ def test_the_criteria_are_scored_on_the_test_days_by_validations_rule(trained, h
     assert 0.0 < level.share_pct < 50.0 and level.cover2_pct < 50.0
     assert criteria_on_test(quiet, days, DAY)[LEVEL].share_pct < level.share_pct
     assert criteria_on_test(dataclasses.replace(trained, envelope=None), days, DAY) == {}
+
+
+def test_training_keeps_a_criterion_its_held_out_days_prove_and_it_fires_live() -> None:
+    """End to end, nothing switched on by hand (issue Trust II, tests): the desk's offset grows
+    with the room's level (a radiator under the desk), so a held-out day warmer or colder
+    than the others is one TRIV gets wrong, and validation keeps the level criterion; replayed,
+    the training days are never uncertain; live, a reference far above any training day makes
+    the primary's estimates uncertain with σ widened by what the held-out days measured."""
+    hours = pd.Series(7.0 + np.arange(52) * 0.25)
+    spec = TwinSpec(("ref",), "desk", Quantity.TEMPERATURE, OperatingHours(timezone="UTC"))
+    day0 = dt.date(2024, 3, 4)
+    rng = np.random.default_rng(8)
+    rows = []
+    for d, level in enumerate((21.0, 21.4, 20.7, 25.0, 17.0, 30.0)):
+        ref = level + np.cumsum(rng.normal(0.0, 0.03, size=hours.size))
+        desk = ref + 0.5 + 0.5 * (level - 21.0) + rng.normal(0.0, 0.05, size=hours.size)
+        ts = pd.Timestamp(day0 + dt.timedelta(days=d), tz="UTC") + pd.to_timedelta(hours,
+                                                                                   unit="h")
+        rows += [pd.DataFrame({"sensor": "ref", "ts": ts, "value": ref}),
+                 pd.DataFrame({"sensor": "desk", "ts": ts, "value": desk})]
+    history = pd.concat(rows, ignore_index=True).sort_values("ts", kind="stable")
+    art = train_twin(history, spec, day0, 5, models=["ref", "triv"])
+    assert art.envelope is not None
+    assert art.envelope.kept is not None and "level:ref" in art.envelope.kept, \
+        art.envelope.judged
+    assert art.envelope.widen > 1.0
+    assert training_share(art, history) == 0.0
+    hot_day = history[history["ts"] >= pd.Timestamp(day0 + dt.timedelta(days=5), tz="UTC")]
+    twin = Twin(art)
+    blind = Twin(dataclasses.replace(art, envelope=None))
+    uncertain = 0
+    for ts, v in zip(hot_day.loc[hot_day["sensor"] == "ref", "ts"],
+                     hot_day.loc[hot_day["sensor"] == "ref", "value"], strict=True):
+        t = ts.to_pydatetime()
+        twin.observe("ref", t, float(v))
+        blind.observe("ref", t, float(v))
+        e, b = twin.estimate(t).get(art.primary), blind.estimate(t).get(art.primary)
+        if e is not None and b is not None and b.quality is Quality.OK:
+            assert e.quality is Quality.UNCERTAIN and "level:ref" in e.unlike
+            assert e.value == b.value
+            assert e.std == pytest.approx(art.envelope.widen * b.std)
+            uncertain += 1
+    assert uncertain > 20
