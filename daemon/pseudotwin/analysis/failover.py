@@ -4,9 +4,10 @@ without it (live/failover.py says how the twin uses them).
 For each such reference r, the candidates ``FAILOVER_KINDS`` are trained on the twin with r
 removed and validated exactly like the twin's own candidates (leave-one-day-out over the
 training days, the same tie rule, σ calibrated on the held-out errors: analysis/validation.py).
-Only cheap kinds by default: the raw reference and the TRIV family (TRIV, its shrunk offset
-profile, TRIV with covariates) need no GP fit, so failover adds seconds to ``train``, not
-minutes; a kind that cannot serve the reduced twin (triv-cov without covariates) is skipped.
+Only cheap kinds by default: the raw reference and the TRIV family (TRIV, its shrunk or
+smoothed offset profile, its weekend profile, TRIV with covariates) need no GP fit, so
+failover adds seconds to ``train``, not minutes; a kind that cannot serve the reduced twin
+(triv-cov without covariates) is skipped.
 """
 
 from __future__ import annotations
@@ -31,7 +32,8 @@ from pseudotwin.models.registry import build, model_class
 log = logging.getLogger(__name__)
 
 # Cheap candidates (no GP fit): a failover answers for hours at most, until the sensor is back.
-FAILOVER_KINDS: tuple[str, ...] = ("ref", "triv", "triv-shrunk", "triv-week", "triv-cov")
+FAILOVER_KINDS: tuple[str, ...] = ("ref", "triv", "triv-shrunk", "triv-smooth", "triv-week",
+                                   "triv-cov")
 
 
 def train_failover(
@@ -56,14 +58,16 @@ def train_failover(
         others = replace(spec, references=tuple(r for r in spec.references if r != lost))
         usable = [k for k in kinds if not model_class(k).not_applicable(others)]
         try:
-            v = validation.validate(df, others, days, usable, opts, thinning=thinning)
+            # a setting left to validation (triv-smooth's span) is chosen for the reduced twin
+            settings, _ = validation.choose_settings(df, others, days, usable, opts, thinning)
+            v = validation.validate(df, others, days, usable, settings, thinning=thinning)
         except DataError as exc:
             log.warning("no failover for %s: %s", lost, exc)
             continue
         if not math.isfinite(v.scores[v.primary].nrmse_pct):  # nothing to rank it by
             log.warning("no failover for %s: its held-out error is not finite", lost)
             continue
-        model = build(v.primary, opts.get(v.primary)).fit(TrainingSet(others, tuple(days)))
+        model = build(v.primary, settings.get(v.primary)).fit(TrainingSet(others, tuple(days)))
         out[lost] = Failover(lost, v.primary, model, v.calibration.get(v.primary),
                              v.scores[v.primary].nrmse_pct, v.reason)
         log.info("failover for %s: %s on %s (held-out %.2f %%)", lost, v.primary,

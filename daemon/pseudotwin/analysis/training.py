@@ -262,14 +262,10 @@ def train_validated(
     validated = validate and len(days) >= MIN_DAYS
     # A setting a model leaves to validation (VARMA's order) is chosen before the model is
     # fit, so the fit, its validation and the artifact all have the chosen value.
-    tuned: dict[str, validation.SettingChoice] = {}
-    for kind in models if validated else ():
-        if choice := validation.choose_setting(df, spec, days, kind, opts.get(kind), policy):
-            setting = model_class(kind).tuned
-            assert setting is not None  # choose_setting answers for tuned models only
-            tuned[kind] = choice
-            opts[kind] = {**opts.get(kind, {}), **setting.fit_with, choice.name: choice.chosen}
-            log.info("%s: %s (validation on the training days)", kind, choice.reason)
+    opts, tuned = validation.choose_settings(df, spec, days, models if validated else (), opts,
+                                             policy)
+    for kind, choice in tuned.items():
+        log.info("%s: %s (validation on the training days)", kind, choice.reason)
     if too_few := [k for k in models if model_class(k).min_days > len(days)]:
         for kind in too_few:
             log.info("%s is not trained: it needs at least %d training days, %d given", kind,

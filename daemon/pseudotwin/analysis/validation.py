@@ -352,6 +352,30 @@ def choose_setting(
     return pick_setting(kind, tuned.name, tuned.values, daily)
 
 
+def choose_settings(
+    df: pd.DataFrame,
+    spec: TwinSpec,
+    days: Sequence[DayReadings],
+    kinds: Sequence[str],
+    options: Mapping[str, Mapping[str, Any]],
+    thinning: Thinning | None = None,
+) -> tuple[dict[str, dict[str, Any]], dict[str, SettingChoice]]:
+    """``options`` (kind → settings) with the setting each of ``kinds`` leaves to validation
+    chosen on the training days (:func:`choose_setting`; the value and what goes with it,
+    ``Tuned.fit_with``), so that fit, validation and artifact all have the chosen form; and
+    the choices made (kind → SettingChoice)."""
+    settings = {k: dict(v) for k, v in options.items()}
+    choices: dict[str, SettingChoice] = {}
+    for kind in kinds:
+        if choice := choose_setting(df, spec, days, kind, options.get(kind), thinning):
+            tuned = MODELS[kind].tuned
+            assert tuned is not None  # choose_setting answers for tuned models only
+            choices[kind] = choice
+            settings[kind] = {**options.get(kind, {}), **tuned.fit_with,
+                              choice.name: choice.chosen}
+    return settings, choices
+
+
 def pick_setting(kind: str, name: str, values: Sequence[int],
                  daily: Mapping[int, Mapping[dt.date, float]]) -> SettingChoice:
     """The choice among ``values`` (from the simplest) from their held-out daily NRMSE
