@@ -16,6 +16,7 @@ import numpy as np
 from pseudotwin.analysis.report.evidence import seasonal_md
 from pseudotwin.analysis.report.runs import COMMAND, DOCS, PACKAGE, REPO, RunResult
 from pseudotwin.analysis.report.tables import (
+    calibration_by_day_md,
     calibration_md,
     daily_md,
     fmt,
@@ -472,6 +473,7 @@ def _section(res: RunResult) -> list[str]:
     lines += ["### Validation on the training days", "", validation_md(res), "",
               "### Summary", "", summary_md(res), "",
               "### Calibration (all scored readings)", "", calibration_md(res), "",
+              "### Calibration by day", "", calibration_by_day_md(res), "",
               "### Self-aware indication", "", selfaware_md(res), "",
               "### Verdict", "", verdict_md(res), ""]
     if spec.long_term:

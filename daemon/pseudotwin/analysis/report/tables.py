@@ -98,6 +98,28 @@ def calibration_md(res: RunResult) -> str:
                    "n"], rows)
 
 
+def calibration_by_day_md(res: RunResult) -> str:
+    """Per model, its days' ±2σ coverage and CRPS (daily.csv's ``cover2_pct`` and ``crps``):
+    whether σ holds day by day or only pooled, a wide day making up for a narrow one."""
+    unit = res.ev.artifact.unit
+    rows = []
+    for m in _ordered(list(res.daily["model"].unique())):
+        d = res.daily[res.daily["model"] == m]
+        cover = d["cover2_pct"].to_numpy(float)
+        if not np.isfinite(cover).any():  # a raw reference: no σ
+            continue
+        cover = cover[np.isfinite(cover)]
+        rows.append([_label(m), str(len(cover)), fmt(float(np.median(cover)), 1),
+                     fmt(float(np.min(cover)), 1),
+                     str(int(np.sum(cover < 90))), str(int(np.sum((cover >= 90) & (cover <= 98)))),
+                     str(int(np.sum(cover > 98))), fmt(float(d["crps"].mean()), 3)])
+    return md_table(["model", "days", "median daily ±2σ cover %", "lowest %", "days < 90 %",
+                     "days 90–98 %", "days > 98 %", f"mean daily CRPS [{unit}]"], rows) + (
+        "\n\nEach test day's ±2σ coverage of its own scored readings (`daily.csv`, "
+        "`cover2_pct`, `crps`): whether σ holds day by day or only pooled, a wide day making "
+        "up for a narrow one.")
+
+
 def selfaware_md(res: RunResult) -> str:
     """The published estimate's ``ok`` vs ``uncertain`` readings (live/envelope.py): how often
     it fires on the test and the training days, MAE and ±2σ coverage of each."""
