@@ -305,6 +305,22 @@ def test_varma_p_pins_the_order_and_skips_its_choice(sml: Path, tmp_path: Path,
     refused(args, "--varma-p", ("0", "9", "two"), tmp_path / "bad.json", capsys)
 
 
+def test_smooth_span_pins_the_span_and_skips_its_choice(sml: Path, tmp_path: Path,
+                                                       capsys) -> None:
+    from pseudotwin.live.artifact import Artifact
+    from pseudotwin.models.triv import TrivSmoothModel
+
+    args = desk_twin("train", sml, "--models", "ref,triv,triv-smooth")
+    assert run(*args, "--smooth-span", "90", "--out", str(tmp_path / "s90.json")) == 0
+    art = Artifact.load(tmp_path / "s90.json")
+    model = art.models["triv-smooth"]
+    assert isinstance(model, TrivSmoothModel) and model.span == 90
+    assert "tuned" not in art.validation
+    assert run(*args, "--out", str(tmp_path / "chosen.json")) == 0
+    assert "triv-smooth" in Artifact.load(tmp_path / "chosen.json").validation["tuned"]
+    refused(args, "--smooth-span", ("0", "1441", "ninety"), tmp_path / "bad.json", capsys)
+
+
 def test_lcm_terms_sets_the_corrgp_lcm_terms(sml: Path, tmp_path: Path, capsys) -> None:
     from pseudotwin.live.artifact import Artifact
     from pseudotwin.models.corrgp import CorrGpLcm

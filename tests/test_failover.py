@@ -392,3 +392,27 @@ def test_a_failover_spell_between_two_grid_instants_is_told_on_the_monitor(
     assert dt.datetime.fromisoformat(spell["since"]) - last_r2 > STALE
     assert dt.datetime.fromisoformat(spell["until"]) == back
     assert all(m["failover"] is None for m in monitor.all())
+
+
+def test_each_reduced_twin_chooses_its_own_smoothing_span(
+    history: pd.DataFrame, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """triv-smooth's span is chosen on the training days for the full twin and again for each
+    twin without one reference: what suits two references need not suit one (the full twin's
+    choice was handed down once, and pinned the failover's)."""
+    from pseudotwin.analysis import validation
+
+    asked: list[tuple[tuple[str, ...], dict[str, object]]] = []
+    choose = validation.choose_setting
+
+    def spy(df, spec, days, kind, options=None, thinning=None):  # type: ignore[no-untyped-def]
+        if kind == "triv-smooth":
+            asked.append((spec.references, dict(options or {})))
+        return choose(df, spec, days, kind, options, thinning)
+
+    monkeypatch.setattr(validation, "choose_setting", spy)
+    spec = TwinSpec((R1, R2), TARGET, Quantity.TEMPERATURE, HOURS)
+    art = train_twin(history, spec, FIRST, 5, ("ref", "triv", "triv-smooth"), primary="triv")
+    assert [refs for refs, _ in asked] == [(R1, R2), (R2,), (R1,)]
+    assert all("span" not in options for _, options in asked)
+    assert set(art.failover) == {R1, R2}

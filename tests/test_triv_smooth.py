@@ -18,6 +18,7 @@ import pytest
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
+from pseudotwin.errors import ArtifactError
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.models.triv import SMOOTH_SPANS, TrivSmoothModel, smooth_profile
 
@@ -30,14 +31,30 @@ GRID_H = 7.0 + np.arange(52) * 0.25  # 15-min readings 07:00–19:45
 def test_a_straight_profile_comes_back_unchanged_and_noise_is_smoothed_out() -> None:
     x = np.arange(46, dtype=float)
     line = 0.3 + 0.02 * x
-    np.testing.assert_allclose(smooth_profile(line, 9), line, atol=1e-12)
-    np.testing.assert_allclose(smooth_profile(np.full(46, -0.4), 17), -0.4, atol=1e-12)
+    np.testing.assert_allclose(smooth_profile(line, 4), line, atol=1e-12)
+    np.testing.assert_allclose(smooth_profile(np.full(46, -0.4), 8), -0.4, atol=1e-12)
     truth = 0.5 * np.sin(x / 46 * np.pi)
     noisy = truth + np.random.default_rng(1).normal(0.0, 0.1, x.size)
-    smoothed = smooth_profile(noisy, 9)
+    smoothed = smooth_profile(noisy, 4)
     assert np.sqrt(np.mean((smoothed - truth) ** 2)) < 0.6 * np.sqrt(np.mean((noisy - truth) ** 2))
-    # fewer than three points make no line: the profile as it is
-    np.testing.assert_array_equal(smooth_profile(noisy, 2), noisy)
+    # a span that reaches no neighbouring slot: the profile as it is
+    np.testing.assert_array_equal(smooth_profile(noisy, 0), noisy)
+
+
+def test_the_span_reaches_exactly_the_slots_within_half_of_it() -> None:
+    """60 min on 15-min slots is ±2 slots: a one-slot spike spreads to them, not beyond."""
+    spike = np.zeros(41)
+    spike[20] = 1.0
+    out = smooth_profile(spike, 2)
+    assert np.all(out[18:23] > 0) and out[20] == out.max()
+    np.testing.assert_allclose(np.r_[out[:18], out[23:]], 0.0, atol=1e-12)
+
+
+def test_a_span_covering_the_whole_window_is_one_straight_line() -> None:
+    """A span over every slot (a short window, or 240 min on a 4-hour day): one line."""
+    x = np.arange(5, dtype=float)
+    np.testing.assert_allclose(smooth_profile(0.1 + 0.2 * x, 1), 0.1 + 0.2 * x, atol=1e-12)
+    np.testing.assert_allclose(smooth_profile(0.1 + 0.2 * x, 8), 0.1 + 0.2 * x, atol=1e-12)
 
 
 def _frame(days: int, seed: int, offset: np.ndarray, noise: float) -> pd.DataFrame:
@@ -97,3 +114,23 @@ def test_a_span_that_is_not_a_positive_number_of_minutes_is_refused(span: object
     with pytest.raises(ValueError, match="span"):
         train_twin(frame, SPEC, DAY0, 5, models=["triv-smooth"],
                    options={"triv-smooth": {"span": span}}, validate=False)
+
+
+@pytest.mark.parametrize("span", ["120", 60.5, -60, True, None])
+def test_an_artifact_with_a_damaged_span_is_refused_at_load(span: object, tmp_path) -> None:
+    art = train_twin(_frame(6, 23, np.full(GRID_H.size, 0.5), noise=0.05), SPEC, DAY0, 5,
+                     models=["triv-smooth"], validate=False)
+    d = json.loads(art.save(tmp_path / "a.json").read_text())
+    d["models"]["triv-smooth"]["span"] = span
+    with pytest.raises(ArtifactError, match="span"):
+        Artifact.from_dict(d, "a.json")
+
+
+def test_a_short_day_trains_whatever_the_span() -> None:
+    """09:00–10:00: 240 min reaches past every slot of the window (and the init phase)."""
+    hours = OperatingHours(timezone="UTC", day_start=9.0, day_end=10.0)
+    spec = TwinSpec(("ref",), "desk", Quantity.TEMPERATURE, hours)
+    frame = _frame(6, 24, np.full(GRID_H.size, 0.5), noise=0.05)
+    art = train_twin(frame, spec, DAY0, 5, models=["triv", "triv-smooth"])
+    assert "triv-smooth" in art.models
+    assert all(np.isfinite(v) for v in art.validation["tuned"]["triv-smooth"]["nrmse_pct"].values())

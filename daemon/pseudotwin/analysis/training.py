@@ -337,7 +337,9 @@ def train_validated(
     log.info("self-aware indication (quality uncertain): %s",
              ", ".join(sorted(envelope.kept or ())) or "no criterion kept")
     # Failover needs validated σ, like the primary it stands in for.
-    failover = (train_failover(df, spec, days, fitted[primary].references_, options=opts,
+    # the user's options: a setting validation chose for the full twin is chosen anew for
+    # each reduced one
+    failover = (train_failover(df, spec, days, fitted[primary].references_, options=options,
                                thinning=policy)
                 if v is not None else {})
     return Artifact(

@@ -401,7 +401,7 @@ def pick_setting(kind: str, name: str, values: Sequence[int],
     else:
         reason = (f"{name} = {chosen}: held-out daily NRMSE {scores[chosen]:.2f} % against "
                   f"{scores[scored[best]]:.2f} % for {name} = {scored[best]}, {why}, and "
-                  "smaller")
+                  "simpler")
     nested = [table[smallest_within_noise(np.delete(table, j, axis=1))[0], j]
               for j in range(len(common))]
     return SettingChoice(kind, name, scores, chosen, reason, float(np.mean(nested)))

@@ -169,6 +169,10 @@ def _add_twin_args(p: argparse.ArgumentParser, train: bool = False) -> None:
                         "likelihood, VAR(P) by least squares if it does not converge (default: "
                         "VAR(p) by least squares, p chosen from 1, 2 and 4 by validation on the "
                         "training days)")
+    p.add_argument("--smooth-span", type=_smooth_span, metavar="MIN",
+                   help="pin triv-smooth's span in minutes: its offset profile a local straight "
+                        "line through the slots within MIN/2 either side (default: 240, 120 "
+                        "or 60, chosen by validation on the training days)")
 
 
 HOURS_OPTIONS = {"day_start": "--day-start", "day_end": "--day-end",
@@ -224,6 +228,8 @@ def _options(a: argparse.Namespace) -> dict[str, dict[str, Any]]:
                for kind, cls in MODELS.items()}
     if a.varma_p is not None:
         options["varma"]["p"] = a.varma_p  # a p set skips validation's choice of the order
+    if a.smooth_span is not None:
+        options["triv-smooth"]["span"] = a.smooth_span  # and a span set, that of the span
     return options
 
 
@@ -470,6 +476,8 @@ MAX_VARMA_P = 8  # five training days hold ~220 slots: a higher order fits noise
 
 
 _varma_order = whole_number(1, MAX_VARMA_P)
+# (a day at most: a span over the whole window is one straight line already)
+_smooth_span = whole_number(1, 24 * 60, what="a whole number of minutes")
 _tcp_port = whole_number(1, 65535, "a port number")
 # (more terms than a few cost hours of fitting and add nothing the references can tell)
 _lcm_terms = whole_number(1, 10, what="a number of terms")

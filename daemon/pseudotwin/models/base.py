@@ -74,10 +74,11 @@ class DayEstimator(ABC):
 @dataclass(frozen=True)
 class Tuned:
     """A model setting chosen on the training days (analysis/validation.choose_setting): each
-    of ``values`` (from the simplest) is scored leave-one-day-out and the smallest one within
-    noise of the lowest held-out error wins. ``fit_with``: settings that go with a tuned value,
-    so that the model fit is the form validation scored; ``pinned_by``: settings by which a
-    user asks for a form of their own (with the setting itself, they skip the search)."""
+    of ``values`` (from the simplest) is scored leave-one-day-out and the first (simplest) one
+    within noise of the lowest held-out error wins. ``fit_with``: settings that go with a
+    tuned value, so that the model fit is the form validation scored; ``pinned_by``: settings
+    by which a user asks for a form of their own (with the setting itself, they skip the
+    search)."""
 
     name: str
     values: tuple[int, ...]

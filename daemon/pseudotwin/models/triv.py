@@ -181,26 +181,36 @@ class TrivShrunkModel(TrivModel):
         return m
 
 
-
-def smooth_profile(profile: np.ndarray, points: int) -> np.ndarray:
+def smooth_profile(profile: np.ndarray, half: int) -> np.ndarray:
     """A day's profile [S] smoothed across its slots: at each slot a straight line fitted to
-    the ``points`` nearest slots, tricube-weighted (LOWESS without its robustness
-    iterations: a linear smoother, so a straight profile comes back unchanged, and at the
-    day's start and end the line follows the profile's slope rather than flattening it)."""
+    the slots up to ``half`` slots either side, tricube-weighted (LOWESS without its
+    robustness iterations: a linear smoother, so a straight profile comes back unchanged, and
+    at the day's start and end the line follows the profile's slope rather than flattening
+    it; there the nearest slots are all on one side). ``half`` < 1: the profile as it is."""
     n = len(profile)
-    if points >= n:
-        points = n
-    if points < 3 or n < 3:  # a line through fewer points is the points themselves
+    if half < 1 or n < 3:
         return profile.copy()
+    # LOWESS takes the frac·n nearest points and gives the farthest of them weight zero: one
+    # more each side than ``half`` weights every slot within it (never above 1, which
+    # statsmodels refuses: then a single line through all slots)
+    frac = min(1.0, (2 * half + 3 + 1e-6) / n)  # frac·n is floored: a hair above
     x = np.arange(n, dtype=float)
-    # frac·n is floored by statsmodels: a hair above it so that exactly ``points`` are used
-    return np.asarray(lowess(profile, x, frac=(points + 1e-6) / n, it=0, delta=0.0,
-                             return_sorted=False), dtype=float)
+    return np.asarray(lowess(profile, x, frac=frac, it=0, delta=0.0, return_sorted=False),
+                      dtype=float)
+
+
+def check_span(span: object) -> int:
+    """triv-smooth's span [min], a positive whole number (``True`` is none); ValueError
+    otherwise, from a setting or from a damaged artifact alike."""
+    if isinstance(span, bool) or not isinstance(span, int) or span <= 0:
+        raise ValueError(f"triv-smooth's span must be a positive whole number of minutes, "
+                         f"got {span!r}")
+    return span
 
 
 class TrivSmoothModel(TrivModel):
     """TRIV whose offset profile is smoothed across the slots of the day (LOWESS, a local
-    straight line over ``span`` minutes of slots; :func:`smooth_profile`).
+    straight line through the slots within ±``span``/2 minutes; :func:`smooth_profile`).
 
     A slot's offset is the mean of as many values as there are training days, so a few days
     leave its 15-minute wiggles partly noise: one day's door opened at 10:15 becomes a dent
@@ -221,14 +231,17 @@ class TrivSmoothModel(TrivModel):
         super().__init__(references)
         self.span = span
 
+    def _half(self) -> int:
+        """Slots either side that the span reaches: [slots]."""
+        return int(round(check_span(self.span) / (2 * self.hours_.slot_hours * 60)))
+
     def _offset_profile(self, diffs: np.ndarray) -> np.ndarray:
-        if not (isinstance(self.span, int) and self.span > 0):
-            raise ValueError(f"triv-smooth's span must be a positive number of minutes, "
-                             f"got {self.span!r}")
-        points = int(round(self.span / (self.hours_.slot_hours * 60))) + 1
-        return smooth_profile(super()._offset_profile(diffs), points)
+        return smooth_profile(super()._offset_profile(diffs), self._half())
 
     def fit_summary(self) -> str:
+        if self._half() < 1:  # e.g. 60 min on 60-min slots: TRIV's profile
+            return (f"span {self.span} min reaches no neighbouring slot of "
+                    f"{self.hours_.slot_hours * 60:g} min: offset profile not smoothed")
         return f"offset profile smoothed over {self.span} min (LOWESS)"
 
     def to_dict(self) -> dict[str, Any]:
@@ -237,7 +250,7 @@ class TrivSmoothModel(TrivModel):
     @classmethod
     def from_dict(cls, d: dict[str, Any], spec: TwinSpec) -> Self:
         m = super().from_dict(d, spec)
-        m.span = int(d["span"])
+        m.span = check_span(d["span"])
         return m
 
 

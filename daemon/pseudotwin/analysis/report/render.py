@@ -126,9 +126,10 @@ HOW_TO_READ = f"""\
   training days) + live reference, averaged over references; `triv-shrunk` = TRIV
   with its offset profile shrunk towards the mean offset as far as the training days
   disagree on its shape (James–Stein; the factor is in the artifact); `triv-smooth` = TRIV
-  with its offset profile smoothed across the slots (LOWESS, a local straight line over a
-  span of 240, 120 or 60 minutes, the span chosen on the training days like VARMA's order:
-  the widest within noise of the lowest held-out error); `triv-week` = TRIV
+  with its offset profile smoothed across the slots (LOWESS, a local straight line through
+  the slots within half a span either side, the span 240, 120 or 60 minutes, chosen on the
+  training days like VARMA's order: the widest within noise of the lowest held-out error);
+  `triv-week` = TRIV
   with an offset profile of its own for Saturdays and Sundays, learnt from the training's
   weekend days (weekdays keep all days' profile; it is TRIV with fewer than two weekend
   days among the training days, which validation could not test); `triv-cov` = TRIV plus
