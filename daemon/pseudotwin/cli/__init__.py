@@ -229,7 +229,7 @@ def _options(a: argparse.Namespace) -> dict[str, dict[str, Any]]:
     if a.varma_p is not None:
         options["varma"]["p"] = a.varma_p  # a p set skips validation's choice of the order
     if a.smooth_span is not None:
-        options["triv-smooth"]["span"] = a.smooth_span  # and a span set, that of the span
+        options["triv-smooth"]["span"] = a.smooth_span  # skips validation's choice of it
     return options
 
 

@@ -10,7 +10,6 @@ import datetime as dt
 from typing import Any, ClassVar, Self
 
 import numpy as np
-from statsmodels.nonparametric.smoothers_lowess import lowess
 
 from pseudotwin.core.spec import TwinSpec
 from pseudotwin.errors import DataError
@@ -187,6 +186,9 @@ def smooth_profile(profile: np.ndarray, half: int) -> np.ndarray:
     robustness iterations: a linear smoother, so a straight profile comes back unchanged, and
     at the day's start and end the line follows the profile's slope rather than flattening
     it; there the nearest slots are all on one side). ``half`` < 1: the profile as it is."""
+    # statsmodels (~50 MB) is for fitting: the daemon loads this module, never calls this
+    from statsmodels.nonparametric.smoothers_lowess import lowess
+
     n = len(profile)
     if half < 1 or n < 3:
         return profile.copy()
