@@ -9,6 +9,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -291,34 +292,30 @@ def test_train_says_whether_its_training_days_are_enough(sml: Path, tmp_path: Pa
     assert "training data: Usable, but thin" in out and "on 2012-03-18" in out
 
 
-def test_varma_p_pins_the_order_and_skips_its_choice(sml: Path, tmp_path: Path,
-                                                     capsys) -> None:
+# A setting validation chooses, pinned from the command line: option, value, model kind, the
+# pinned model as asked, values refused.
+PINNED = [
+    ("--varma-p", "1", "varma",
+     lambda m: m.p == 1 and not m.force_fallback and m.order_[0] == 1, ("0", "9", "two")),
+    ("--smooth-span", "90", "triv-smooth", lambda m: m.span == 90, ("0", "1441", "ninety")),
+]
+
+
+@pytest.mark.parametrize(("option", "value", "kind", "as_asked", "bad"), PINNED,
+                         ids=[p[0] for p in PINNED])
+def test_a_pinned_setting_is_fitted_as_asked_and_skips_validations_choice(
+    option: str, value: str, kind: str, as_asked: Any, bad: tuple[str, ...], sml: Path,
+    tmp_path: Path, capsys,
+) -> None:
     from pseudotwin.live.artifact import Artifact
-    from pseudotwin.models.varma import VarmaModel
 
-    args = desk_twin("train", sml, "--models", "ref,triv,varma")
-    assert run(*args, "--varma-p", "1", "--out", str(tmp_path / "p1.json")) == 0
-    art = Artifact.load(tmp_path / "p1.json")
-    model = art.models["varma"]
-    assert isinstance(model, VarmaModel) and model.p == 1 and not model.force_fallback
-    assert model.order_[0] == 1 and "tuned" not in art.validation
-    refused(args, "--varma-p", ("0", "9", "two"), tmp_path / "bad.json", capsys)
-
-
-def test_smooth_span_pins_the_span_and_skips_its_choice(sml: Path, tmp_path: Path,
-                                                       capsys) -> None:
-    from pseudotwin.live.artifact import Artifact
-    from pseudotwin.models.triv import TrivSmoothModel
-
-    args = desk_twin("train", sml, "--models", "ref,triv,triv-smooth")
-    assert run(*args, "--smooth-span", "90", "--out", str(tmp_path / "s90.json")) == 0
-    art = Artifact.load(tmp_path / "s90.json")
-    model = art.models["triv-smooth"]
-    assert isinstance(model, TrivSmoothModel) and model.span == 90
-    assert "tuned" not in art.validation
+    args = desk_twin("train", sml, "--models", f"ref,triv,{kind}")
     assert run(*args, "--out", str(tmp_path / "chosen.json")) == 0
-    assert "triv-smooth" in Artifact.load(tmp_path / "chosen.json").validation["tuned"]
-    refused(args, "--smooth-span", ("0", "1441", "ninety"), tmp_path / "bad.json", capsys)
+    assert kind in Artifact.load(tmp_path / "chosen.json").validation["tuned"]
+    assert run(*args, option, value, "--out", str(tmp_path / "pinned.json")) == 0
+    art = Artifact.load(tmp_path / "pinned.json")
+    assert as_asked(art.models[kind]) and "tuned" not in art.validation
+    refused(args, option, bad, tmp_path / "bad.json", capsys)
 
 
 def test_lcm_terms_sets_the_corrgp_lcm_terms(sml: Path, tmp_path: Path, capsys) -> None:
