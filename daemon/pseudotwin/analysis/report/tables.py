@@ -102,6 +102,7 @@ def calibration_by_day_md(res: RunResult) -> str:
     """Per model, its days' ±2σ coverage and CRPS (daily.csv's ``cover2_pct`` and ``crps``):
     whether σ holds day by day or only pooled, a wide day making up for a narrow one."""
     unit = res.ev.artifact.unit
+    lo, hi = metrics.COVER2_RANGE  # the band the verdicts judge the estimate's σ by
     rows = []
     for m in _ordered(list(res.daily["model"].unique())):
         d = res.daily[res.daily["model"] == m]
@@ -111,10 +112,11 @@ def calibration_by_day_md(res: RunResult) -> str:
         cover = cover[np.isfinite(cover)]
         rows.append([_label(m), str(len(cover)), fmt(float(np.median(cover)), 1),
                      fmt(float(np.min(cover)), 1),
-                     str(int(np.sum(cover < 90))), str(int(np.sum((cover >= 90) & (cover <= 98)))),
-                     str(int(np.sum(cover > 98))), fmt(float(d["crps"].mean()), 3)])
-    return md_table(["model", "days", "median daily ±2σ cover %", "lowest %", "days < 90 %",
-                     "days 90–98 %", "days > 98 %", f"mean daily CRPS [{unit}]"], rows) + (
+                     str(int(np.sum(cover < lo))), str(int(np.sum((cover >= lo) & (cover <= hi)))),
+                     str(int(np.sum(cover > hi))), fmt(float(d["crps"].mean()), 3)])
+    return md_table(["model", "days", "median daily ±2σ cover %", "lowest %",
+                     f"days < {lo:.0f} %", f"days {lo:.0f}–{hi:.0f} %", f"days > {hi:.0f} %",
+                     f"mean daily CRPS [{unit}]"], rows) + (
         "\n\nEach test day's ±2σ coverage of its own scored readings (`daily.csv`, "
         "`cover2_pct`, `crps`): whether σ holds day by day or only pooled, a wide day making "
         "up for a narrow one.")
