@@ -18,6 +18,7 @@ from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.series import write_history
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.history.convert import load
+from pseudotwin.live.artifact import Artifact
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +67,17 @@ def test_evaluate_sml2010_writes_tables_and_plots(sml: Path, tmp_path: Path, cap
     assert est_month.iloc[0] == pytest.approx(
         daily.loc[daily["model"] == "estimate", "nrmse_pct"].mean())
     est = pd.read_csv(out / "estimates.csv")
-    assert list(est.columns)[:5] == ["ts", "model", "value", "std", "truth"]
+    assert list(est.columns) == ["ts", "model", "value", "std", "truth", "quality", "slope",
+                                 "source", "lost"]
+    # source: the payload's "model", what produced the value; VARMA's stream says which
+    # VARMA it ran (as <twin>/varma does), the raw reference is itself
+    art = Artifact.load(out / "artifact.json")
+    varma = est[est["model"] == "varma"]
+    assert set(varma["source"]) == {art.models["varma"].model_name} != {"varma"}
+    primary = est[est["model"] == "estimate"]
+    assert set(primary["source"]) == {art.models[art.primary].model_name}
+    assert set(est.loc[est["model"] == "ref:dining/temp", "source"]) == {"ref:dining/temp"}
+    assert set(est["lost"]) == {"[]"}  # one reference: nothing to fail over
     gp = est[est["model"] == "corrgp-triv"]
     assert np.isfinite(gp["value"]).all() and (gp["std"] > 0).all()
     # a true reading every 15 min from 08:00 to 19:00 local on each test day

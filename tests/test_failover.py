@@ -218,9 +218,14 @@ def test_evaluate_cli_scores_the_failover_with_stale_after(
     est = pd.read_csv(tmp_path / "fo" / "estimates.csv")
     published = est[est["model"] == ESTIMATE]
     assert len(published) > 100 and set(published["quality"]) == {"fallback"}
+    # the file says which model answered and which reference it did without
+    failover = Artifact.load(tmp_path / "fo" / "artifact.json").failover[R2]
+    assert set(published["source"]) == {failover.model.model_name}
+    assert set(published["lost"]) == {json.dumps([R2])}
     assert main([*base, "--out", str(tmp_path / "held")]) == 0
     held = pd.read_csv(tmp_path / "held" / "estimates.csv")
     assert "fallback" not in set(held.loc[held["model"] == ESTIMATE, "quality"])
+    assert set(held.loc[held["model"] == ESTIMATE, "lost"]) == {"[]"}
     capsys.readouterr()
     with pytest.raises(SystemExit) as exc:
         main([*base, "--out", str(tmp_path / "bad"), "--stale-after", "-5"])
@@ -328,6 +333,8 @@ def test_daemon_fails_over_on_a_silenced_reference_like_evaluate(
         e = live[stamp[row["ts"]]]
         assert e["value"] == round(row["value"], 6) and e["std"] == round(row["std"], 6)
         assert e["quality"] == row["quality"]
+        # what produced the value and what it lost, as estimates.csv writes them
+        assert e["model"] == row["source"] and e["lost"] == json.loads(row["lost"])
         if row["ts"] > silent_from + STALE:
             assert e["quality"] == "fallback" and e["lost"] == [R2]
             assert e["model"] == artifact.failover[R2].model.model_name

@@ -42,7 +42,8 @@ class Evaluation:
     """Outputs of one evaluation run (all frames also written as CSV)."""
 
     artifact: Artifact
-    estimates: pd.DataFrame  # replay.COLUMNS: ts, model, value, std, truth, quality, slope
+    estimates: pd.DataFrame  # replay.COLUMNS: ts, model, value, std, truth, quality, slope,
+    # source, lost
     daily: pd.DataFrame  # DAILY_COLUMNS
     monthly: pd.DataFrame  # month, model, nrmse_pct
     seconds: float

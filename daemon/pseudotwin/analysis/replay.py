@@ -12,6 +12,7 @@ instant), and a day's score costs what a reading a minute costs."""
 from __future__ import annotations
 
 import datetime as dt
+import json
 from collections.abc import Sequence
 
 import numpy as np
@@ -26,7 +27,14 @@ REF_PREFIX = "ref:"
 # criterion keys) cannot contain, unlike a space.
 UNLIKE_SEP = "\x1f"
 ESTIMATE = "estimate"  # the rows of what the daemon publishes on <twin>/estimate
-COLUMNS = ["ts", "model", "value", "std", "truth", "quality", "slope"]
+COLUMNS = ["ts", "model", "value", "std", "truth", "quality", "slope", "source", "lost"]
+NONE_LOST = "[]"
+
+
+def lost_json(lost: Sequence[str]) -> str:
+    """The ``lost`` column: the silent references as the payload's JSON list (sensor ids may
+    hold any printable character, a comma or a space too)."""
+    return json.dumps(list(lost), ensure_ascii=False) if lost else NONE_LOST
 
 
 def replay_estimates(
@@ -41,18 +49,21 @@ def replay_estimates(
 ) -> pd.DataFrame:
     """Estimates at every true target reading in operating hours of days ``start``…``end``.
 
-    Rows (ts, model, value, std, truth, quality, slope): one per model that answered; rows of
-    model ``estimate``, exactly what the daemon would publish on ``<twin>/estimate`` (the
-    primary, with its fallbacks and quality flags; nothing in the init phase); and, as
-    pseudo-models ``ref:<sensor>``, the raw reference value held at that time, at the instants
-    where some model answered and the reference is in today's window (its daily Pearson r
-    with the target is the evidence of how much a reference can tell). slope: the
-    references' |slope| [unit/h] the model's σ saw. thinning: the window's policy, as the
-    daemon's configuration sets it (default one point per sensor and minute). stale_after:
-    the daemon's, to score what it publishes while a reference is silent (quality ``stale``,
-    or a failover's ``fallback``); default None: a silent reference's last value is held.
-    criteria: add a column ``unlike``, the envelope criteria that fired on the row, joined by
-    ``UNLIKE_SEP`` (live/envelope.py; what validation judges them on).
+    Rows (ts, model, value, std, truth, quality, slope, source, lost): one per model that
+    answered; rows of model ``estimate``, exactly what the daemon would publish on
+    ``<twin>/estimate`` (the primary, with its fallbacks and quality flags; nothing in the
+    init phase); and, as pseudo-models ``ref:<sensor>``, the raw reference value held at that
+    time, at the instants where some model answered and the reference is in today's window
+    (its daily Pearson r with the target is the evidence of how much a reference can tell).
+    slope: the references' |slope| [unit/h] the model's σ saw. source, lost: the payload's
+    ``model`` (what produced the value: a fallback's or a failover's kind) and ``lost`` (the
+    silent references a failover answered without, a JSON list; ``[]`` otherwise).
+    thinning: the window's policy, as the daemon's configuration sets it (default one point
+    per sensor and minute). stale_after: the daemon's, to score what it publishes while a
+    reference is silent (quality ``stale``, or a failover's ``fallback``); default None: a
+    silent reference's last value is held. criteria: add a column ``unlike``, the envelope
+    criteria that fired on the row, joined by ``UNLIKE_SEP`` (live/envelope.py; what
+    validation judges them on).
     """
     hours = artifact.hours
     thinning = thinning or Thinning()
@@ -104,15 +115,16 @@ def replay_estimates(
             answered = True
             slope = twin.slope(artifact.models[kind].references_, h)
             fired = (UNLIKE_SEP.join(e.unlike),) if criteria else ()
-            rows.append((t, kind, e.value, e.std, truth, e.quality.value, slope, *fired))
+            said = (e.model, lost_json(e.lost), *fired)
+            rows.append((t, kind, e.value, e.std, truth, e.quality.value, slope, *said))
             if kind == primary and e.publishable:
                 rows.append((t, ESTIMATE, e.value, e.std, truth, e.quality.value, slope,
-                             *fired))
+                             *said))
         # "Just use the reference" is scored where the twin could answer and the reference
         # is in today's window: one silent for days has no value today for the twin, nor
         # for the desk.
         for r in refs if answered else ():
             if r in held and twin.latest(r, h) is not None:
                 rows.append((t, REF_PREFIX + r, held[r], np.nan, truth, "ok", np.nan,
-                             *(("",) if criteria else ())))
+                             REF_PREFIX + r, NONE_LOST, *(("",) if criteria else ())))
     return pd.DataFrame(rows, columns=[*COLUMNS, *(["unlike"] if criteria else [])])
