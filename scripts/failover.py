@@ -68,7 +68,7 @@ def run(spec: Any, models: tuple[str, ...], history: pd.DataFrame) -> list[dict[
     days, _ = art.hours.day_and_hours(history["ts"])
     full, total = _published(art, history, start, STALE_AFTER)
     full_nrmse = _mean_nrmse(full, art)
-    bare = dataclasses.replace(art, failover={})
+    bare = dataclasses.replace(art, failover={}, failover_alone={})
     out = []
     for lost in art.references:
         silenced = history[~((history["sensor"] == lost) & (days >= np.datetime64(start)))]

@@ -209,10 +209,10 @@ class Viewer:
         self.c.loop_stop()
 
 
-def two_reference_days(hours: OperatingHours, first: dt.date, sensors: tuple[str, str, str], *,
-                       offsets: tuple[float, float, float], noise: tuple[float, float, float],
-                       level_sd: float, n_days: int = 6, seed: int = 7) -> pd.DataFrame:
-    """Two references and the desk (``sensors``, in that order) every 5 min, 06:02:30–19:57:30
+def reference_days(hours: OperatingHours, first: dt.date, sensors: tuple[str, ...], *,
+                   offsets: tuple[float, ...], noise: tuple[float, ...],
+                   level_sd: float, n_days: int = 6, seed: int = 7) -> pd.DataFrame:
+    """References and the desk (``sensors``, the desk last) every 5 min, 06:02:30–19:57:30
     local (off the 15-min publish grid; the readings at an instant: references first): a
     shared daily course and a day level ~ N(0, level_sd), each sensor with its own offset
     and noise (std) [°C]."""

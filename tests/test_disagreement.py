@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from daemon_support import two_reference_days
+from daemon_support import reference_days
 from pseudotwin.analysis.training import train_twin
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
@@ -34,8 +34,8 @@ PAIR = pair_criterion(R1, R2)
 @pytest.fixture(scope="module")
 def history() -> pd.DataFrame:
     """References sharing the day's course and level, each with its own offset and noise."""
-    return two_reference_days(HOURS, FIRST, (R1, R2, TARGET), offsets=(0.8, -0.5, 0.2),
-                              noise=(0.1, 0.1, 0.05), level_sd=0.4, seed=11)
+    return reference_days(HOURS, FIRST, (R1, R2, TARGET), offsets=(0.8, -0.5, 0.2),
+                          noise=(0.1, 0.1, 0.05), level_sd=0.4, seed=11)
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from daemon_support import HandClock, Lockstep, Viewer, two_reference_days, wait_for
+from daemon_support import HandClock, Lockstep, Viewer, reference_days, wait_for
 from pseudotwin.analysis.failover import FAILOVER_KINDS
 from pseudotwin.analysis.replay import ESTIMATE, replay_estimates
 from pseudotwin.analysis.training import train_twin
@@ -29,6 +29,7 @@ from pseudotwin.edge.replay import replay
 from pseudotwin.edge.service import Service
 from pseudotwin.errors import ArtifactError
 from pseudotwin.live.artifact import Artifact
+from pseudotwin.live.failover import Failover
 from pseudotwin.live.twin import Quality, Twin
 
 TZ = "Europe/Madrid"
@@ -43,8 +44,8 @@ STALE = dt.timedelta(minutes=30)
 def history() -> pd.DataFrame:
     """Each reference with its own offset and noise, so TRIV on both beats either alone and
     each alone still answers."""
-    return two_reference_days(HOURS, FIRST, (R1, R2, TARGET), offsets=(0.6, -0.9, 0.2),
-                              noise=(0.2, 0.2, 0.03), level_sd=0.3, seed=7)
+    return reference_days(HOURS, FIRST, (R1, R2, TARGET), offsets=(0.6, -0.9, 0.2),
+                          noise=(0.2, 0.2, 0.03), level_sd=0.3, seed=7)
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +76,11 @@ def feed(twin: Twin, df: pd.DataFrame, until: dt.datetime, skip: str | None = No
 def alone(art: Artifact, lost: str) -> Twin:
     """A twin whose only model is the failover for ``lost``, as a standalone artifact: what
     the failover must publish, value and σ."""
-    f = art.failover[lost]
+    return standalone(art, art.failover[lost])
+
+
+def standalone(art: Artifact, f: Failover) -> Twin:
+    """A twin whose only model is the failover ``f``, as a standalone artifact."""
     spec = dataclasses.replace(art.spec, references=f.model.references_)
     calib = {f.kind: f.calibration} if f.calibration else {}
     return Twin(Artifact(spec, {f.kind: f.model}, f.kind, calibration=calib))
@@ -83,6 +88,8 @@ def alone(art: Artifact, lost: str) -> Twin:
 
 def test_training_keeps_a_validated_failover_per_reference(artifact: Artifact) -> None:
     assert set(artifact.failover) == {R1, R2}
+    # with two references, the failover without one reads the other alone
+    assert artifact.failover_alone == {}
     for lost, f in artifact.failover.items():
         assert lost not in f.model.references_ and f.model.references_
         assert f.kind in FAILOVER_KINDS and f.calibration is not None
@@ -200,6 +207,114 @@ def test_older_artifact_without_failover_loads_and_goes_stale(
     feed(twin, today, t, skip=R2, after=HOURS.at(TEST_DAY, 10.0))
     e = twin.estimate(t)["triv"]
     assert e.quality is Quality.STALE and e.lost == ()
+
+
+# ------------------------------------------------------------- three references
+R3 = "room/door/temp"
+
+
+@pytest.fixture(scope="module")
+def three_days() -> pd.DataFrame:
+    """Three references of equal noise (TRIV on any two beats any one alone), six days."""
+    return reference_days(HOURS, FIRST, (R1, R2, R3, TARGET), offsets=(0.6, -0.9, 0.3, 0.2),
+                          noise=(0.2, 0.2, 0.2, 0.03), level_sd=0.3, seed=7)
+
+
+@pytest.fixture(scope="module")
+def three(three_days: pd.DataFrame) -> Artifact:
+    spec = TwinSpec((R1, R2, R3), TARGET, Quantity.TEMPERATURE, HOURS)
+    return train_twin(three_days, spec, FIRST, 5, ("ref", "triv"), primary="triv")
+
+
+def silenced(df: pd.DataFrame, lost: tuple[str, ...], after: dt.datetime) -> pd.DataFrame:
+    return df[~(df["sensor"].isin(lost) & (df["ts"] > after))]
+
+
+def test_three_references_keep_a_failover_per_reference_alone(three: Artifact) -> None:
+    assert set(three.failover) == {R1, R2, R3}
+    assert set(three.failover_alone) == {R1, R2, R3}
+    for kept, f in three.failover_alone.items():
+        assert f.model.references_ == (kept,) and set(f.lost) == {R1, R2, R3} - {kept}
+        assert f.kind in FAILOVER_KINDS and f.calibration is not None
+        assert math.isfinite(f.nrmse_pct)
+
+
+def test_two_silent_of_three_fall_over_to_the_one_left_and_all_silent_is_stale(
+    three: Artifact, three_days: pd.DataFrame
+) -> None:
+    today = three_days[three_days["ts"] >= HOURS.at(TEST_DAY, 0.0)]
+    silent_from, t = HOURS.at(TEST_DAY, 10.0), HOURS.at(TEST_DAY, 11.0 + 2.5 / 60)
+    both = silenced(today, (R1, R2), silent_from)
+    twin = Twin(three, stale_after=STALE)
+    feed(twin, both, t)
+    got = twin.estimate(t)["triv"]
+    f = three.failover_alone[R3]
+    assert got.quality is Quality.FALLBACK and got.lost == (R1, R2)
+    assert got.model == f.model.model_name
+    expected = standalone(three, f)
+    feed(expected, both, t)
+    e = expected.estimate(t)[f.kind]
+    assert (got.value, got.std) == (e.value, e.std)
+    # one silent: two references left beat one (the held-out errors say so), and answer
+    one = silenced(today, (R1,), silent_from)
+    twin = Twin(three, stale_after=STALE)
+    feed(twin, one, t)
+    got = twin.estimate(t)["triv"]
+    f = three.failover[R1]
+    assert f.nrmse_pct < min(a.nrmse_pct for a in three.failover_alone.values())
+    expected = standalone(three, f)
+    feed(expected, one, t)
+    e = expected.estimate(t)[f.kind]
+    assert got.lost == (R1,) and (got.value, got.std) == (e.value, e.std)
+    # all three silent: nothing can answer
+    late = t + dt.timedelta(hours=1)
+    e = Twin(three, stale_after=STALE).estimate(late)["triv"]
+    assert e.quality is Quality.STALE and e.lost == ()
+
+
+def test_failover_alone_round_trips_and_an_older_artifact_goes_stale(
+    three: Artifact, three_days: pd.DataFrame, tmp_path: Path
+) -> None:
+    path = three.save(tmp_path / "three.json")
+    d = json.loads(path.read_text(encoding="utf-8"))
+    assert d["version"] >= 8 and set(d["failover_alone"]) == {R1, R2, R3}
+    loaded = Artifact.load(path)
+    for kept, f in three.failover_alone.items():
+        g = loaded.failover_alone[kept]
+        assert (g.kind, g.lost, g.model.references_, g.nrmse_pct, g.calibration) == (
+            f.kind, f.lost, f.model.references_, f.nrmse_pct, f.calibration)
+    today = three_days[three_days["ts"] >= HOURS.at(TEST_DAY, 0.0)]
+    t = HOURS.at(TEST_DAY, 11.5)
+    both = silenced(today, (R1, R3), HOURS.at(TEST_DAY, 10.0))
+    a, b = Twin(three, stale_after=STALE), Twin(loaded, stale_after=STALE)
+    for twin in (a, b):
+        feed(twin, both, t)
+    ea, eb = a.estimate(t)["triv"], b.estimate(t)["triv"]
+    assert ea.quality is Quality.FALLBACK and ea.lost == (R1, R3)
+    assert (ea.value, ea.std, ea.model) == (eb.value, eb.std, eb.model)
+    # version 7 had no failover alone: two silent references make it stale, as they did
+    del d["failover_alone"]
+    d["version"] = 7
+    old = Artifact.from_dict(d)
+    twin = Twin(old, stale_after=STALE)
+    feed(twin, both, t)
+    assert twin.estimate(t)["triv"].quality is Quality.STALE
+
+
+def test_a_failover_alone_reading_another_reference_is_refused(
+    three: Artifact, tmp_path: Path
+) -> None:
+    d = json.loads(json.dumps(three.to_dict(), allow_nan=True))
+    d["failover_alone"][R3] = d["failover_alone"][R1]  # reads R1, filed under R3
+    p = tmp_path / "swapped.json"
+    p.write_text(json.dumps(d))
+    with pytest.raises(ArtifactError,
+                       match=rf"^{p}: the failover for {R1}, {R2} reads {R1} itself$"):
+        Artifact.load(p)
+    d["failover_alone"] = {"hall/temp": d["failover_alone"][R1]}
+    p.write_text(json.dumps(d))
+    with pytest.raises(ArtifactError, match="hall/temp.*not one of the references"):
+        Artifact.load(p)
 
 
 def test_evaluate_cli_scores_the_failover_with_stale_after(

@@ -227,7 +227,8 @@ def train_validated(
     every model's σ (:mod:`pseudotwin.analysis.validation`); without it, or with fewer than
     three days, the primary is ``primary`` or the first candidate and σ is each model's own.
     Validated twins with several references also get a failover per reference the primary
-    reads (:mod:`pseudotwin.analysis.failover`). thinning: the live window's policy (default
+    reads, and with three or more one per reference alone
+    (:mod:`pseudotwin.analysis.failover`). thinning: the live window's policy (default
     one point per sensor and minute): the models learn from the points it holds
     (:func:`~pseudotwin.core.thinning.thin_history`), and the held-out days are replayed
     reading by reading through it, as the daemon would. skip_days: days never used for
@@ -339,12 +340,12 @@ def train_validated(
     # Failover needs validated σ, like the primary it stands in for.
     # the user's options: a setting validation chose for the full twin is chosen anew for
     # each reduced one
-    failover = (train_failover(df, spec, days, fitted[primary].references_, options=options,
-                               thinning=policy)
-                if v is not None else {})
+    failover, alone = (train_failover(df, spec, days, fitted[primary].references_,
+                                      options=options, thinning=policy)
+                       if v is not None else ({}, {}))
     return Artifact(
         spec, fitted, primary, calibration=calibration, validation=checked,
-        envelope=envelope, failover=failover,
+        envelope=envelope, failover=failover, failover_alone=alone,
         training={
             "start": str(days[0].day),
             "end": str(days[-1].day),

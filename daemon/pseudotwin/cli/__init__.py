@@ -397,8 +397,8 @@ def cmd_train(a: argparse.Namespace) -> int:
         print(criteria_table(art.envelope.to_dict() if art.envelope else None, art.unit))
     else:
         print(f"primary: {art.primary} (not validated)")
-    for lost, f in art.failover.items():
-        print(f"  failover without {lost}: {f.kind} on {', '.join(f.model.references_)} "
+    for f in art.failovers:
+        print(f"  failover without {f.name}: {f.kind} on {', '.join(f.model.references_)} "
               f"(held-out {f.nrmse_pct:.2f} %)")
     if a.report is not None:
         import time

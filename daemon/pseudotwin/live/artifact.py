@@ -38,7 +38,9 @@ FORMAT = "pseudotwin-artifact"
 #    older envelopes load with every criterion acting and σ × 2, as they were trained.
 # 7: the envelope's pairs of references (criterion ``disagreement``); older envelopes have
 #    none, so nothing about how their references relate can make them uncertain.
-VERSION = 7
+# 8: single-reference failovers (``failover_alone``, twins with three references or more);
+#    older versions have none: two silent references make them stale.
+VERSION = 8
 
 
 @dataclass(frozen=True)
@@ -54,6 +56,8 @@ class Artifact(OfTwin):
     criteria act (format < 3: none, never uncertain; 3–5: every criterion acts, σ × 2).
     failover: lost reference → the validated candidate that answers without it (older
     artifacts and single-reference twins have none: a silent reference makes them stale).
+    failover_alone: kept reference → the validated candidate that reads it alone, for two or
+    more silent references (twins with three references or more; live/failover.py).
     """
 
     spec: TwinSpec
@@ -65,12 +69,18 @@ class Artifact(OfTwin):
     validation: dict[str, Any] = field(default_factory=dict)
     envelope: Envelope | None = None
     failover: dict[str, Failover] = field(default_factory=dict)
+    failover_alone: dict[str, Failover] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.primary not in self.models:
             raise ArtifactError(f"primary model {self.primary!r} is not in the artifact")
         for m in self.models.values():
             m.share(self.models)
+
+    @property
+    def failovers(self) -> tuple[Failover, ...]:
+        """Every failover: those without one reference, then those on one alone."""
+        return (*self.failover.values(), *self.failover_alone.values())
 
     @property
     def withheld(self) -> dict[str, str]:
@@ -105,6 +115,8 @@ class Artifact(OfTwin):
             **({"envelope": self.envelope.to_dict()} if self.envelope else {}),
             **({"failover": {r: f.to_dict() for r, f in self.failover.items()}}
                if self.failover else {}),
+            **({"failover_alone": {r: f.to_dict() for r, f in self.failover_alone.items()}}
+               if self.failover_alone else {}),
         })
 
     def save(self, path: str | Path) -> Path:
@@ -143,14 +155,16 @@ class Artifact(OfTwin):
             }
             envelope = (Envelope.from_dict(d["envelope"], spec.hours)
                         if d.get("envelope") is not None else None)
-            failover = {str(r): Failover.from_dict(str(r), f, spec)
+            failover = {str(r): Failover.from_dict((str(r),), f, spec)
                         for r, f in (d.get("failover") or {}).items()}
+            alone = {str(r): _alone(str(r), f, spec)
+                     for r, f in (d.get("failover_alone") or {}).items()}
             for key in ("training", "validation"):
                 if not isinstance(d.get(key, {}), dict):
                     raise TypeError(f"{key} is not an object")
             return cls(spec, models, str(twin["primary"]), d.get("training", {}),
                        d.get("created", ""), calibration, d.get("validation", {}), envelope,
-                       failover)
+                       failover, alone)
         except ArtifactError as exc:
             # a model's own check does not know the file: name it
             if str(exc).startswith(f"{where}:"):
@@ -178,6 +192,14 @@ class Artifact(OfTwin):
 UNVALIDATED = ("its artifact was trained without validation (fewer than three training days, "
                "or an old artifact): σ is each model's own spread, not calibrated on days "
                "it did not see, and the primary was not chosen by held-out scores")
+
+
+def _alone(kept: str, d: Any, spec: TwinSpec) -> Failover:
+    """The failover reading ``kept`` alone: it does without every other reference (and
+    refuses to load when it reads one)."""
+    if kept not in spec.references:
+        raise ArtifactError(f"failover on {kept!r} alone, which is not one of the references")
+    return Failover.from_dict(tuple(r for r in spec.references if r != kept), d, spec)
 
 
 def check_artifact(

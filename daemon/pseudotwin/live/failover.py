@@ -3,17 +3,20 @@
 With several references, a reference that goes stale (silent longer than ``stale_after``) or
 has never reported would make the primary's estimate ``stale``. ``train`` therefore keeps, per
 reference the primary reads, the best validated candidate trained on the *other* references
-(:mod:`pseudotwin.analysis.failover`), with its own calibrated σ. The live twin publishes that
-candidate with quality ``fallback`` and names the lost reference; ``stale`` remains only when
-no failover can answer from fresh references.
+(:mod:`pseudotwin.analysis.failover`), with its own calibrated σ; and, with three references
+or more, per reference the best validated candidate trained on that reference *alone*, which
+answers when two or more are silent. The live twin publishes the best validated of those whose
+references are all fresh, with quality ``fallback``, and names the lost references; ``stale``
+remains only when no failover can answer from fresh references.
 
-In the artifact (format version 4): ``"failover": {lost_ref: {"kind", "model", "calibration",
-"nrmse_pct", "reason"}}``; older artifacts have none and behave as before.
+In the artifact: ``"failover": {lost_ref: {"kind", "model", "calibration", "nrmse_pct",
+"reason"}}`` (format version 4) and ``"failover_alone": {kept_ref: {...}}`` (version 8);
+older artifacts have none of either and behave as before.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,15 +29,16 @@ from pseudotwin.models.registry import MODELS
 
 @dataclass(frozen=True)
 class Failover:
-    """The candidate that answers when ``lost`` is silent.
+    """A candidate that answers when the references ``lost`` are silent.
 
-    kind: its model kind; model: fitted on the other references (``model.references_`` never
-    holds ``lost``); calibration: its σ from the same leave-one-day-out validation as every
+    lost: the references it does without (one, or all but the one it reads); kind: its model
+    kind; model: fitted on the other references (``model.references_`` holds none of
+    ``lost``); calibration: its σ from the same leave-one-day-out validation as every
     model's (None: not validated, its own spread is published); nrmse_pct: its held-out daily
     NRMSE on the training days [%], which ranks failovers when several could answer.
     """
 
-    lost: str
+    lost: tuple[str, ...]
     kind: str
     model: TwinModel
     calibration: SigmaCalibration | None
@@ -42,8 +46,15 @@ class Failover:
     reason: str = ""
 
     def __post_init__(self) -> None:
-        if self.lost in self.model.references_:
-            raise ArtifactError(f"the failover for {self.lost} reads {self.lost} itself")
+        if not self.lost:
+            raise ArtifactError("a failover must do without at least one reference")
+        if read := [r for r in self.lost if r in self.model.references_]:
+            raise ArtifactError(f"the failover for {self.name} reads {', '.join(read)} itself")
+
+    @property
+    def name(self) -> str:
+        """The lost references, as logs and errors name the failover."""
+        return ", ".join(self.lost)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -53,26 +64,30 @@ class Failover:
         }
 
     @classmethod
-    def from_dict(cls, lost: str, d: Mapping[str, Any], spec: TwinSpec) -> Failover:
+    def from_dict(cls, lost: tuple[str, ...], d: Mapping[str, Any], spec: TwinSpec
+                  ) -> Failover:
         """Raises ArtifactError, or ValueError/KeyError when ``d`` does not fit ``spec``."""
-        if lost not in spec.references:
-            raise ArtifactError(f"failover for {lost!r}, which is not one of the references")
+        name = ", ".join(lost)
+        if strange := [r for r in lost if r not in spec.references]:
+            raise ArtifactError(f"failover for {', '.join(map(repr, strange))}, which is not "
+                                "one of the references")
         kind = str(d["kind"])
         if kind not in MODELS:
-            raise ArtifactError(f"failover for {lost}: unknown model kind {kind!r}")
+            raise ArtifactError(f"failover for {name}: unknown model kind {kind!r}")
         calib = d.get("calibration")
         model = MODELS[kind].from_dict(d["model"], spec)
         foreign = set(model.references_) - set(spec.references)
         if foreign:
-            raise ArtifactError(f"failover for {lost} reads {', '.join(sorted(foreign))}, "
+            raise ArtifactError(f"failover for {name} reads {', '.join(sorted(foreign))}, "
                                 "which the twin does not")
         return cls(lost, kind, model,
                    SigmaCalibration.from_dict(calib) if calib is not None else None,
                    float(d["nrmse_pct"]), str(d.get("reason", "")))
 
 
-def ranked(failovers: Mapping[str, Failover], fresh: Callable[[str], bool]) -> list[Failover]:
+def ranked(failovers: Iterable[Failover], fresh: Callable[[str], bool]) -> list[Failover]:
     """The failovers that could answer now (every reference they read is ``fresh``), best
-    validated first (lowest held-out NRMSE); empty when none can."""
-    able = [f for f in failovers.values() if all(fresh(s) for s in f.model.references_)]
-    return sorted(able, key=lambda f: (f.nrmse_pct, f.lost))
+    validated first (lowest held-out NRMSE; on a tie, the one doing without fewer); empty
+    when none can."""
+    able = [f for f in failovers if all(fresh(s) for s in f.model.references_)]
+    return sorted(able, key=lambda f: (f.nrmse_pct, len(f.lost), f.lost))

@@ -162,8 +162,9 @@ class Twin:
         self._window_start: dt.datetime | None = None  # the open window's init start
         self._thinner = WindowThinner(self.thinning)
         self._est: dict[str, DayEstimator] = {}
-        # The primary's failovers' live state: lost reference → estimator (live/failover.py).
-        self._failover: dict[str, DayEstimator] = {}
+        # The primary's failovers' live state: the references each does without → its
+        # estimator (live/failover.py).
+        self._failover: dict[tuple[str, ...], DayEstimator] = {}
         self._broken: set[str] = set()
         # Today's window per input in time order: sensor → (hours, values), arrays of doubles
         # (not lists: the garbage collector never traverses them).
@@ -218,7 +219,7 @@ class Twin:
         self._broken = set()
         self._series = {s: (array("d"), array("d")) for s in self.inputs}
         self._est = {k: m.start_day(day) for k, m in self._models.items()}
-        self._failover = ({r: f.model.start_day(day) for r, f in self.artifact.failover.items()}
+        self._failover = ({f.lost: f.model.start_day(day) for f in self.artifact.failovers}
                           if self.artifact.primary in self.kinds else {})
         self.uncertain_since, self.uncertain_why = None, ()
         self.failover_since, self.failover_lost = None, ()
@@ -262,7 +263,7 @@ class Twin:
                 step(est)
             except (NumericalError, KeyError) as exc:
                 log.warning("failover for %s: numerical failure (%s); unavailable today",
-                            lost, exc)
+                            ", ".join(lost), exc)
                 del self._failover[lost]
 
     def _break(self, kind: str, exc: Exception) -> None:
@@ -519,13 +520,13 @@ class Twin:
                         ) -> tuple[float, float, str, tuple[str, ...]] | None:
         """The failover's (value, σ, model name, lost references) at ``ts`` when the primary
         cannot answer for a silent reference; None when no failover has fresh references."""
-        running = {r: f for r, f in self.artifact.failover.items() if r in self._failover}
+        running = [f for f in self.artifact.failovers if f.lost in self._failover]
         for f in ranked(running, lambda s: not self._silent(s, ts)):
             try:  # a GP posterior conditions on its pending points when asked
                 e = self._failover[f.lost].predict(h)
             except NumericalError as exc:
                 log.warning("failover for %s: numerical failure (%s); unavailable today",
-                            f.lost, exc)
+                            f.name, exc)
                 del self._failover[f.lost]
                 continue
             if not math.isfinite(e.value):
