@@ -4,6 +4,7 @@ real config loader."""
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import html
 import json
@@ -16,8 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon_support import HOURS, REF, TARGET, sml, sml_csv
+from daemon_support import HOURS, REF, TARGET, reference_days, sml, sml_csv
 from pseudotwin.analysis.commissioning.coverage import Level, data_found
+from pseudotwin.analysis.commissioning.page import FAILOVER_WITHIN, failover_section
+from pseudotwin.analysis.training import train_twin
 from pseudotwin.cli import _artifact_check, main
 from pseudotwin.config import check_config
 from pseudotwin.core.spec import Quantity, TwinSpec
@@ -152,6 +155,8 @@ def test_the_page_renders_in_chromium_with_its_tables_and_images(
     assert len(images) >= 3  # the held-out NRMSE per day, the typical and the worst day
     assert all(done and w > 300 and h > 200 for done, w, h in images), images
     assert "Enough:" in dom and "Primary:" in dom
+    # one reference: no failover, and the page says what a silent reference does
+    assert "failover" not in tables and "One reference:" in dom
 
 
 def test_the_page_is_self_contained(trained: tuple[Path, Path]) -> None:
@@ -300,3 +305,49 @@ def test_a_twin_trained_from_the_store_gets_that_store_in_its_configuration(
     path.write_text(html.unescape(found.group(1)), encoding="utf-8")
     cfg = check_config(path, artifact_check=_artifact_check)
     assert cfg.store == str(tmp_path / "history.db")
+
+
+def _failover_rows(a: Artifact) -> tuple[str, dict[str, list[str]]]:
+    section = failover_section(a)
+    return section, {r[0]: r for r in tables_of(section).get("failover", [])[1:]}
+
+
+def test_the_page_names_the_reference_the_twin_can_least_afford_to_lose() -> None:
+    """Two references, one precise and one noisy: without the precise one the failover's
+    held-out error is several times the primary's, and the page says to keep it reporting;
+    each failover's row is the artifact's."""
+    first = dt.date(2024, 3, 4)
+    good, noisy, desk = "room/wall/temp", "room/ceiling/temp", "room/desk/temp"
+    days = reference_days(HOURS, first, (good, noisy, desk), offsets=(0.6, -0.9, 0.2),
+                          noise=(0.03, 0.4, 0.03), level_sd=0.3, seed=5)
+    spec = TwinSpec((good, noisy), desk, Quantity.TEMPERATURE, HOURS)
+    art = train_twin(days, spec, first, 5, ("ref", "triv"), primary="triv")
+    own = art.validation["scores"]["triv"]["nrmse_pct"]
+    section, rows = _failover_rows(art)
+    assert set(rows) == {good, noisy}
+    for lost, f in art.failover.items():
+        assert rows[lost][1] == f"{f.kind} on {', '.join(f.model.references_)}"
+        assert float(rows[lost][2]) == pytest.approx(f.nrmse_pct, abs=0.006)
+        assert float(rows[lost][3]) == pytest.approx(f.nrmse_pct / own, abs=0.006)
+    worst = art.failover[good].nrmse_pct / own
+    assert worst > FAILOVER_WITHIN and worst > art.failover[noisy].nrmse_pct / own
+    assert f"losing {good} costs the most" in html.unescape(section)
+    assert 'class="verdict thin"' in section
+
+
+def test_the_page_lists_the_failovers_on_one_reference_alone_and_none_when_untrained() -> None:
+    first = dt.date(2024, 3, 4)
+    refs = ("room/wall/temp", "room/ceiling/temp", "room/door/temp")
+    days = reference_days(HOURS, first, (*refs, "room/desk/temp"), offsets=(0.6, -0.9, 0.3, 0.2),
+                          noise=(0.2, 0.2, 0.2, 0.03), level_sd=0.3, seed=7)
+    spec = TwinSpec(refs, "room/desk/temp", Quantity.TEMPERATURE, HOURS)
+    art = train_twin(days, spec, first, 5, ("ref", "triv"), primary="triv")
+    section, rows = _failover_rows(art)
+    assert set(rows) == {", ".join(f.lost) for f in art.failovers}
+    for kept, f in art.failover_alone.items():
+        assert rows[", ".join(f.lost)][1] == f"{f.kind} on {kept}"
+    assert "on each reference alone" in section
+    # an artifact trained without validation has none: the page says the estimate goes stale
+    bare = dataclasses.replace(art, failover={}, failover_alone={})
+    section, rows = _failover_rows(bare)
+    assert rows == {} and "No failover:" in section and 'class="verdict missing"' in section

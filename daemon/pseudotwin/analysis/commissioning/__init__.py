@@ -4,8 +4,9 @@ One self-contained HTML page for the engineer who left a desk sensor in a room f
 the data found per sensor and day and whether it is enough (``coverage``), the candidates'
 held-out scores and the chosen primary, the raw reference's own score, the primary's typical
 and worst held-out days with the ±2σ band (``heldout``: the rows validation already replayed
-through the daemon's twin code, so nothing is refit), and the TOML for the twin
-(``snippet``). ``page`` renders it.
+through the daemon's twin code, so nothing is refit), the criteria of ``uncertain``, the
+failovers for silent references, and the TOML for the twin (``snippet``). ``page`` renders
+it.
 """
 
 from __future__ import annotations

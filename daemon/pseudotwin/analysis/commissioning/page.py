@@ -278,6 +278,64 @@ def selfaware_section(p: Page) -> str:
                     numeric=(1, 2, 3, 4)))
 
 
+# A failover within this factor of the primary's held-out error keeps the estimate useful
+# (Trust II's target for one of two references silenced for a day).
+FAILOVER_WITHIN = 1.2
+
+
+def failover_section(a: Artifact) -> str:
+    """What answers when references fall silent (live/failover.py): each failover, its
+    held-out error against the primary's, and which reference the twin can least afford
+    to lose."""
+    head = ("<h2>When a reference falls silent</h2>"
+            "<p>A reference silent longer than <code>stale_after_minutes</code> makes the "
+            "primary's estimate stale. Live, the best validated failover whose references all "
+            "report answers instead, with its own calibrated σ, quality "
+            "<code>fallback</code>, and the silent references in <code>lost</code>.</p>")
+    if len(a.references) < 2:
+        return head + verdict(Level.THIN, "One reference:",
+                              f"when {a.references[0]} is silent the estimate is stale, "
+                              "made from its last value without σ, until it reports again. "
+                              "A second permanent sensor as a reference would let the twin "
+                              "fail over.")
+    if not a.failovers:
+        return head + verdict(Level.MISSING, "No failover:",
+                              "trained without validation (or none could be validated): "
+                              "any silent reference the primary reads makes the estimate "
+                              "stale.")
+    own = a.validation.get("scores", {}).get(a.primary, {}).get("nrmse_pct")
+    own = float(own) if isinstance(own, int | float) and np.isfinite(own) else float("nan")
+    rows, classes = [], []
+    for f in a.failovers:
+        ratio = f.nrmse_pct / own if own > 0 else float("nan")
+        rows.append((", ".join(f.lost), f"{f.kind} on {', '.join(f.model.references_)}",
+                     num(f.nrmse_pct), num(ratio)))
+        classes.append(Level.GOOD.value if ratio <= FAILOVER_WITHIN else Level.THIN.value)
+    needed = a.models[a.primary].references_
+    bare = [r for r in needed if r not in a.failover]
+    costly = sorted(((f.nrmse_pct / own, r) for r, f in a.failover.items() if own > 0),
+                    reverse=True)
+    if bare:
+        level, text = Level.MISSING, (f"no failover could be validated without "
+                                      f"{', '.join(bare)}: when it is silent the estimate is "
+                                      "stale.")
+    elif costly and costly[0][0] > FAILOVER_WITHIN:
+        level, text = Level.THIN, (f"losing {costly[0][1]} costs the most: its failover's "
+                                   f"held-out error is {costly[0][0]:.2f} × the primary's "
+                                   f"({num(own)} %). Keep that sensor reporting (power, bus, "
+                                   "battery).")
+    else:
+        level, text = Level.GOOD, (f"without any one reference the held-out error stays "
+                                   f"within {FAILOVER_WITHIN:g} × the primary's "
+                                   f"({num(own)} %).")
+    alone = ("" if not a.failover_alone else
+             "<p>With three references or more, a failover on each reference alone answers "
+             "when two or more are silent.</p>")
+    return (head + verdict(level, "Failover:", text) + alone
+            + table("failover", ["silent", "answers", "held-out daily NRMSE %",
+                                 "× the primary's"], rows, classes, numeric=(2, 3)))
+
+
 def render(p: Page) -> str:
     a = p.artifact
     tr = a.training
@@ -298,7 +356,7 @@ def render(p: Page) -> str:
     )
     body = (f"<h1>Commissioning report: twin {esc(p.twin)}</h1>" + meta
             + data_section(p) + validation_section(p) + reference_section(p)
-            + days_section(p) + selfaware_section(p) + snippet)
+            + days_section(p) + selfaware_section(p) + failover_section(a) + snippet)
     return (
         '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
         f"<title>pseudotwin commissioning: {esc(p.twin)}</title>"
