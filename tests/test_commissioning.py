@@ -347,6 +347,12 @@ def test_the_page_lists_the_failovers_on_one_reference_alone_and_none_when_untra
     for kept, f in art.failover_alone.items():
         assert rows[", ".join(f.lost)][1] == f"{f.kind} on {kept}"
     assert "on each reference alone" in section
+    # without the failover that does without the wall sensor, one on another reference alone
+    # still answers when the wall sensor is silent: the page does not call it stale
+    partial = dataclasses.replace(art, failover={r: f for r, f in art.failover.items()
+                                                 if r != refs[0]})
+    section, rows = _failover_rows(partial)
+    assert refs[0] not in rows and "no failover could be validated" not in section
     # an artifact trained without validation has none: the page says the estimate goes stale
     bare = dataclasses.replace(art, failover={}, failover_alone={})
     section, rows = _failover_rows(bare)

@@ -267,8 +267,9 @@ def test_two_silent_of_three_fall_over_to_the_one_left_and_all_silent_is_stale(
     e = expected.estimate(t)[f.kind]
     assert got.lost == (R1,) and (got.value, got.std) == (e.value, e.std)
     # all three silent: nothing can answer
-    late = t + dt.timedelta(hours=1)
-    e = Twin(three, stale_after=STALE).estimate(late)["triv"]
+    twin = Twin(three, stale_after=STALE)
+    feed(twin, silenced(today, (R1, R2, R3), silent_from), t)
+    e = twin.estimate(t)["triv"]
     assert e.quality is Quality.STALE and e.lost == ()
 
 
@@ -315,6 +316,20 @@ def test_a_failover_alone_reading_another_reference_is_refused(
     p.write_text(json.dumps(d))
     with pytest.raises(ArtifactError, match="hall/temp.*not one of the references"):
         Artifact.load(p)
+    with pytest.raises(TypeError, match="tuple of references"):
+        dataclasses.replace(three.failover[R1], lost=R1)
+
+
+def test_a_two_reference_artifact_with_a_failover_alone_is_refused(artifact: Artifact) -> None:
+    """With two references a failover on one alone would do without the same reference as
+    the failover without the other: the live twin could not tell their estimators apart."""
+    d = artifact.to_dict()
+    d["failover_alone"] = {R2: d["failover"][R1]}
+    with pytest.raises(ArtifactError, match="need three references or more; the twin has 2"):
+        Artifact.from_dict(d)
+    with pytest.raises(ArtifactError, match="do without the same references"):
+        dataclasses.replace(artifact, failover={R1: artifact.failover[R1],
+                                                R2: dataclasses.replace(artifact.failover[R1])})
 
 
 def test_evaluate_cli_scores_the_failover_with_stale_after(

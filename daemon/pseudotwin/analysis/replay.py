@@ -56,8 +56,9 @@ def replay_estimates(
     time, at the instants where some model answered and the reference is in today's window
     (its daily Pearson r with the target is the evidence of how much a reference can tell).
     slope: the references' |slope| [unit/h] the model's σ saw. source, lost: the payload's
-    ``model`` (what produced the value: a fallback's or a failover's kind) and ``lost`` (the
-    silent references a failover answered without, a JSON list; ``[]`` otherwise).
+    ``model`` (the name of the model that produced the value: a fallback's or a failover's,
+    VARMA's own form) and ``lost`` (the silent references a failover answered without, a
+    JSON list; ``[]`` otherwise).
     thinning: the window's policy, as the daemon's configuration sets it (default one point
     per sensor and minute). stale_after: the daemon's, to score what it publishes while a
     reference is silent (quality ``stale``, or a failover's ``fallback``); default None: a

@@ -76,6 +76,13 @@ class Artifact(OfTwin):
             raise ArtifactError(f"primary model {self.primary!r} is not in the artifact")
         for m in self.models.values():
             m.share(self.models)
+        if self.failover_alone and len(self.spec.references) < 3:
+            # with two, the failover on one alone is the failover without the other
+            raise ArtifactError("failovers on one reference alone need three references or "
+                                f"more; the twin has {len(self.spec.references)}")
+        lost = [f.lost for f in self.failovers]
+        if len(set(lost)) != len(lost):  # the live twin runs one estimator per lost set
+            raise ArtifactError("two failovers do without the same references")
 
     @property
     def failovers(self) -> tuple[Failover, ...]:

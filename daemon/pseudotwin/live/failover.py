@@ -46,6 +46,8 @@ class Failover:
     reason: str = ""
 
     def __post_init__(self) -> None:
+        if isinstance(self.lost, str):  # a str is a tuple of characters: say so here
+            raise TypeError("Failover.lost is a tuple of references, not one str")
         if not self.lost:
             raise ArtifactError("a failover must do without at least one reference")
         if read := [r for r in self.lost if r in self.model.references_]:

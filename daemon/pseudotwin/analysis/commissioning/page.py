@@ -22,6 +22,7 @@ from pseudotwin.analysis.replay import REF_PREFIX
 from pseudotwin.live import metrics
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.calibration import Z2
+from pseudotwin.live.failover import Failover, ranked
 from pseudotwin.live.metrics import COVER2_RANGE
 
 COVER2_AIM = 95.4  # % of truths a calibrated Gaussian ±2σ band holds
@@ -283,6 +284,11 @@ def selfaware_section(p: Page) -> str:
 FAILOVER_WITHIN = 1.2
 
 
+def _picked(a: Artifact, silent: str) -> Failover | None:
+    """The failover the live twin picks while ``silent`` alone is silent (None: stale)."""
+    return next(iter(ranked(a.failovers, lambda s: s != silent)), None)
+
+
 def failover_section(a: Artifact) -> str:
     """What answers when references fall silent (live/failover.py): each failover, its
     held-out error against the primary's, and which reference the twin can least afford
@@ -311,15 +317,19 @@ def failover_section(a: Artifact) -> str:
         rows.append((", ".join(f.lost), f"{f.kind} on {', '.join(f.model.references_)}",
                      num(f.nrmse_pct), num(ratio)))
         classes.append(Level.GOOD.value if ratio <= FAILOVER_WITHIN else Level.THIN.value)
-    needed = a.models[a.primary].references_
-    bare = [r for r in needed if r not in a.failover]
-    costly = sorted(((f.nrmse_pct / own, r) for r, f in a.failover.items() if own > 0),
+    # each reference the primary reads, by what the twin would pick with it silent
+    picked = {r: _picked(a, r) for r in a.models[a.primary].references_}
+    bare = [r for r, f in picked.items() if f is None]
+    costly = sorted(((f.nrmse_pct / own, r) for r, f in picked.items() if f is not None),
                     reverse=True)
     if bare:
         level, text = Level.MISSING, (f"no failover could be validated without "
                                       f"{', '.join(bare)}: when it is silent the estimate is "
                                       "stale.")
-    elif costly and costly[0][0] > FAILOVER_WITHIN:
+    elif not own > 0:
+        level, text = Level.THIN, ("the primary has no held-out error to compare the "
+                                   "failovers with.")
+    elif costly[0][0] > FAILOVER_WITHIN:
         level, text = Level.THIN, (f"losing {costly[0][1]} costs the most: its failover's "
                                    f"held-out error is {costly[0][0]:.2f} × the primary's "
                                    f"({num(own)} %). Keep that sensor reporting (power, bus, "
