@@ -326,8 +326,10 @@ PERFORMANCE = (
      "trip through a real Mosquitto."),
     ("failover.txt", ".venv/bin/python scripts/failover.py",
      "Reference failover",
-     "Each reference of the two-reference runs silenced for every test day: the estimate's "
-     "mean daily NRMSE against the full twin's, and the instants left unanswered."),
+     "Each reference of the two-reference runs silenced for every test day, and on Room "
+     "Climate A with its three permanent sensors as references (room-climate-a3) each one "
+     "and each two of them: the estimate's mean daily NRMSE against the full twin's, and "
+     "the instants left unanswered."),
 )
 
 
