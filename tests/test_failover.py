@@ -320,6 +320,25 @@ def test_a_failover_alone_reading_another_reference_is_refused(
         dataclasses.replace(three.failover[R1], lost=R1)
 
 
+def test_train_prints_what_each_failover_answers_for(
+    three_days: pd.DataFrame, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    csv = tmp_path / "h.csv"
+    write_history(three_days, csv)
+    out = tmp_path / "a.json"
+    assert main(["--log-level", "WARNING", "train", "--history", str(csv), "--references",
+                 f"{R1},{R2},{R3}", "--target", TARGET, "--quantity", "temperature",
+                 "--train-start", str(FIRST), "--timezone", TZ, "--models", "ref,triv",
+                 "--primary", "triv", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    art = Artifact.load(out)
+    for r in (R1, R2, R3):
+        f, g = art.failover[r], art.failover_alone[r]
+        assert (f"failover without {r}: {f.kind} on {', '.join(f.model.references_)} "
+                f"(held-out {f.nrmse_pct:.2f} %)") in printed
+        assert f"failover on {r} alone: {g.kind} on {r} (held-out {g.nrmse_pct:.2f} %)" in printed
+
+
 def test_a_two_reference_artifact_with_a_failover_alone_is_refused(artifact: Artifact) -> None:
     """With two references a failover on one alone would do without the same reference as
     the failover without the other: the live twin could not tell their estimators apart."""

@@ -78,21 +78,22 @@ def _best_without(
 ) -> Failover | None:
     """The best validated candidate of the twin without ``lost`` (None, logged, when none
     can be validated)."""
-    name = ", ".join(lost)
     others = replace(spec, references=tuple(r for r in spec.references if r not in lost))
+    name = (f"without {lost[0]}" if len(lost) == 1
+            else f"on {', '.join(others.references)} alone")
     usable = [k for k in kinds if not model_class(k).not_applicable(others)]
     try:
         # a setting left to validation (triv-smooth's span) is chosen for the reduced twin
         settings, _ = validation.choose_settings(df, others, days, usable, opts, thinning)
         v = validation.validate(df, others, days, usable, settings, thinning=thinning)
     except DataError as exc:
-        log.warning("no failover for %s: %s", name, exc)
+        log.warning("no failover %s: %s", name, exc)
         return None
     if not math.isfinite(v.scores[v.primary].nrmse_pct):  # nothing to rank it by
-        log.warning("no failover for %s: its held-out error is not finite", name)
+        log.warning("no failover %s: its held-out error is not finite", name)
         return None
     model = build(v.primary, settings.get(v.primary)).fit(TrainingSet(others, tuple(days)))
-    log.info("failover for %s: %s on %s (held-out %.2f %%)", name, v.primary,
+    log.info("failover %s: %s on %s (held-out %.2f %%)", name, v.primary,
              ", ".join(model.references_), v.scores[v.primary].nrmse_pct)
     return Failover(lost, v.primary, model, v.calibration.get(v.primary),
                     v.scores[v.primary].nrmse_pct, v.reason)

@@ -398,7 +398,7 @@ def cmd_train(a: argparse.Namespace) -> int:
     else:
         print(f"primary: {art.primary} (not validated)")
     for f in art.failovers:
-        print(f"  failover without {f.name}: {f.kind} on {', '.join(f.model.references_)} "
+        print(f"  failover {f.label}: {f.kind} on {', '.join(f.model.references_)} "
               f"(held-out {f.nrmse_pct:.2f} %)")
     if a.report is not None:
         import time

@@ -58,6 +58,12 @@ class Failover:
         """The lost references, as logs and errors name the failover."""
         return ", ".join(self.lost)
 
+    @property
+    def label(self) -> str:
+        """What it answers for, as ``train`` prints it: "without A1" or "on A3 alone"."""
+        return (f"without {self.lost[0]}" if len(self.lost) == 1
+                else f"on {', '.join(self.model.references_)} alone")
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "kind": self.kind, "model": self.model.to_dict(),
