@@ -29,7 +29,7 @@ from pseudotwin.edge.replay import replay
 from pseudotwin.edge.service import Service
 from pseudotwin.errors import ArtifactError
 from pseudotwin.live.artifact import Artifact
-from pseudotwin.live.failover import Failover
+from pseudotwin.live.failover import Failover, ranked
 from pseudotwin.live.twin import Quality, Twin
 
 TZ = "Europe/Madrid"
@@ -385,7 +385,8 @@ def test_evaluate_cli_scores_the_failover_with_stale_after(
 # ------------------------------------------------------------------ through the daemon
 
 
-def write_config(folder: Path, port: int, artifact: Path) -> Path:
+def write_config(folder: Path, port: int, artifact: Path,
+                 references: tuple[str, ...] = (R1, R2)) -> Path:
     sensors = "".join(f"""
 [[sensors]]
 id = "{s}"
@@ -393,7 +394,7 @@ topic = "house/{s}"
 unit = "°C"
 min = -10
 max = 50
-""" for s in (R1, R2, TARGET))
+""" for s in (*references, TARGET))
     text = f"""
 [broker]
 host = "127.0.0.1"
@@ -408,7 +409,7 @@ stale_after_minutes = {STALE.total_seconds() / 60:g}
 {sensors}
 [[twins]]
 id = "desk"
-references = ["{R1}", "{R2}"]
+references = {json.dumps(list(references))}
 target = "{TARGET}"
 quantity = "temperature"
 artifact = "{artifact}"
@@ -422,17 +423,25 @@ def stamp_of(t: dt.datetime) -> str:
     return t.astimezone(dt.UTC).isoformat().replace("+00:00", "Z")
 
 
-def test_daemon_fails_over_on_a_silenced_reference_like_evaluate(
-    mosquitto, artifact: Artifact, history: pd.DataFrame, tmp_path: Path
+@pytest.mark.parametrize("case", ["one of two", "two of three"])
+def test_daemon_fails_over_on_silenced_references_like_evaluate(
+    mosquitto, case: str, request: pytest.FixtureRequest, tmp_path: Path
 ) -> None:
-    """R2 silenced from 10:00: the daemon publishes the failover with its σ and names R2,
-    and every estimate at a reading equals evaluate's (replay with the daemon's stale_after)."""
-    path = artifact.save(tmp_path / "desk.json")
-    cfg = load_config(write_config(tmp_path, mosquitto.port, path))
+    """R2 of two (or R1 and R2 of three) silenced from 10:00: the daemon publishes the
+    failover the twin picks, with its σ, names the silent references, and every estimate at
+    a reading equals evaluate's (replay with the daemon's stale_after)."""
+    art, history, silent = ((request.getfixturevalue("artifact"),
+                             request.getfixturevalue("history"), (R2,)) if case == "one of two"
+                            else (request.getfixturevalue("three"),
+                                  request.getfixturevalue("three_days"), (R1, R2)))
+    picked = next(iter(ranked(art.failovers, lambda s: s not in silent)))
+    assert picked.lost == silent  # with two of three silent, the failover on the third
+    path = art.save(tmp_path / "desk.json")
+    cfg = load_config(write_config(tmp_path, mosquitto.port, path, art.references))
     start, end = HOURS.at(TEST_DAY, 7.0), HOURS.at(TEST_DAY, 12.0)
     silent_from = HOURS.at(TEST_DAY, 10.0)
     day = history[(history["ts"] >= start) & (history["ts"] < end)]
-    day = day[~((day["sensor"] == R2) & (day["ts"] > silent_from))]
+    day = day[~(day["sensor"].isin(silent) & (day["ts"] > silent_from))]
     # The daemon's clock moves only with the replay, a reading at a time once the daemon
     # has taken the ones before (Lockstep): on a wall-time clock a grid tick could overtake
     # readings still on their way (a pause of the test process longer than stale_after at
@@ -458,17 +467,20 @@ def test_daemon_fails_over_on_a_silenced_reference_like_evaluate(
         svc.stop()
         viewer.close()
         monitor.close()
-    # <twin>/monitor says which reference the estimate does without, from the first tick
-    # at which R2's last reading is older than stale_after (not waiting for the next full
+    # <twin>/monitor says which references the estimate does without, from the first tick
+    # at which their last reading is older than stale_after (not waiting for the next full
     # hour of the monitor's cadence); before, nothing is lost
-    last_r2 = day.loc[day["sensor"] == R2, "ts"].max()
+    last_each = day.loc[day["sensor"].isin(silent)].groupby("sensor")["ts"].max()
+    last_silent = last_each.max()
+    assert (last_each == last_silent).all()  # silent together: one spell, losing them all
     first_lost = min(dt.datetime.fromisoformat(m["ts"]) for m in monitor.all() if m["failover"])
-    assert first_lost.minute != 0 and first_lost - last_r2 <= STALE + dt.timedelta(minutes=15)
+    assert (first_lost.minute != 0
+            and first_lost - last_silent <= STALE + dt.timedelta(minutes=15))
     for m in monitor.all():
         lost = m["failover"]
-        if dt.datetime.fromisoformat(m["ts"]) - last_r2 > STALE:
-            assert lost is not None and lost["lost"] == [R2], m["ts"]
-            assert dt.datetime.fromisoformat(lost["since"]) - last_r2 > STALE
+        if dt.datetime.fromisoformat(m["ts"]) - last_silent > STALE:
+            assert lost is not None and lost["lost"] == list(silent), m["ts"]
+            assert dt.datetime.fromisoformat(lost["since"]) - last_silent > STALE
         else:
             assert lost is None, m["ts"]
     live: dict[str, dict] = {}
@@ -485,8 +497,8 @@ def test_daemon_fails_over_on_a_silenced_reference_like_evaluate(
         # what produced the value and what it lost, as estimates.csv writes them
         assert e["model"] == row["source"] and e["lost"] == json.loads(row["lost"])
         if row["ts"] > silent_from + STALE:
-            assert e["quality"] == "fallback" and e["lost"] == [R2]
-            assert e["model"] == artifact.failover[R2].model.model_name
+            assert e["quality"] == "fallback" and e["lost"] == list(silent)
+            assert e["model"] == picked.model.model_name
             fallbacks += 1
         else:
             assert e["quality"] in ("ok", "uncertain") and e["lost"] == []
