@@ -7,7 +7,7 @@ Climate A with all three of its permanent sensors A1, A2, A3 as references), tra
 results.py does (same days, same models, validation picks the primary and the failovers),
 then replays the test days through the daemon's twin (analysis/replay.py, the daemon's
 ``stale_after``) three ways: with every reference (the full twin), and with the readings of
-one reference, or with three references of every two, removed from every test day (their
+one reference (with three references, also of each two) removed from every test day (their
 last values before the test days are then older than ``stale_after`` all day), once with the
 artifact's failovers and once without them (what older artifacts publish). Reports the mean
 daily NRMSE of the published estimate, its ratio to the full twin's (Issue 10: ≤ 1.2), the

@@ -285,7 +285,7 @@ FAILOVER_WITHIN = 1.2
 
 
 def _picked(a: Artifact, silent: str) -> Failover | None:
-    """The failover the live twin picks while ``silent`` alone is silent (None: stale)."""
+    """The failover the live twin picks while only ``silent`` is silent (None: stale)."""
     return next(iter(ranked(a.failovers, lambda s: s != silent)), None)
 
 
