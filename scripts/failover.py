@@ -40,7 +40,7 @@ from pseudotwin.analysis.training import train_twin
 from pseudotwin.history.convert import load
 from pseudotwin.live import metrics
 from pseudotwin.live.artifact import Artifact
-from pseudotwin.live.failover import ranked
+from pseudotwin.live.failover import picked
 from pseudotwin.models.registry import ALL_MODELS
 from tables import print_table
 
@@ -91,7 +91,7 @@ def run(spec: Any, models: tuple[str, ...], history: pd.DataFrame) -> list[dict[
         nrmse = _mean_nrmse(with_fo, art)
         # the one the twin picks while they are silent all day (live/failover.py); none when
         # the primary reads none of them (it answers itself)
-        fo = (next(iter(ranked(art.failovers, lambda s, lost=lost: s not in lost)), None)
+        fo = (picked(art.failovers, lost)
               if set(lost) & set(art.models[art.primary].references_) else None)
         out.append({
             "run": spec.name, "primary": art.primary,

@@ -29,7 +29,7 @@ from pseudotwin.edge.replay import replay
 from pseudotwin.edge.service import Service
 from pseudotwin.errors import ArtifactError
 from pseudotwin.live.artifact import Artifact
-from pseudotwin.live.failover import Failover, ranked
+from pseudotwin.live.failover import Failover, picked
 from pseudotwin.live.twin import Quality, Twin
 
 TZ = "Europe/Madrid"
@@ -434,8 +434,9 @@ def test_daemon_fails_over_on_silenced_references_like_evaluate(
                              request.getfixturevalue("history"), (R2,)) if case == "one of two"
                             else (request.getfixturevalue("three"),
                                   request.getfixturevalue("three_days"), (R1, R2)))
-    picked = next(iter(ranked(art.failovers, lambda s: s not in silent)))
-    assert picked.lost == silent  # with two of three silent, the failover on the third
+    chosen = picked(art.failovers, silent)
+    assert chosen is not None
+    assert chosen.lost == silent  # with two of three silent, the failover on the third
     path = art.save(tmp_path / "desk.json")
     cfg = load_config(write_config(tmp_path, mosquitto.port, path, art.references))
     start, end = HOURS.at(TEST_DAY, 7.0), HOURS.at(TEST_DAY, 12.0)
@@ -498,7 +499,7 @@ def test_daemon_fails_over_on_silenced_references_like_evaluate(
         assert e["model"] == row["source"] and e["lost"] == json.loads(row["lost"])
         if row["ts"] > silent_from + STALE:
             assert e["quality"] == "fallback" and e["lost"] == list(silent)
-            assert e["model"] == picked.model.model_name
+            assert e["model"] == chosen.model.model_name
             fallbacks += 1
         else:
             assert e["quality"] in ("ok", "uncertain") and e["lost"] == []

@@ -27,7 +27,7 @@ from pseudotwin.core.series import DayReadings
 from pseudotwin.core.spec import TwinSpec
 from pseudotwin.core.thinning import Thinning
 from pseudotwin.errors import DataError
-from pseudotwin.live.failover import Failover
+from pseudotwin.live.failover import Failover, label
 from pseudotwin.models.base import TrainingSet
 from pseudotwin.models.registry import build, model_class
 
@@ -79,8 +79,7 @@ def _best_without(
     """The best validated candidate of the twin without ``lost`` (None, logged, when none
     can be validated)."""
     others = replace(spec, references=tuple(r for r in spec.references if r not in lost))
-    name = (f"without {lost[0]}" if len(lost) == 1
-            else f"on {', '.join(others.references)} alone")
+    name = label(lost, others.references)
     usable = [k for k in kinds if not model_class(k).not_applicable(others)]
     try:
         # a setting left to validation (triv-smooth's span) is chosen for the reduced twin

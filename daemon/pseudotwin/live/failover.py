@@ -16,7 +16,7 @@ older artifacts have none of either and behave as before.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -61,8 +61,7 @@ class Failover:
     @property
     def label(self) -> str:
         """What it answers for, as ``train`` prints it: "without A1" or "on A3 alone"."""
-        return (f"without {self.lost[0]}" if len(self.lost) == 1
-                else f"on {', '.join(self.model.references_)} alone")
+        return label(self.lost, self.model.references_)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -91,6 +90,18 @@ class Failover:
         return cls(lost, kind, model,
                    SigmaCalibration.from_dict(calib) if calib is not None else None,
                    float(d["nrmse_pct"]), str(d.get("reason", "")))
+
+
+def label(lost: Sequence[str], reads: Sequence[str]) -> str:
+    """A failover doing without ``lost`` and reading ``reads``, as ``train`` names it:
+    "without A1" (one lost) or "on A3 alone" (all but one)."""
+    return f"without {lost[0]}" if len(lost) == 1 else f"on {', '.join(reads)} alone"
+
+
+def picked(failovers: Iterable[Failover], silent: Collection[str]) -> Failover | None:
+    """The failover the live twin answers with while ``silent`` are silent and every other
+    reference reports (None: the estimate is stale)."""
+    return next(iter(ranked(failovers, lambda s: s not in silent)), None)
 
 
 def ranked(failovers: Iterable[Failover], fresh: Callable[[str], bool]) -> list[Failover]:

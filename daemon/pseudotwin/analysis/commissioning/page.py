@@ -22,7 +22,7 @@ from pseudotwin.analysis.replay import REF_PREFIX
 from pseudotwin.live import metrics
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.calibration import Z2
-from pseudotwin.live.failover import Failover, ranked
+from pseudotwin.live.failover import picked
 from pseudotwin.live.metrics import COVER2_RANGE
 
 COVER2_AIM = 95.4  # % of truths a calibrated Gaussian ±2σ band holds
@@ -284,11 +284,6 @@ def selfaware_section(p: Page) -> str:
 FAILOVER_WITHIN = 1.2
 
 
-def _picked(a: Artifact, silent: str) -> Failover | None:
-    """The failover the live twin picks while only ``silent`` is silent (None: stale)."""
-    return next(iter(ranked(a.failovers, lambda s: s != silent)), None)
-
-
 def failover_section(a: Artifact) -> str:
     """What answers when references fall silent (live/failover.py): each failover, its
     held-out error against the primary's, and which reference the twin can least afford
@@ -318,9 +313,9 @@ def failover_section(a: Artifact) -> str:
                      num(f.nrmse_pct), num(ratio)))
         classes.append(Level.GOOD.value if ratio <= FAILOVER_WITHIN else Level.THIN.value)
     # each reference the primary reads, by what the twin would pick with it silent
-    picked = {r: _picked(a, r) for r in a.models[a.primary].references_}
-    bare = [r for r, f in picked.items() if f is None]
-    costly = sorted(((f.nrmse_pct / own, r) for r, f in picked.items() if f is not None),
+    picks = {r: picked(a.failovers, (r,)) for r in a.models[a.primary].references_}
+    bare = [r for r, f in picks.items() if f is None]
+    costly = sorted(((f.nrmse_pct / own, r) for r, f in picks.items() if f is not None),
                     reverse=True)
     if bare:
         level, text = Level.MISSING, (f"no failover could be validated without "
