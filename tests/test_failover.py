@@ -28,6 +28,8 @@ from pseudotwin.edge.outputs import estimate_payload
 from pseudotwin.edge.replay import replay
 from pseudotwin.edge.service import Service
 from pseudotwin.errors import ArtifactError
+from pseudotwin.history.backfill import backfill
+from pseudotwin.history.store import open_store
 from pseudotwin.live.artifact import Artifact
 from pseudotwin.live.failover import Failover, picked
 from pseudotwin.live.twin import Quality, Twin
@@ -505,6 +507,21 @@ def test_daemon_fails_over_on_silenced_references_like_evaluate(
             assert e["quality"] in ("ok", "uncertain") and e["lost"] == []
     assert fallbacks >= 10
     assert all(e["quality"] != "stale" for e in viewer.all())
+    # backfill of the same readings stores what the daemon published, what answered and
+    # what it lost included (the history store's source and lost)
+    with open_store(str(tmp_path / "history.db")) as store:
+        store.write_readings(day)
+        backfill(cfg, "desk", TEST_DAY, TEST_DAY, store, progress=False)
+        rows = store.read_estimates("desk", model=art.primary)
+    stored = {stamp_of(t): r for t, r in zip(rows["ts"], rows.itertuples(), strict=True)}
+    compared = 0
+    for ts in stamp.values():
+        e, r = live[ts], stored[ts]
+        assert (round(r.value, 6), round(r.std, 6), r.quality) == (e["value"], e["std"],
+                                                                   e["quality"])
+        assert r.source == e["model"] and json.loads(r.lost) == e["lost"]
+        compared += bool(e["lost"])
+    assert compared >= 10
 
 
 def test_an_estimate_at_an_earlier_instant_does_not_end_the_failover_spell(

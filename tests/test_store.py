@@ -257,6 +257,28 @@ def test_estimates_upsert_leaves_one_row_with_the_latest_value(store: Store) -> 
     assert list(got.columns) == list(store_mod.ESTIMATE_COLUMNS)
 
 
+def test_estimates_keep_what_answered_and_what_it_lost(store: Store) -> None:
+    """source and lost as the payload says them; a rewrite replaces them too; a row that
+    does not know them stores None."""
+    t = dt.datetime(2016, 3, 1, 8, 15, tzinfo=UTC)
+    store.write_estimates([
+        EstimateRow("desk", "estimate", t, 21.0, 0.2, "fallback", "h", "triv-cov", ("a", "b")),
+        EstimateRow("desk", "triv", t, 21.1, 0.2, "ok", "h", "triv", ()),
+        EstimateRow("desk", "varma", t, 21.2, 0.2, "ok", "h"),
+    ])
+    got = store.read_estimates("desk").set_index("model")
+    assert got.loc["estimate", "source"] == "triv-cov"
+    assert got.loc["estimate", "lost"] == '["a", "b"]'
+    assert (got.loc["triv", "source"], got.loc["triv", "lost"]) == ("triv", "[]")
+    assert got.loc["varma", "source"] is None and got.loc["varma", "lost"] is None
+    store.write_estimates([EstimateRow("desk", "estimate", t, 21.3, 0.2, "ok", "h",
+                                       "corrgp-triv", ())])
+    again = store.read_estimates("desk", model="estimate").iloc[0]
+    assert (again["source"], again["lost"]) == ("corrgp-triv", "[]")
+    with pytest.raises(TypeError, match="tuple of sensor ids"):
+        EstimateRow("desk", "estimate", t, 1.0, 0.1, "ok", "h", "triv", "a")  # type: ignore[arg-type]
+
+
 def test_one_key_twice_in_one_call_first_reading_and_last_estimate_win(store: Store) -> None:
     t = dt.datetime(2016, 3, 1, 8, 15, tzinfo=UTC)
     store.write_readings([Reading("a/temp", t, 1.0), Reading("a/temp", t, 2.0)])
@@ -317,8 +339,99 @@ def test_newer_schema_version_is_refused(backend: dict) -> None:
         with psycopg.connect(backend["url"], autocommit=True) as conn:
             conn.execute("UPDATE pseudotwin.meta SET value = %s WHERE name = 'schema_version'",
                          [str(SCHEMA_VERSION + 1)])
-    with pytest.raises(StoreError, match=r"schema version 2, newer .* supports \(1\)"):
+    with pytest.raises(StoreError, match=rf"schema version {SCHEMA_VERSION + 1}, newer .* "
+                       rf"supports \({SCHEMA_VERSION}\)"):
         open_store(backend["url"])
+
+
+# The estimates table and meta as pseudotwin wrote them at schema version 1, per backend's
+# SQL dialect, with one estimate: the database an upgrade finds.
+_V1_ESTIMATES = {
+    "sqlite": "CREATE TABLE estimates (twin TEXT NOT NULL, model TEXT NOT NULL, "
+              "ts INTEGER NOT NULL, value REAL, std REAL, quality TEXT NOT NULL, "
+              "artifact_hash TEXT NOT NULL, written_at INTEGER NOT NULL, "
+              "PRIMARY KEY (twin, model, ts)) WITHOUT ROWID",
+    "crate": "CREATE TABLE estimates (twin TEXT NOT NULL, model TEXT NOT NULL, "
+             "ts TIMESTAMP WITH TIME ZONE NOT NULL, value DOUBLE PRECISION, "
+             "std DOUBLE PRECISION, quality TEXT NOT NULL, artifact_hash TEXT NOT NULL, "
+             "written_at TIMESTAMP WITH TIME ZONE NOT NULL, "
+             "month TIMESTAMP WITH TIME ZONE GENERATED ALWAYS AS date_trunc('month', ts), "
+             "PRIMARY KEY (twin, model, ts, month)) PARTITIONED BY (month)",
+    "postgres": 'CREATE TABLE estimates (twin TEXT COLLATE "C" NOT NULL, '
+                'model TEXT COLLATE "C" NOT NULL, ts TIMESTAMPTZ NOT NULL, '
+                "value DOUBLE PRECISION, std DOUBLE PRECISION, quality TEXT NOT NULL, "
+                "artifact_hash TEXT NOT NULL, written_at TIMESTAMPTZ NOT NULL, "
+                "PRIMARY KEY (twin, model, ts))",
+}
+_V1_ROW = ("desk", "estimate", 1456819200000, 21.5, 0.2, "ok", "sha256:aa", 1456819200000)
+
+
+def _write_version_1(backend: dict) -> None:
+    kind = backend["kind"]
+    if kind == "sqlite":
+        with sqlite3.connect(backend["url"]) as conn:
+            conn.execute("CREATE TABLE meta (name TEXT PRIMARY KEY, value TEXT NOT NULL) "
+                         "WITHOUT ROWID")
+            conn.execute("INSERT INTO meta VALUES ('schema_version', '1')")
+            conn.execute(_V1_ESTIMATES["sqlite"])
+            conn.execute("INSERT INTO estimates VALUES (?, ?, ?, ?, ?, ?, ?, ?)", _V1_ROW)
+    elif kind == "postgres":
+        import psycopg
+
+        with psycopg.connect(backend["url"], autocommit=True) as conn:
+            conn.execute("CREATE SCHEMA pseudotwin; SET search_path TO pseudotwin")
+            conn.execute("CREATE TABLE meta (name TEXT PRIMARY KEY, value TEXT NOT NULL)")
+            conn.execute("INSERT INTO meta VALUES ('schema_version', '1')")
+            conn.execute(_V1_ESTIMATES["postgres"])
+            conn.execute("INSERT INTO estimates VALUES (%s, %s, to_timestamp(%s / 1000.0), %s, "
+                         "%s, %s, %s, to_timestamp(%s / 1000.0))", _V1_ROW)
+    else:  # through the crate client, as the store of version 1 sent it
+        from crate import client
+
+        servers = backend["url"].split("://", 1)[1].split("?")[0].split(",")
+        conn = client.connect([f"http://{h}" for h in servers],
+                              schema=backend.get("schema", store_mod.DEFAULT_CRATE_SCHEMA))
+        try:
+            cur = conn.cursor()
+            cur.execute("CREATE TABLE meta (name TEXT PRIMARY KEY, value TEXT NOT NULL)")
+            cur.execute("INSERT INTO meta (name, value) VALUES ('schema_version', '1')")
+            cur.execute(_V1_ESTIMATES["crate"])
+            cur.execute("INSERT INTO estimates (twin, model, ts, value, std, quality, "
+                        "artifact_hash, written_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                        list(_V1_ROW))
+            if kind == "crate-real":
+                cur.execute("REFRESH TABLE meta, estimates")
+        finally:
+            conn.close()
+
+
+def test_a_version_1_store_is_migrated_in_place_keeping_its_rows(
+        backend: dict, caplog: pytest.LogCaptureFixture) -> None:
+    """An upgrade opens a store of schema version 1: ``estimates`` gains source and lost (the
+    old row kept, with both not known), the version becomes 2, and the new columns take
+    what a failover answered; opening it again changes nothing."""
+    _write_version_1(backend)
+    t = dt.datetime(2016, 3, 1, 8, 15, tzinfo=UTC)
+    with caplog.at_level(logging.WARNING, logger="pseudotwin.history.store"), \
+            open_store(backend["url"]) as s:
+        assert s.schema_version == SCHEMA_VERSION == 2
+        old = s.read_estimates("desk")
+        assert len(old) == 1 and old["value"].iloc[0] == 21.5
+        assert old["source"].iloc[0] is None and old["lost"].iloc[0] is None
+        s.write_estimates([EstimateRow("desk", "estimate", t, 21.9, 0.3, "fallback", "h",
+                                       "triv", ("room/wall, left",))])
+    said = [r.getMessage() for r in caplog.records]
+    assert any("schema version 1 → 2 (added estimates.source, estimates.lost)" in m
+               for m in said), said
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="pseudotwin.history.store"), \
+            open_store(backend["url"]) as s:
+        assert s.schema_version == SCHEMA_VERSION
+        got = s.read_estimates("desk")
+    assert not caplog.records  # up to date: nothing migrated twice
+    assert got["value"].tolist() == [21.5, 21.9]
+    assert got["source"].tolist() == [None, "triv"]
+    assert got["lost"].tolist() == [None, '["room/wall, left"]']
 
 
 def test_closed_store_raises(store: Store) -> None:
@@ -448,8 +561,8 @@ def test_crate_writes_are_bulk_requests_with_on_conflict(fake: FakeCrateDB,
     (upsert,) = [r for r in fake.requests if r.stmt.startswith("INSERT INTO estimates")]
     assert "ON CONFLICT (twin, model, ts, month) DO UPDATE SET value = excluded.value" \
         in upsert.stmt
-    assert "written_at = excluded.written_at" in upsert.stmt
-    assert upsert.bulk_args is not None and len(upsert.bulk_args[0]) == 8
+    assert "lost = excluded.lost" in upsert.stmt
+    assert upsert.bulk_args is not None and len(upsert.bulk_args[0]) == 10
 
 
 def test_crate_refreshes_written_tables_before_reading(fake: FakeCrateDB) -> None:
@@ -576,3 +689,16 @@ def test_a_sqlite_store_held_by_another_writer_is_busy_not_broken(tmp_path: Path
         holder.execute("ROLLBACK")
         holder.close()
     open_store(url).close()  # free again
+
+
+def test_a_crate_migration_cut_short_is_finished(fake: FakeCrateDB) -> None:
+    """CrateDB has no transactions: a migration stopped after its first ALTER left the
+    version at 1 and one column added; the next open adds only the other."""
+    _write_version_1({"kind": "crate-fake", "url": fake.url})
+    fake.sql("ALTER TABLE estimates ADD COLUMN source TEXT")
+    with open_store(fake.url) as s:
+        assert s.schema_version == SCHEMA_VERSION
+        assert s.read_estimates("desk")["lost"].tolist() == [None]
+    alters = [st for st in fake.statements if st.startswith("ALTER")]
+    assert alters == ["ALTER TABLE estimates ADD COLUMN lost TEXT"]
+    assert fake.sql("SELECT value FROM meta") == [(str(SCHEMA_VERSION),)]

@@ -12,7 +12,6 @@ instant), and a day's score costs what a reading a minute costs."""
 from __future__ import annotations
 
 import datetime as dt
-import json
 from collections.abc import Sequence
 
 import numpy as np
@@ -20,6 +19,7 @@ import pandas as pd
 
 from pseudotwin.core.thinning import Thinning
 from pseudotwin.live.artifact import Artifact
+from pseudotwin.live.failover import NONE_LOST, lost_json
 from pseudotwin.live.twin import Twin
 
 REF_PREFIX = "ref:"
@@ -28,13 +28,6 @@ REF_PREFIX = "ref:"
 UNLIKE_SEP = "\x1f"
 ESTIMATE = "estimate"  # the rows of what the daemon publishes on <twin>/estimate
 COLUMNS = ["ts", "model", "value", "std", "truth", "quality", "slope", "source", "lost"]
-NONE_LOST = "[]"
-
-
-def lost_json(lost: Sequence[str]) -> str:
-    """The ``lost`` column: the silent references as the payload's JSON list (sensor ids may
-    hold any printable character, a comma or a space too)."""
-    return json.dumps(list(lost), ensure_ascii=False) if lost else NONE_LOST
 
 
 def replay_estimates(

@@ -119,12 +119,14 @@ class PostgresStore(Store):
     )
     UPSERT_ESTIMATE = (
         "INSERT INTO estimates (twin, model, ts, value, std, quality, artifact_hash, "
-        f"written_at) SELECT tw, m, {_tstz('t')}, v, sd, q, h, {_tstz('w')} "
-        "FROM unnest(?::text[], ?::text[], ?::bigint[], ?::float8[], ?::float8[], ?::text[], "
-        "?::text[], ?::bigint[]) AS u(tw, m, t, v, sd, q, h, w) "
+        f"written_at, source, lost) SELECT tw, m, {_tstz('t')}, v, sd, q, h, {_tstz('w')}, "
+        "src, l FROM unnest(?::text[], ?::text[], ?::bigint[], ?::float8[], ?::float8[], "
+        "?::text[], ?::text[], ?::bigint[], ?::text[], ?::text[]) "
+        "AS u(tw, m, t, v, sd, q, h, w, src, l) "
         "ON CONFLICT (twin, model, ts) DO UPDATE "
         "SET value = excluded.value, std = excluded.std, quality = excluded.quality, "
-        "artifact_hash = excluded.artifact_hash, written_at = excluded.written_at"
+        "artifact_hash = excluded.artifact_hash, written_at = excluded.written_at, "
+        "source = excluded.source, lost = excluded.lost"
     )
     UPSERT_PROGRESS = (
         f"INSERT INTO backfill_progress (twin, day, estimates, finished_at) "
@@ -139,7 +141,8 @@ class PostgresStore(Store):
         'CREATE TABLE IF NOT EXISTS estimates (twin TEXT COLLATE "C" NOT NULL, '
         'model TEXT COLLATE "C" NOT NULL, ts TIMESTAMPTZ NOT NULL, value DOUBLE PRECISION, '
         "std DOUBLE PRECISION, quality TEXT NOT NULL, artifact_hash TEXT NOT NULL, "
-        "written_at TIMESTAMPTZ NOT NULL, PRIMARY KEY (twin, model, ts))",
+        "written_at TIMESTAMPTZ NOT NULL, source TEXT, lost TEXT, "
+        "PRIMARY KEY (twin, model, ts))",
         'CREATE TABLE IF NOT EXISTS backfill_progress (twin TEXT COLLATE "C" NOT NULL, '
         "day TEXT NOT NULL, estimates INTEGER NOT NULL, finished_at TIMESTAMPTZ NOT NULL, "
         "PRIMARY KEY (twin, day))",
@@ -206,15 +209,24 @@ class PostgresStore(Store):
                 row = conn.execute("SELECT value FROM meta WHERE name = 'schema_version'"
                                    ).fetchone()
                 version = self._check_version(None if row is None else row[0])
+                added = self._added_since(version)
                 if version == 0:
                     self._create_tables(conn)
                     conn.execute("INSERT INTO meta (name, value) VALUES ('schema_version', "
                                  "%s) ON CONFLICT (name) DO NOTHING", [str(SCHEMA_VERSION)])
                 else:
                     self.hypertables = self._is_hypertable(conn, "readings")
+                    for table, column, kind in added:
+                        conn.execute(sql.SQL("ALTER TABLE {} ADD COLUMN IF NOT EXISTS {} {}")
+                                     .format(sql.Identifier(table), sql.Identifier(column),
+                                             sql.SQL(kind)))
+                    if version < SCHEMA_VERSION:
+                        conn.execute("UPDATE meta SET value = %s WHERE name = "
+                                     "'schema_version'", [str(SCHEMA_VERSION)])
         except psycopg.Error as exc:
             raise StoreError(f"{self.url}: cannot set up the history tables "
                              f"({_first_line(exc)})") from None
+        self._migrated(version, added)
         self.schema_version = SCHEMA_VERSION
         log.info("history store %s: %s", self.url,
                  "TimescaleDB hypertables" if self.hypertables else "plain tables")

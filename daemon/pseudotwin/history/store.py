@@ -34,14 +34,21 @@ Tables (schema version :data:`SCHEMA_VERSION`, kept in ``meta``):
 * ``readings (sensor, ts, value)``, key (sensor, ts). Readings are immutable: writing one
   whose key is stored already changes nothing (first write wins). Only the recorder and
   ``import`` write here; nothing updates or deletes.
-* ``estimates (twin, model, ts, value, std, quality, artifact_hash, written_at)``, key
-  (twin, model, ts): writing the same estimate again replaces the row (one row per key), so
-  backfills are idempotent.
+* ``estimates (twin, model, ts, value, std, quality, artifact_hash, written_at, source,
+  lost)``, key (twin, model, ts): writing the same estimate again replaces the row (one row
+  per key), so backfills are idempotent. ``source`` and ``lost`` say what answered, as the
+  daemon's payload does (its ``model`` and ``lost``): a failover's kind and the silent
+  references it did without, as a JSON list (``[]``: none). Rows written before schema
+  version 2 hold NULL there (read back as None): not known.
 * ``backfill_progress (twin, day, estimates, finished_at)``, key (twin, day): the days a
   backfill finished, so an interrupted backfill resumes where it stopped.
 
 Every timestamp is stored at millisecond resolution; finer parts are truncated (floor), so
 two readings of one sensor within the same millisecond are one reading.
+
+Opening a store of an older schema version brings it up to date in place (version 1 → 2:
+``estimates`` gains ``source`` and ``lost``, the rows kept as they are); one of a newer
+version is refused.
 """
 
 from __future__ import annotations
@@ -68,6 +75,7 @@ import pandas as pd
 from pseudotwin.config.validate import PATHLESS_SQLITE, is_memory_url
 from pseudotwin.core.series import COLUMNS, normalize
 from pseudotwin.errors import ConfigError, PseudotwinError
+from pseudotwin.live.failover import lost_json
 from pseudotwin.live.readings import Reading
 
 if TYPE_CHECKING:
@@ -85,8 +93,16 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: Version of the table layout. A database written by a newer pseudotwin is refused.
-SCHEMA_VERSION = 1
+#: Version of the table layout. A database written by a newer pseudotwin is refused; an
+#: older one is migrated when opened (:data:`MIGRATIONS`).
+SCHEMA_VERSION = 2
+
+#: The columns each version added to a table, with their SQL type (the same in every
+#: backend): opening a store of an older version adds those it lacks, in order, the rows
+#: kept (NULL there).
+MIGRATIONS: dict[int, tuple[tuple[str, str, str], ...]] = {
+    2: (("estimates", "source", "TEXT"), ("estimates", "lost", "TEXT")),
+}
 
 #: Rows per executemany call: bounds the memory of one bulk request (CrateDB sends the
 #: whole batch as one JSON body) while keeping the per-request overhead small.
@@ -108,7 +124,8 @@ ENV_CRATE_PASSWORD = "PSEUDOTWIN_CRATE_PASSWORD"
 DEFAULT_CRATE_SCHEMA = "pseudotwin"
 
 ESTIMATE_COLUMNS = (
-    "twin", "model", "ts", "value", "std", "quality", "artifact_hash", "written_at",
+    "twin", "model", "ts", "value", "std", "quality", "artifact_hash", "written_at", "source",
+    "lost",
 )
 
 _EPOCH = dt.datetime(1970, 1, 1, tzinfo=dt.UTC)
@@ -142,8 +159,11 @@ class EstimateRow:
 
     ts: timezone-aware instant the estimate is for. value, std: in the target's unit
     ([°C] or [ppm]); non-finite values are stored as NULL and read back as NaN.
-    quality: ok | stale | fallback | init. artifact_hash: identifies the trained artifact
-    that produced the estimate (so a backfill with a new artifact is traceable).
+    quality: ok | uncertain | fallback | stale. artifact_hash: identifies the trained
+    artifact that produced the estimate (so a backfill with a new artifact is traceable).
+    source: what produced the value, the payload's ``model`` (``triv`` on a fallback, the
+    failover's kind); lost: the silent references a failover did without (None for both:
+    not known, as in rows of schema version 1).
     """
 
     twin: str
@@ -153,10 +173,16 @@ class EstimateRow:
     std: float
     quality: str
     artifact_hash: str
+    source: str | None = None
+    lost: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.ts.tzinfo is None or self.ts.utcoffset() is None:
             raise ValueError("EstimateRow.ts must be timezone-aware")
+        if self.lost is not None and not (isinstance(self.lost, tuple)
+                                          and all(isinstance(s, str) for s in self.lost)):
+            raise TypeError(f"EstimateRow.lost must be a tuple of sensor ids, not "
+                            f"{self.lost!r}")
 
     @classmethod
     def from_estimate(cls, twin: str, kind: str, estimate: TwinEstimate,
@@ -164,7 +190,7 @@ class EstimateRow:
         """The row of one estimate of ``twin``'s model stream ``kind`` (the key: a fallback
         estimate's ``model`` is "triv", but it belongs to the stream it stood in for)."""
         return cls(twin, kind, estimate.ts, estimate.value, estimate.std, estimate.quality,
-                   artifact_hash)
+                   artifact_hash, estimate.model, estimate.lost)
 
 
 # ------------------------------------------------------------------------------ helpers
@@ -360,6 +386,20 @@ class Store(abc.ABC):
             )
         return version
 
+    def _added_since(self, version: int) -> list[tuple[str, str, str]]:
+        """(table, column, SQL type) of every column added after schema ``version``, in
+        order (none for a new database, whose tables are created whole)."""
+        if version == 0:
+            return []
+        return [c for v in range(version + 1, SCHEMA_VERSION + 1) for c in MIGRATIONS.get(v, ())]
+
+    def _migrated(self, version: int, added: Sequence[tuple[str, str, str]]) -> None:
+        if version and version < SCHEMA_VERSION:
+            cols = ", ".join(f"{t}.{c}" for t, c, _ in added) or "nothing to add"
+            log.warning("history store %s: schema version %d → %d (added %s); an older "
+                        "pseudotwin now refuses this database", self.url, version,
+                        SCHEMA_VERSION, cols)
+
     # --- readings ------------------------------------------------------------------
     def write_readings(self, readings: Iterable[Reading] | pd.DataFrame) -> int:
         """Store readings (Reading objects or a canonical frame); idempotent on (sensor, ts).
@@ -503,7 +543,8 @@ class Store(abc.ABC):
         def batches() -> Iterator[list[tuple]]:
             for batch in _chunks(rows, WRITE_CHUNK):
                 yield [(r.twin, r.model, to_ms(r.ts), _finite_or_none(r.value),
-                        _finite_or_none(r.std), r.quality, r.artifact_hash, now) for r in batch]
+                        _finite_or_none(r.std), r.quality, r.artifact_hash, now, r.source,
+                        None if r.lost is None else lost_json(r.lost)) for r in batch]
 
         with self._lock:
             self._check_open()
@@ -519,7 +560,8 @@ class Store(abc.ABC):
         """Estimates of ``twin`` (optionally one model) with start <= ts < end.
 
         Columns :data:`ESTIMATE_COLUMNS`; ts and written_at datetime64[ns, UTC]; value and
-        std float (NaN where not finite); sorted by ts, then model.
+        std float (NaN where not finite); source and lost str (lost a JSON list), None where
+        not known (rows of schema version 1); sorted by ts, then model.
         """
         where = "twin = ?"
         args: list[Any] = [twin]
@@ -545,6 +587,8 @@ class Store(abc.ABC):
             "quality": pd.Series(list(c["quality"]), dtype=object).astype(str),
             "artifact_hash": pd.Series(list(c["artifact_hash"]), dtype=object).astype(str),
             "written_at": _ms_to_index(list(c["written_at"])),
+            "source": pd.Series(list(c["source"]), dtype=object),
+            "lost": pd.Series(list(c["lost"]), dtype=object),
         })
 
     # --- backfill progress -----------------------------------------------------------
@@ -576,7 +620,7 @@ class SQLiteStore(Store):
         "CREATE INDEX IF NOT EXISTS readings_ts ON readings (ts)",
         "CREATE TABLE IF NOT EXISTS estimates (twin TEXT NOT NULL, model TEXT NOT NULL, "
         "ts INTEGER NOT NULL, value REAL, std REAL, quality TEXT NOT NULL, "
-        "artifact_hash TEXT NOT NULL, written_at INTEGER NOT NULL, "
+        "artifact_hash TEXT NOT NULL, written_at INTEGER NOT NULL, source TEXT, lost TEXT, "
         "PRIMARY KEY (twin, model, ts)) WITHOUT ROWID",
         "CREATE TABLE IF NOT EXISTS backfill_progress (twin TEXT NOT NULL, day TEXT NOT NULL, "
         "estimates INTEGER NOT NULL, finished_at INTEGER NOT NULL, "
@@ -585,9 +629,11 @@ class SQLiteStore(Store):
     INSERT_READING = "INSERT OR IGNORE INTO readings (sensor, ts, value) VALUES (?, ?, ?)"
     UPSERT_ESTIMATE = (
         "INSERT INTO estimates (twin, model, ts, value, std, quality, artifact_hash, "
-        "written_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?) ON CONFLICT (twin, model, ts) DO UPDATE "
+        "written_at, source, lost) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?) "
+        "ON CONFLICT (twin, model, ts) DO UPDATE "
         "SET value = excluded.value, std = excluded.std, quality = excluded.quality, "
-        "artifact_hash = excluded.artifact_hash, written_at = excluded.written_at"
+        "artifact_hash = excluded.artifact_hash, written_at = excluded.written_at, "
+        "source = excluded.source, lost = excluded.lost"
     )
     UPSERT_PROGRESS = (
         "INSERT INTO backfill_progress (twin, day, estimates, finished_at) VALUES (?, ?, ?, ?) "
@@ -641,15 +687,28 @@ class SQLiteStore(Store):
             version = self._check_version(None if row is None else row[0])
             self._conn.execute("BEGIN IMMEDIATE")
             try:
+                if version:  # another process may have migrated it since: read it again
+                    row = self._conn.execute(
+                        "SELECT value FROM meta WHERE name = 'schema_version'").fetchone()
+                    version = self._check_version(row[0])
                 for stmt in self.DDL:
                     self._conn.execute(stmt)
+                added = self._added_since(version)
+                for table, column, kind in added:
+                    have = {r[1] for r in self._conn.execute(f"PRAGMA table_info({table})")}
+                    if column not in have:
+                        self._conn.execute(f"ALTER TABLE {table} ADD COLUMN {column} {kind}")
                 if version == 0:
                     self._conn.execute("INSERT OR IGNORE INTO meta (name, value) VALUES "
                                        "('schema_version', ?)", (str(SCHEMA_VERSION),))
+                elif version < SCHEMA_VERSION:
+                    self._conn.execute("UPDATE meta SET value = ? WHERE name = "
+                                       "'schema_version'", (str(SCHEMA_VERSION),))
                 self._conn.execute("COMMIT")
             except BaseException:
                 self._conn.execute("ROLLBACK")
                 raise
+            self._migrated(version, added)
             self.schema_version = SCHEMA_VERSION
         except sqlite3.OperationalError as exc:
             if "locked" not in str(exc) and "busy" not in str(exc):
@@ -717,7 +776,7 @@ class CrateStore(Store):
         "CREATE TABLE IF NOT EXISTS estimates (twin TEXT NOT NULL, model TEXT NOT NULL, "
         "ts TIMESTAMP WITH TIME ZONE NOT NULL, value DOUBLE PRECISION, "
         "std DOUBLE PRECISION, quality TEXT NOT NULL, artifact_hash TEXT NOT NULL, "
-        "written_at TIMESTAMP WITH TIME ZONE NOT NULL, "
+        "written_at TIMESTAMP WITH TIME ZONE NOT NULL, source TEXT, lost TEXT, "
         "month TIMESTAMP WITH TIME ZONE GENERATED ALWAYS AS date_trunc('month', ts), "
         "PRIMARY KEY (twin, model, ts, month)) PARTITIONED BY (month)",
         "CREATE TABLE IF NOT EXISTS backfill_progress (twin TEXT NOT NULL, day TEXT NOT NULL, "
@@ -733,10 +792,11 @@ class CrateStore(Store):
     )
     UPSERT_ESTIMATE = (
         "INSERT INTO estimates (twin, model, ts, value, std, quality, artifact_hash, "
-        "written_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?) ON CONFLICT (twin, model, ts, month) "
+        "written_at, source, lost) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?) "
+        "ON CONFLICT (twin, model, ts, month) "
         "DO UPDATE SET value = excluded.value, std = excluded.std, "
         "quality = excluded.quality, artifact_hash = excluded.artifact_hash, "
-        "written_at = excluded.written_at"
+        "written_at = excluded.written_at, source = excluded.source, lost = excluded.lost"
     )
     UPSERT_PROGRESS = (
         "INSERT INTO backfill_progress (twin, day, estimates, finished_at) VALUES (?, ?, ?, ?) "
@@ -793,9 +853,21 @@ class CrateStore(Store):
         version = self._check_version(rows[0][0] if rows else None)
         for stmt in self.DDL:
             self._run(stmt)
+        # No transactions in CrateDB: a migration cut short (or one another process ran at
+        # the same time) has added some columns already, so each is looked for first.
+        added = self._added_since(version)
+        for table, column, kind in added:
+            try:
+                self._run(f"SELECT {column} FROM {table} LIMIT 1")
+            except StoreError:  # no such column
+                self._run(f"ALTER TABLE {table} ADD COLUMN {column} {kind}")
         if version == 0:
             self._run("INSERT INTO meta (name, value) VALUES (?, ?) ON CONFLICT (name) "
                       "DO NOTHING", ["schema_version", str(SCHEMA_VERSION)])
+        elif version < SCHEMA_VERSION:
+            self._run("UPDATE meta SET value = ? WHERE name = ?",
+                      [str(SCHEMA_VERSION), "schema_version"])
+        self._migrated(version, added)
         self.schema_version = SCHEMA_VERSION
 
     def _query(self, sql: str, args: Sequence[Any] = ()) -> list[Sequence[Any]]:

@@ -16,6 +16,7 @@ older artifacts have none of either and behave as before.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -25,6 +26,15 @@ from pseudotwin.errors import ArtifactError
 from pseudotwin.live.calibration import SigmaCalibration
 from pseudotwin.models.base import TwinModel
 from pseudotwin.models.registry import MODELS
+
+#: ``lost`` written down when nothing is lost (estimates.csv, the history store).
+NONE_LOST = "[]"
+
+
+def lost_json(lost: Sequence[str]) -> str:
+    """The silent references as the payload's JSON list, as estimates.csv and the history
+    store write them (sensor ids may hold any printable character, a comma or a space too)."""
+    return json.dumps(list(lost), ensure_ascii=False) if lost else NONE_LOST
 
 
 @dataclass(frozen=True)
