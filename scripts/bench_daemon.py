@@ -28,8 +28,11 @@ and, last, one JSON line.
 py-spy's raw stacks in FILE and prints, for each busy thread, the functions its CPU went to
 (inclusive, in ms per reading: the thread's share of samples in the function × the thread's
 measured CPU). Sampling costs the daemon a little CPU: compare figures of runs without it.
+``--no-journal-fsync`` runs the daemon with ``journal_fsync = false`` (readings acknowledged
+once their journal lines are in the kernel, not on disk): the cost of the default's fsync.
 Usage: .venv/bin/python scripts/bench_daemon.py [--twins 100] [--hours 2] [--speed 60]
        [--baselines grid|reading|none] [--artifact FILE] [--profile FILE]
+       [--no-journal-fsync]
 """
 
 from __future__ import annotations
@@ -179,6 +182,8 @@ def main() -> int:
     ap.add_argument("--profile", type=Path, default=None, metavar="FILE",
                     help="sample the daemon with py-spy while the readings go in, keep the "
                          "raw stacks in FILE and print where each thread's CPU went")
+    ap.add_argument("--no-journal-fsync", dest="journal_fsync", action="store_false",
+                    help="the daemon's [service] journal_fsync = false")
     a = ap.parse_args()
     exit_on_signals()
     hours = OperatingHours(timezone=TZ)
@@ -214,7 +219,8 @@ def main() -> int:
             f'[broker]\nhost = "127.0.0.1"\nport = {port}\nclient_id = "bench"\n\n'
             f'[service]\nbase_topic = "pt"\ntimezone = "{TZ}"\nstate_dir = "state"\n'
             f"stale_after_minutes = 30\nlog_level = \"WARNING\"\n"
-            f"baselines = \"{a.baselines}\"\n\n"
+            f"baselines = \"{a.baselines}\"\n"
+            f"journal_fsync = {str(a.journal_fsync).lower()}\n\n"
             f"[metrics]\nport = {metrics_port}\n\n"
             + "\n".join(sensors) + "\n" + "\n".join(twins))
         broker = start_broker(tmp, port, "max_queued_messages 100000\n")
@@ -354,7 +360,7 @@ def main() -> int:
                                 ).reshape(-1, 3)
         fig = {
             "twins": a.twins, "speed": a.speed, "day_hours": a.hours,
-            "baselines": a.baselines,
+            "baselines": a.baselines, "journal_fsync": a.journal_fsync,
             "readings_published": published, "estimates_matched": len(lat),
             "estimates_expected": in_hours,
             "latency_median_ms": round(float(np.median(ms)), 2),
@@ -386,7 +392,7 @@ def main() -> int:
         }
         print(f"{a.twins} twins, 5-min COV readings at {a.speed:g}×, {a.hours:g} h of day time "
               f"({published} readings in {wall:.0f} s, {fig['readings_per_s']}/s), "
-              f"baselines {a.baselines!r}")
+              f"baselines {a.baselines!r}, journal_fsync {str(a.journal_fsync).lower()}")
         print(f"  reading → estimate latency: median {fig['latency_median_ms']} ms, "
               f"p99 {fig['latency_p99_ms']} ms, max {fig['latency_max_ms']} ms "
               f"({len(lat)} of {in_hours} estimates matched)")

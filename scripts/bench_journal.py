@@ -5,8 +5,9 @@ under the daemon is rebuilt from the open files).
 
 Appends N readings of 100 sensors within one UTC day in batches of 64 (as the worker does),
 then deletes the folder and appends once more (the rebuild), and prints a table and, last,
-one JSON line.
-Usage: .venv/bin/python scripts/bench_journal.py [--readings 1000000]
+one JSON line. ``--fsync`` makes the journal durable and syncs it after every batch, as the
+daemon does with ``journal_fsync`` (the default) before it acknowledges the batch.
+Usage: .venv/bin/python scripts/bench_journal.py [--readings 1000000] [--fsync]
 """
 
 from __future__ import annotations
@@ -37,18 +38,22 @@ def rss_mb() -> float:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--readings", type=int, default=1_000_000)
-    n = ap.parse_args().readings
+    ap.add_argument("--fsync", action="store_true",
+                    help="sync the journal to disk after every batch (journal_fsync)")
+    args = ap.parse_args()
+    n = args.readings
     day = dt.datetime(2024, 5, 13, tzinfo=dt.UTC)
     step = dt.timedelta(seconds=86_000 / n)
     folder = Path(tempfile.mkdtemp(prefix="bench-journal-"))
     try:
-        journal = Journal(folder / "journal")
+        journal = Journal(folder / "journal", durable=args.fsync)
         before = rss_mb()
         t0 = time.perf_counter()
         for start in range(0, n, BATCH):
             journal.append_many([Reading(f"floor{i % SENSORS}/room/temp", day + i * step,
                                          21.0 + (i % 37) / 10)
                                  for i in range(start, min(start + BATCH, n))])
+            journal.sync()  # nothing to do unless durable
         took = time.perf_counter() - t0
         grown = rss_mb() - before
         size = sum(p.stat().st_size for p in (folder / "journal").iterdir()) / 1e6
@@ -60,13 +65,15 @@ def main() -> None:
         back = sum(1 for _ in Journal(folder / "journal").replay(day))
     finally:
         shutil.rmtree(folder, ignore_errors=True)
-    out = {"readings": n, "seconds": round(took, 2), "readings_per_s": round(n / took),
+    out = {"readings": n, "fsync": args.fsync, "seconds": round(took, 2),
+           "readings_per_s": round(n / took),
            "file_mb": round(size, 1), "rss_growth_mb": round(grown, 1),
            "rebuild_s": round(rebuild, 3), "replayed_after_rebuild": back}
-    print("| readings | write s | readings/s | file MB | RSS growth MB | rebuild s | "
-          "replayed after rebuild |")
-    print("|---:|---:|---:|---:|---:|---:|---:|")
-    print(f"| {n} | {out['seconds']} | {out['readings_per_s']} | {out['file_mb']} | "
+    print("| readings | fsync per batch | write s | readings/s | file MB | RSS growth MB | "
+          "rebuild s | replayed after rebuild |")
+    print("|---:|---|---:|---:|---:|---:|---:|---:|")
+    print(f"| {n} | {'yes' if args.fsync else 'no'} | {out['seconds']} | "
+          f"{out['readings_per_s']} | {out['file_mb']} | "
           f"{out['rss_growth_mb']} | {out['rebuild_s']} | {back} |")
     print(json.dumps({"bench_journal": out}))
 

@@ -62,7 +62,8 @@ def day_readings(df: pd.DataFrame, day: dt.date = DAY, sensors=(REF,)) -> pd.Dat
 
 def write_config(folder: Path, port: int, artifact: Path, *, target: bool = True,
                  keepalive: int = 30, **service: object) -> Path:
-    extra = "".join(f"{k} = {v!r}\n".replace("'", '"') for k, v in service.items())
+    extra = "".join(f"{k} = {str(v).lower()}\n" if isinstance(v, bool)
+                    else f"{k} = {v!r}\n".replace("'", '"') for k, v in service.items())
     text = f"""
 [broker]
 host = "127.0.0.1"

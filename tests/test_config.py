@@ -168,6 +168,7 @@ def test_base_doc_is_valid_and_defaults_apply(tmp_path: Path) -> None:
     assert (cfg.publish_every_minutes, cfg.stale_after_minutes, cfg.max_skew_seconds) == (
         15, 30, 300)
     assert (cfg.queue_size, cfg.log_level) == (10000, "INFO")
+    assert cfg.journal_fsync is True  # on disk before the broker lets a reading go
     assert cfg.hours == OperatingHours(8.0, 19.0, 30.0, 15.0, "Europe/Berlin")
     assert list(cfg.sensors) == ["r/hmi/temp", "r/ceiling/temp", "r/desk/temp", "r/ceiling/co2"]
     hmi = cfg.sensors["r/hmi/temp"]
@@ -306,6 +307,8 @@ BAD: list[tuple[str, Mutation, str, str]] = [
      "negative"),
     ("queue-zero", set_("service", "queue_size", 0), "service.queue_size", "at least 1"),
     ("queue-float", set_("service", "queue_size", 1.5), "service.queue_size", "integer"),
+    ("fsync-string", set_("service", "journal_fsync", "no"), "service.journal_fsync",
+     "expected a boolean"),
     ("log-level", set_("service", "log_level", "VERBOSE"), "service.log_level", "one of"),
     ("baselines-cadence", set_("service", "baselines", "sometimes"), "service.baselines",
      "one of grid, reading"),

@@ -133,6 +133,52 @@ def test_journal_failure_degrades_and_recovers_by_itself_without_losing_a_readin
     status.close()
 
 
+@pytest.mark.parametrize("durable", [True, False], ids=["journal_fsync", "no fsync"])
+def test_a_reading_is_acknowledged_only_once_its_journal_line_is_on_disk(
+    service_factory, mosquitto, monkeypatch: pytest.MonkeyPatch, durable: bool,
+    tmp_path: Path
+) -> None:
+    """With journal_fsync (the default), whenever the daemon acknowledges a reading nothing
+    it journaled is only in the kernel's cache: the fsync came first, so a power cut loses
+    no reading the broker let go. Switched off, readings are acknowledged with their lines
+    still in the kernel's cache. (os.fsync and the client's ack are watched, both doing
+    their real work.)"""
+    synced: dict[int, int] = {}  # inode → the file's size at its latest fsync
+    real_fsync = os.fsync
+
+    def fsync(fd: int) -> None:
+        real_fsync(fd)
+        st = os.fstat(fd)
+        synced[st.st_ino] = st.st_size
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    svc = service_factory(**({} if durable else {"journal_fsync": False}))
+    jdir = tmp_path / "state" / "journal"
+    unsynced_at_ack: list[int] = []
+    real_ack = svc.client.ack
+
+    def ack(mid: int, qos: int) -> object:
+        # the readings' acks (the worker's), not the fleet claims' (the network thread's)
+        if not threading.current_thread().name.startswith("paho-mqtt-client-"):
+            files = [p.stat() for p in jdir.glob("*.jsonl")]
+            unsynced_at_ack.append(sum(st.st_size - synced.get(st.st_ino, 0)
+                                       for st in files))
+        return real_ack(mid, qos)
+
+    monkeypatch.setattr(svc.client, "ack", ack)
+    readings = morning()
+    send(mosquitto.port, readings, f"rel-fsync-{durable}")
+    wait_for(lambda: len(unsynced_at_ack) >= len(readings),
+             what=lambda: f"{len(unsynced_at_ack)} acknowledged")
+    assert journal_lines(tmp_path) == len(readings)
+    journal_files = {p.stat().st_ino for p in jdir.glob("*.jsonl")}
+    if durable:
+        assert unsynced_at_ack == [0] * len(unsynced_at_ack)
+        assert journal_files <= set(synced)
+    else:
+        assert max(unsynced_at_ack) > 0  # acknowledged from the kernel's cache
+
+
 # -- 4. invalid UTF-8 in a journal ---------------------------------------------------------
 def test_invalid_utf8_in_the_journal_is_skipped_and_the_daemon_starts(
     service_factory, tmp_path: Path, caplog

@@ -47,6 +47,20 @@ def test_a_held_burst_wakes_once_per_hold_interval_and_once_at_the_end() -> None
     assert woken < 201
 
 
+def test_flush_wakes_for_what_the_hold_deferred_and_the_hold_goes_on() -> None:
+    r, waker, coalescer = _coalesced()
+    with coalescer.held():
+        coalescer.flush()  # nothing deferred yet: no wake-up
+        assert _drain(r) == 0
+        waker.send(b"0")  # an estimate: deferred
+        assert _drain(r) == 0
+        coalescer.flush()  # before the worker blocks on the disk: out now
+        assert _drain(r) == 1
+        waker.send(b"0")  # the acks after: held again, to the end of the block
+        assert _drain(r) == 0
+    assert _drain(r) == 1
+
+
 def test_other_threads_wake_at_once_while_one_holds() -> None:
     r, waker, coalescer = _coalesced()
     with coalescer.held():

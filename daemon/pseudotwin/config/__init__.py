@@ -16,7 +16,8 @@ TOML layout (see ``config/example.toml`` for a commented example)::
                  client_id, keepalive
     [service]    timezone, state_dir, base_topic, day_start, day_end, init_minutes,
                  slot_minutes, publish_every_minutes, stale_after_minutes, max_skew_seconds,
-                 log_level, queue_size, baselines, monitor_every_minutes
+                 log_level, queue_size, baselines, monitor_every_minutes, journal_fsync,
+                 store
     [[sensors]]  id, topic, format, ts_key, value_key, unit, min, max
     [[twins]]    id, quantity, references, target, artifact
     [metrics]    host, port, record_port (optional: Prometheus endpoints)

@@ -68,7 +68,7 @@ class Loader:
     SERVICE_KEYS = ("timezone", "state_dir", "base_topic", "day_start", "day_end",
                     "init_minutes", "slot_minutes", "publish_every_minutes",
                     "stale_after_minutes", "max_skew_seconds", "log_level", "queue_size",
-                    "store", "baselines", "monitor_every_minutes")
+                    "store", "baselines", "monitor_every_minutes", "journal_fsync")
     SENSOR_KEYS = ("id", "topic", "format", "ts_key", "value_key", "unit", "min", "max",
                    "min_interval_seconds")
     SENSOR_REQUIRED = ("id", "topic", "unit", "min", "max")
@@ -79,7 +79,7 @@ class Loader:
 
     SERVICE_SCALARS = ("base_topic", "publish_every_minutes", "stale_after_minutes",
                        "max_skew_seconds", "queue_size", "log_level", "baselines",
-                       "monitor_every_minutes")
+                       "monitor_every_minutes", "journal_fsync")
     HOURS_KEYS = ("day_start", "day_end", "init_minutes", "slot_minutes", "timezone")
 
     def __init__(self, base_dir: Path, *, artifact_check: ArtifactCheck | None = None,

@@ -435,6 +435,7 @@ def service_scalar_problems(
     log_level: object,
     baselines: object = "grid",
     monitor_every_minutes: object = 60,
+    journal_fsync: object = True,
 ) -> Found:
     found: Found = []
     if expect(found, "base_topic", base_topic, "string"):
@@ -479,6 +480,7 @@ def service_scalar_problems(
         assert isinstance(monitor_every_minutes, int | float)
         if monitor_every_minutes <= 0:
             found.append(("monitor_every_minutes", "must be positive"))
+    expect(found, "journal_fsync", journal_fsync, "boolean")
     return found
 
 
@@ -580,6 +582,10 @@ class ServiceConfig:
         local midnight [min] (every grid instant when it is not longer than
         publish_every_minutes), and at the next one when the estimate's uncertain or
         failover state changes.
+    journal_fsync: readings are acknowledged only once their journal lines are on disk
+        (fsync, once per batch of readings), so a power cut loses none the broker let go;
+        false acknowledges once the lines are in the kernel (a killed daemon still loses
+        nothing; a power cut may lose the last seconds), for slow flash storage.
     """
 
     broker: BrokerConfig
@@ -597,6 +603,7 @@ class ServiceConfig:
     # Hourly: the monitor's day figures move slowly, and at 1,000 twins one monitor per
     # twin and grid step was a sixth of the daemon's messages (scripts/bench_daemon.py).
     monitor_every_minutes: float = 60
+    journal_fsync: bool = True
     store: str | None = None  # history DB: SQLite path, postgresql:// or crate:// URL
     metrics: MetricsConfig = MetricsConfig()  # [metrics]: Prometheus endpoints
     homeassistant: HomeAssistantConfig = HomeAssistantConfig()  # [homeassistant]
@@ -613,6 +620,7 @@ class ServiceConfig:
             log_level=self.log_level,
             baselines=self.baselines,
             monitor_every_minutes=self.monitor_every_minutes,
+            journal_fsync=self.journal_fsync,
         )
         if not isinstance(self.broker, BrokerConfig):
             found.append(("broker", "expected a BrokerConfig"))

@@ -30,10 +30,12 @@ def decode(line: bytes) -> Reading:
         raise ValueError(f"not a reading line ({exc})") from None
 
 
-def append(path: Path, readings: Iterable[Reading]) -> list[bytes]:
+def append(path: Path, readings: Iterable[Reading], sync: bool = False) -> list[bytes]:
     """Append one line per reading to the file at ``path`` (created if need be) and return
     the lines. A last line cut short by a crash or a full disk is ended first: the next
-    reading is never glued onto it and lost with it. OSError when the write falls short."""
+    reading is never glued onto it and lost with it. OSError when the write falls short.
+    sync: on disk (fsync) before returning, a new file's directory entry too."""
+    created = sync and not path.exists()
     lines = encode(readings)
     block = b"".join(lines)
     with open(path, "a+b") as fh:
@@ -41,7 +43,22 @@ def append(path: Path, readings: Iterable[Reading]) -> list[bytes]:
             block = b"\n" + block
         if fh.write(block) != len(block):
             raise OSError(errno.ENOSPC, f"short write to {path}")
+        if sync:
+            fh.flush()
+            os.fsync(fh.fileno())
+    if created:
+        sync_folder(path.parent)
     return lines
+
+
+def sync_folder(folder: Path) -> None:
+    """fsync a folder: a file created in it survives a power cut only once its directory
+    entry is on disk too."""
+    fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def torn(fh: BinaryIO) -> bool:

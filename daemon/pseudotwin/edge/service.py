@@ -17,6 +17,7 @@ duplicates by the twins.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import json
 import logging
@@ -27,6 +28,7 @@ import socket
 import threading
 import time
 from collections import Counter, defaultdict, deque
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from operator import attrgetter
 from pathlib import Path
@@ -234,7 +236,7 @@ class Service:
         self.queue: queue.Queue[tuple[Any, ...]] = queue.Queue(maxsize=cfg.queue_size)
         self.stop_event = threading.Event()
         self.connected = threading.Event()
-        self.journal = Journal(Path(cfg.state_dir) / "journal")
+        self.journal = Journal(Path(cfg.state_dir) / "journal", durable=cfg.journal_fsync)
         self.state_lock = StateLock(Path(cfg.state_dir) / "daemon.lock", "daemon")
         self.rejections = RejectionCounter(log, LOG_REJECTIONS_PER_KEY)
         self.health = Health(self._set_status, cfg.queue_size)
@@ -257,6 +259,10 @@ class Service:
         self._journal_retry_at = 0.0
         self._journal_s = 0.0  # the current batch's journal writes [s] (_log_long_batch)
         self._journal_recreated = 0
+        # Acknowledgements of journaled readings waiting for the journal's sync (a durable
+        # journal: sent once the batch's lines are on disk); None: each goes out at once.
+        self._unsynced_acks: list[tuple[int, int, int]] | None = None
+        self._sync_failing = False  # the last sync failed (logged once per spell)
         # Grid work of the current tick(s) not done yet: the twins in the order to do them,
         # and per twin its pending (instant, health snapshot; None: no monitor then).
         self._tick_work: deque[TwinRuntime] = deque()
@@ -450,6 +456,9 @@ class Service:
                     return
 
     def _ack(self, token: tuple[int, int, int]) -> None:
+        if self._unsynced_acks is not None:
+            self._unsynced_acks.append(token)
+            return
         gen, mid, qos = token
         # A mid from an earlier connection may name another message now: the broker
         # redelivers the old one anyway, and the twins drop it as a duplicate. The lock keeps
@@ -702,12 +711,13 @@ class Service:
         # (QoS 0 readings are never redelivered: they stay.)
         self._held = [(r, tok) for r, tok in self._held if tok[0] == self._gen or tok[2] == 0]
         try:
-            while self._held:
-                r, token = self._held[0]
-                self.journal.append(r)
-                self._held.pop(0)
-                self._accept(r, token)
-                done += 1
+            with self._acks_after_sync():
+                while self._held:
+                    r, token = self._held[0]
+                    self.journal.append(r)
+                    self._held.pop(0)
+                    self._accept(r, token)
+                    done += 1
         except OSError as exc:
             self.health.journal_failed(exc, len(self._held))
             self._journal_retry_at = time.monotonic() + JOURNAL_RETRY_SECONDS
@@ -793,16 +803,52 @@ class Service:
             self._journal_recreated = self.journal.recreated
             self.health.journal_rebuilt(self.journal.recreated)
             self.state_lock.renew()  # the state dir went with its lock file
-        for r, token, t0, arrived in good:
-            published = self.published
+        with self._acks_after_sync():
+            for r, token, t0, arrived in good:
+                published = self.published
+                try:
+                    self._accept(r, token)
+                except Exception:  # noqa: BLE001 — acked by _accept; the batch goes on
+                    log.exception("unexpected error while applying a reading of %s", r.sensor)
+                if self.published > published:  # the reading moved a twin: estimates are out
+                    t1 = time.perf_counter()
+                    self.metrics.latency.observe(t1 - t0)
+                    self.metrics.reading_latency.observe(t1 - arrived)
+
+    @contextlib.contextmanager
+    def _acks_after_sync(self) -> Iterator[None]:
+        """Hold back the acknowledgements of the readings applied inside, then put the
+        journal on disk (a durable journal: one fsync for them all) and send them.
+        The estimates go out before the sync, so it adds nothing to their latency; a
+        power cut before it loses readings the broker has not let go of (not yet
+        acknowledged), which it delivers again. A failed sync (the disk failing) is
+        logged and the readings acknowledged all the same: they are in the kernel, as
+        without journal_fsync, and holding them would stop the broker's deliveries."""
+        if not self.journal.durable:
+            yield
+            return
+        self._unsynced_acks = []
+        try:
+            yield
+        finally:
+            acks, self._unsynced_acks = self._unsynced_acks, None
+            self.wakeups.flush()  # the estimates go out while the worker waits for the disk
+            t0 = time.perf_counter()
             try:
-                self._accept(r, token)
-            except Exception:  # noqa: BLE001 — acked by _accept; the batch goes on
-                log.exception("unexpected error while applying a reading of %s", r.sensor)
-            if self.published > published:  # the reading moved a twin: its estimates are out
-                t1 = time.perf_counter()
-                self.metrics.latency.observe(t1 - t0)
-                self.metrics.reading_latency.observe(t1 - arrived)
+                self.journal.sync()
+                if self._sync_failing:
+                    self._sync_failing = False
+                    log.warning("journal: syncing to disk works again (%s)", self.journal.folder)
+            except OSError as exc:
+                if not self._sync_failing:
+                    self._sync_failing = True
+                    log.error("journal: syncing %s to disk failed (%s); readings are "
+                              "acknowledged from the kernel's cache, so a power cut may lose "
+                              "the latest; check the disk", self.journal.folder, exc)
+            finally:
+                self._journal_s += time.perf_counter() - t0
+            for token in acks:
+                self._ack(token)
 
     def _parse(self, sensor: SensorConfig | None, topic: str, payload: bytes,
                arrival: dt.datetime, token: tuple[int, int, int], *, backlog: int,

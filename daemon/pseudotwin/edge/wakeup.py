@@ -93,6 +93,16 @@ class WakeCoalescer:
         self.client._sockpairW = self._waker  # type: ignore[assignment]  # noqa: SLF001
         return True
 
+    def flush(self) -> None:
+        """Wake the network thread now for the packets this thread's hold has deferred (the
+        estimates of a batch, before the worker blocks on the journal's fsync); the hold
+        goes on for the packets after."""
+        h = self._hold
+        if h.since is not None:
+            h.since = None
+            if self._waker is not None:
+                self._waker.wake()
+
     @contextmanager
     def held(self) -> Iterator[None]:
         """Packets queued by this thread inside wake the network thread once, at the end

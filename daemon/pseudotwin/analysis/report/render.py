@@ -318,6 +318,11 @@ PERFORMANCE = (
      "One UTC day of 1,000,000 readings of 100 sensors appended as the daemon's worker does "
      "(batches of 64): write rate, file size, the resident memory the journal adds, and the "
      "rebuild of a journal deleted under it, from its open files."),
+    ("bench_journal_fsync.txt", ".venv/bin/python scripts/bench_journal.py --fsync",
+     "The journal synced to disk after every batch",
+     "The same day with an fsync after every batch of 64, as the daemon does before it "
+     "acknowledges them with journal_fsync (the default): what a power cut that loses no "
+     "reading costs on this machine's disk."),
     ("bench_claims.txt", ".venv/bin/python scripts/bench_claims.py",
      "Twin claims in a fleet",
      "A daemon's claim of 1,000 to 100,000 twins (edge/ownership.py): its size and parts of "
