@@ -113,7 +113,7 @@ def run_backfill(tmp: Path, name: str, base: Path, twins: list[str], first: dt.d
 
 def same_rows(a: str, b: str) -> bool:
     """Every estimate column but written_at equal, row for row."""
-    cols = "twin, model, ts, value, std, quality, artifact_hash"
+    cols = "twin, model, ts, value, std, quality, artifact_hash, source, lost"
     with sqlite3.connect(a) as con:
         con.execute("ATTACH DATABASE ? AS other", (b,))
         diff = con.execute(f"SELECT count(*) FROM (SELECT {cols} FROM estimates EXCEPT "

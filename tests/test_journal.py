@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
+import os
 import resource
 import shutil
 import signal
@@ -121,3 +122,43 @@ def test_after_a_restart_yesterdays_file_is_rebuilt_too(tmp_path: Path) -> None:
     j.append(r(2, 4.0, 20))
     j.close()
     assert [x.value for x in Journal(folder).replay(r(0, 0, 19).ts)] == [1.0, 2.0, 3.0, 4.0]
+
+
+@pytest.mark.parametrize("durable", [True, False])
+def test_a_durable_journal_puts_lines_and_new_files_on_disk(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, durable: bool
+) -> None:
+    """durable: sync() fsyncs what was appended since the last sync, once; a new day's file
+    has its folder (and the folder's parent) synced; an earlier day's straggler is synced at
+    once. Not durable: nothing is ever synced by append or sync (os.fsync watched, doing its
+    real work)."""
+    synced: list[tuple[int, int]] = []  # (inode, size) at each fsync
+    real = os.fsync
+
+    def fsync(fd: int) -> None:
+        real(fd)
+        st = os.fstat(fd)
+        synced.append((st.st_ino, st.st_size))
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    folder = tmp_path / "state" / "journal"
+    j = Journal(folder, durable=durable)
+    j.append_many([r(8, 1.0), r(9, 2.0)])
+    today = folder / "2012-03-20.jsonl"
+    inode = {p: p.stat().st_ino for p in (today, folder, folder.parent)}
+    if not durable:
+        assert not j.sync() and synced == []
+        j.append(r(0, 3.0, 19))  # a straggler of the day before
+        assert synced == []
+        return
+    # the new file's directory entries first, then the lines at sync()
+    assert {inode[folder], inode[folder.parent]} <= {ino for ino, _ in synced}
+    assert (inode[today], today.stat().st_size) not in synced
+    assert j.sync() and synced[-1] == (inode[today], today.stat().st_size)
+    assert not j.sync()  # nothing new: no second fsync
+    n = len(synced)
+    j.append(r(0, 3.0, 19))  # a straggler of the day before: its own file, synced at once
+    before = folder / "2012-03-19.jsonl"
+    assert (before.stat().st_ino, before.stat().st_size) in synced[n:]
+    assert not j.sync()  # today's file was not written
+    j.close()

@@ -7,6 +7,7 @@ Every scenario runs against the real Mosquitto of conftest.py; the ones about th
 from __future__ import annotations
 
 import datetime as dt
+import errno
 import json
 import logging
 import math
@@ -177,6 +178,48 @@ def test_a_reading_is_acknowledged_only_once_its_journal_line_is_on_disk(
         assert journal_files <= set(synced)
     else:
         assert max(unsynced_at_ack) > 0  # acknowledged from the kernel's cache
+
+
+def test_a_failing_fsync_is_logged_once_and_the_readings_are_still_acknowledged(
+    service_factory, mosquitto, monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture, tmp_path: Path
+) -> None:
+    """The disk fails under a durable journal: the lines are in the kernel, so the readings
+    are acknowledged all the same (holding them would stop the broker's deliveries), the
+    failure is logged once for the spell, and its end is logged too."""
+    svc = service_factory()
+    acked: list[int] = []
+    real_ack = svc.client.ack
+
+    def ack(mid: int, qos: int) -> object:
+        if not threading.current_thread().name.startswith("paho-mqtt-client-"):
+            acked.append(mid)
+        return real_ack(mid, qos)
+
+    monkeypatch.setattr(svc.client, "ack", ack)
+    readings = morning()
+    send(mosquitto.port, readings[:5], "rel-eio-1")  # the day's file made while all is well
+    wait_for(lambda: len(acked) >= 5, what="the first readings acknowledged")
+    real_fsync = os.fsync
+
+    def failing(fd: int) -> None:
+        if stat.S_ISREG(os.fstat(fd).st_mode):
+            raise OSError(errno.EIO, "Input/output error")
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", failing)
+    with caplog.at_level(logging.WARNING, logger="pseudotwin.edge.service"):
+        send(mosquitto.port, readings[5:-1], "rel-eio-2")
+        wait_for(lambda: len(acked) >= len(readings) - 1, what=lambda: f"{len(acked)} acked")
+        failed = [r for r in caplog.records if "to disk failed" in r.getMessage()]
+        assert len(failed) == 1 and failed[0].levelno == logging.ERROR
+        assert "Input/output error" in failed[0].getMessage()
+        monkeypatch.setattr(os, "fsync", real_fsync)  # the disk is back
+        send(mosquitto.port, readings[-1:], "rel-eio-3")
+        wait_for(lambda: len(acked) >= len(readings), what="the last reading acknowledged")
+        wait_for(lambda: any("works again" in r.getMessage() for r in caplog.records),
+                 what="the end of the spell logged")
+    assert journal_lines(tmp_path) == len(readings)
 
 
 # -- 4. invalid UTF-8 in a journal ---------------------------------------------------------

@@ -702,3 +702,42 @@ def test_a_crate_migration_cut_short_is_finished(fake: FakeCrateDB) -> None:
     alters = [st for st in fake.statements if st.startswith("ALTER")]
     assert alters == ["ALTER TABLE estimates ADD COLUMN lost TEXT"]
     assert fake.sql("SELECT value FROM meta") == [(str(SCHEMA_VERSION),)]
+
+
+def test_a_crate_migration_racing_another_process_takes_its_column(
+        fake: FakeCrateDB, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two processes open a version-1 CrateDB store at once (the daemon and the recorder
+    after an upgrade): both find a column missing, the other adds it first, and this one's
+    ALTER is refused. It goes on, since the column is there now."""
+    _write_version_1({"kind": "crate-fake", "url": fake.url})
+    fake.sql("ALTER TABLE estimates ADD COLUMN source TEXT")  # the other process's ALTER
+    looked: list[str] = []
+    real = store_mod.CrateStore._has_column
+
+    def has_column(self: store_mod.CrateStore, table: str, column: str) -> bool:
+        looked.append(column)
+        if looked.count(column) == 1:  # looked before the other process added it
+            return False
+        return real(self, table, column)
+
+    monkeypatch.setattr(store_mod.CrateStore, "_has_column", has_column)
+    with open_store(fake.url) as s:
+        assert s.schema_version == SCHEMA_VERSION
+        assert s.read_estimates("desk")["source"].tolist() == [None]
+    refused = [st for st in fake.statements if st.startswith("ALTER")]
+    assert refused == ["ALTER TABLE estimates ADD COLUMN source TEXT",
+                       "ALTER TABLE estimates ADD COLUMN lost TEXT"]
+    assert looked == ["source", "source", "lost"]  # the refused ALTER looked again
+
+
+def test_a_crate_setup_cut_short_before_its_version_gets_the_new_columns(
+        fake: FakeCrateDB) -> None:
+    """A version-1 setup that stopped after its tables, before the meta row: no version
+    recorded, old tables. Opening it adds the columns and records version 2."""
+    _write_version_1({"kind": "crate-fake", "url": fake.url})
+    fake.sql("DELETE FROM meta")
+    with open_store(fake.url) as s:
+        s.write_estimates([EstimateRow("desk", "estimate", dt.datetime(2016, 3, 1, 9, tzinfo=UTC),
+                                       21.0, 0.2, "ok", "h", "triv", ())])
+        assert s.read_estimates("desk")["source"].tolist() == [None, "triv"]
+    assert fake.sql("SELECT value FROM meta") == [(str(SCHEMA_VERSION),)]

@@ -148,6 +148,7 @@ class Journal:
             if self._prev is not None:
                 os.fsync(self._prev[1].fileno())
             readinglines.sync_folder(self.folder)
+            readinglines.sync_folder(self.folder.parent)
 
     def fsync(self) -> None:
         if self._fh is not None:
@@ -182,8 +183,9 @@ class Journal:
         fd = os.open(self._path(day), os.O_RDWR | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW,
                      0o600)
         if created:  # the new day's file survives a power cut only with its folder's entry
-            try:
+            try:  # (and the folder with its own, should it have been made again just now)
                 readinglines.sync_folder(self.folder)
+                readinglines.sync_folder(self.folder.parent)
             except OSError:
                 os.close(fd)
                 raise

@@ -824,8 +824,8 @@ class Service:
         acknowledged), which it delivers again. A failed sync (the disk failing) is
         logged and the readings acknowledged all the same: they are in the kernel, as
         without journal_fsync, and holding them would stop the broker's deliveries."""
-        if not self.journal.durable:
-            yield
+        if not self.journal.durable or self._unsynced_acks is not None:
+            yield  # (nested: the outer block syncs and sends them all)
             return
         self._unsynced_acks = []
         try:
@@ -839,7 +839,7 @@ class Service:
                 if self._sync_failing:
                     self._sync_failing = False
                     log.warning("journal: syncing to disk works again (%s)", self.journal.folder)
-            except OSError as exc:
+            except Exception as exc:  # noqa: BLE001 — OSError, or ValueError: a closed file
                 if not self._sync_failing:
                     self._sync_failing = True
                     log.error("journal: syncing %s to disk failed (%s); readings are "

@@ -394,11 +394,13 @@ class Store(abc.ABC):
         return [c for v in range(version + 1, SCHEMA_VERSION + 1) for c in MIGRATIONS.get(v, ())]
 
     def _migrated(self, version: int, added: Sequence[tuple[str, str, str]]) -> None:
-        if version and version < SCHEMA_VERSION:
+        """Log a migration: from ``version`` (0: no version recorded, as after a CrateDB
+        setup cut short before its meta row) with the columns ``added``."""
+        if (version and version < SCHEMA_VERSION) or added:
             cols = ", ".join(f"{t}.{c}" for t, c, _ in added) or "nothing to add"
-            log.warning("history store %s: schema version %d → %d (added %s); an older "
-                        "pseudotwin now refuses this database", self.url, version,
-                        SCHEMA_VERSION, cols)
+            log.warning("history store %s: schema version %s → %d (added %s); an older "
+                        "pseudotwin now refuses this database", self.url,
+                        version or "unrecorded", SCHEMA_VERSION, cols)
 
     # --- readings ------------------------------------------------------------------
     def write_readings(self, readings: Iterable[Reading] | pd.DataFrame) -> int:
@@ -853,14 +855,22 @@ class CrateStore(Store):
         version = self._check_version(rows[0][0] if rows else None)
         for stmt in self.DDL:
             self._run(stmt)
-        # No transactions in CrateDB: a migration cut short (or one another process ran at
-        # the same time) has added some columns already, so each is looked for first.
-        added = self._added_since(version)
-        for table, column, kind in added:
-            try:
-                self._run(f"SELECT {column} FROM {table} LIMIT 1")
-            except StoreError:  # no such column
-                self._run(f"ALTER TABLE {table} ADD COLUMN {column} {kind}")
+        # No transactions in CrateDB: a migration cut short, or a version-1 setup cut short
+        # before its meta row (version 0 with old tables), has some columns already, and
+        # another process may be adding them at this very moment (the daemon and the
+        # recorder started together after an upgrade): each column is looked for first,
+        # and an ALTER that fails is forgiven once the column is there.
+        added: list[tuple[str, str, str]] = []
+        if version < SCHEMA_VERSION:
+            for table, column, kind in (c for v in sorted(MIGRATIONS) for c in MIGRATIONS[v]):
+                if self._has_column(table, column):
+                    continue
+                try:
+                    self._run(f"ALTER TABLE {table} ADD COLUMN {column} {kind}")
+                except StoreError:
+                    if not self._has_column(table, column):
+                        raise
+                added.append((table, column, kind))
         if version == 0:
             self._run("INSERT INTO meta (name, value) VALUES (?, ?) ON CONFLICT (name) "
                       "DO NOTHING", ["schema_version", str(SCHEMA_VERSION)])
@@ -869,6 +879,13 @@ class CrateStore(Store):
                       [str(SCHEMA_VERSION), "schema_version"])
         self._migrated(version, added)
         self.schema_version = SCHEMA_VERSION
+
+    def _has_column(self, table: str, column: str) -> bool:
+        try:
+            self._run(f"SELECT {column} FROM {table} LIMIT 1")
+        except StoreError:  # ColumnUnknownException
+            return False
+        return True
 
     def _query(self, sql: str, args: Sequence[Any] = ()) -> list[Sequence[Any]]:
         stale = [t for t in _FROM.findall(sql) if t in self._dirty]
