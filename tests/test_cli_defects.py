@@ -6,6 +6,7 @@ import datetime as dt
 import json
 import logging
 import os
+import sqlite3
 import subprocess
 import sys
 from pathlib import Path
@@ -23,6 +24,7 @@ from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.errors import DataError
 from pseudotwin.history.convert import SHARED_DATA_ENV
+from pseudotwin.history.store import SCHEMA_VERSION
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -542,6 +544,10 @@ def test_evaluate_reads_the_history_store_as_it_reads_the_same_history_from_a_fi
     file the store was imported from; a sensor the store lacks is named."""
     db = tmp_path / "h.db"
     assert run("import", str(sml), "--store", str(db)) == 0
+    with sqlite3.connect(db) as con:  # as a build of schema version 1 left it
+        con.execute("ALTER TABLE estimates DROP COLUMN source")
+        con.execute("ALTER TABLE estimates DROP COLUMN lost")
+        con.execute("UPDATE meta SET value = '1' WHERE name = 'schema_version'")
     assert _evaluate(sml, tmp_path / "file") == 0
     stored = [a if a != str(sml) else str(db) for a in desk_twin("evaluate", sml)]
     stored[stored.index("--history")] = "--store"
@@ -557,3 +563,11 @@ def test_evaluate_reads_the_history_store_as_it_reads_the_same_history_from_a_fi
     with pytest.raises(SystemExit) as exc:  # one source, not both
         run(*desk_twin("evaluate", sml), "--store", str(db), "--out", str(tmp_path / "x"))
     assert exc.value.code == 2
+    # evaluate only reads readings: the store stays at version 1 for the older recorders
+    # that write to it; a writing command of this build migrates it
+    version = "SELECT value FROM meta WHERE name = 'schema_version'"
+    with sqlite3.connect(db) as con:
+        assert con.execute(version).fetchone() == ("1",)
+    assert run("import", str(sml), "--store", str(db)) == 0
+    with sqlite3.connect(db) as con:
+        assert con.execute(version).fetchone() == (str(SCHEMA_VERSION),)

@@ -383,6 +383,9 @@ def _write_version_1(backend: dict) -> None:
             conn.execute("CREATE TABLE meta (name TEXT PRIMARY KEY, value TEXT NOT NULL)")
             conn.execute("INSERT INTO meta VALUES ('schema_version', '1')")
             conn.execute(_V1_ESTIMATES["postgres"])
+            conn.execute('CREATE TABLE readings (sensor TEXT COLLATE "C" NOT NULL, '
+                         "ts TIMESTAMPTZ NOT NULL, value DOUBLE PRECISION NOT NULL, "
+                         "PRIMARY KEY (sensor, ts))")  # (PostgreSQL makes tables only new)
             conn.execute("INSERT INTO estimates VALUES (%s, %s, to_timestamp(%s / 1000.0), %s, "
                          "%s, %s, %s, to_timestamp(%s / 1000.0))", _V1_ROW)
     else:  # through the crate client, as the store of version 1 sent it
@@ -741,3 +744,24 @@ def test_a_crate_setup_cut_short_before_its_version_gets_the_new_columns(
                                        21.0, 0.2, "ok", "h", "triv", ())])
         assert s.read_estimates("desk")["source"].tolist() == [None, "triv"]
     assert fake.sql("SELECT value FROM meta") == [(str(SCHEMA_VERSION),)]
+
+
+def test_a_store_opened_only_to_read_readings_is_not_migrated(backend: dict) -> None:
+    """train, evaluate and the daemon's warm start read readings only: a version-1 store
+    (older recorders still write to it) stays at version 1, its readings readable, its
+    estimates refused with a clear error; a writing open migrates it."""
+    _write_version_1(backend)
+    reading = Reading("a/temp", dt.datetime(2016, 3, 1, 8, tzinfo=UTC), 20.5)
+    with open_store(backend["url"], migrate=False) as s:
+        assert s.schema_version == 1
+        s.write_readings([reading])  # (readings: the same table in both versions)
+        with pytest.raises(StoreError, match="schema version 1.*record, import, backfill"):
+            s.read_estimates("desk")
+        with pytest.raises(StoreError, match="schema version 1"):
+            s.write_estimates([_estimate(1.0, reading.ts)])
+    with open_store(backend["url"], existing=True, migrate=False) as s:  # still 1
+        assert s.schema_version == 1
+        assert s.read_readings("a/temp")["value"].tolist() == [20.5]
+    with open_store(backend["url"]) as s:
+        assert s.schema_version == SCHEMA_VERSION
+        assert s.read_estimates("desk")["value"].tolist() == [21.5]

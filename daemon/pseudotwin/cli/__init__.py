@@ -290,7 +290,7 @@ def _training_history(a: argparse.Namespace, hours: OperatingHours,
         if url is None:
             raise ConfigError(f"{a.config}: no store configured in [service] (or give "
                               "--history or --store)")
-    with open_store(url, existing=True) as store:
+    with open_store(url, existing=True, migrate=False) as store:  # reads readings only
         return history_from_store(store, [*a.references, a.target], hours, a.train_start,
                                   a.train_days, a.skip_days, a.covariates)
 
@@ -418,7 +418,7 @@ def _stored_history(a: argparse.Namespace) -> pd.DataFrame:
     from pseudotwin.analysis.training import require_stored
     from pseudotwin.history.store import open_store
 
-    with open_store(a.store, existing=True) as store:
+    with open_store(a.store, existing=True, migrate=False) as store:  # readings only
         # (covariates are read where there are some, as from a file)
         require_stored(store, [*a.references, a.target], f"the history store {a.store}")
         return store.read_readings([*a.references, a.target, *a.covariates])

@@ -1199,7 +1199,8 @@ class Service:
                         "windows start empty", file)
             return 0
         try:
-            with open_store(self.cfg.store, existing=True) as store:
+            # Only readings are read: a store older recorders write to stays as it is.
+            with open_store(self.cfg.store, existing=True, migrate=False) as store:
                 # as far ahead as restore() takes journaled readings: a sensor whose clock
                 # runs ahead has its latest reading stamped up to max_skew after now
                 frame = store.read_readings(sensors, since, now + self.cfg.max_skew

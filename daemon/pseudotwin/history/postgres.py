@@ -151,8 +151,9 @@ class PostgresStore(Store):
     PLAIN_DDL = ("CREATE INDEX IF NOT EXISTS readings_ts ON readings (ts)",)
     HYPERTABLES = ("readings", "estimates")
 
-    def __init__(self, conninfo: str, schema: str, timescaledb: Timescale, url: str) -> None:
-        super().__init__(url)
+    def __init__(self, conninfo: str, schema: str, timescaledb: Timescale, url: str,
+                 migrate: bool = True) -> None:
+        super().__init__(url, migrate)
         self.schema = schema
         self.timescaledb = timescaledb
         self.hypertables = False
@@ -220,14 +221,13 @@ class PostgresStore(Store):
                         conn.execute(sql.SQL("ALTER TABLE {} ADD COLUMN IF NOT EXISTS {} {}")
                                      .format(sql.Identifier(table), sql.Identifier(column),
                                              sql.SQL(kind)))
-                    if version < SCHEMA_VERSION:
+                    if version < SCHEMA_VERSION and self.migrate:
                         conn.execute("UPDATE meta SET value = %s WHERE name = "
                                      "'schema_version'", [str(SCHEMA_VERSION)])
         except psycopg.Error as exc:
             raise StoreError(f"{self.url}: cannot set up the history tables "
                              f"({_first_line(exc)})") from None
         self._migrated(version, added)
-        self.schema_version = SCHEMA_VERSION
         log.info("history store %s: %s", self.url,
                  "TimescaleDB hypertables" if self.hypertables else "plain tables")
 
@@ -333,7 +333,7 @@ def _first_line(exc: BaseException) -> str:
 # ------------------------------------------------------------------------------ URL
 
 
-def open_postgres(text: str) -> PostgresStore:
+def open_postgres(text: str, migrate: bool = True) -> PostgresStore:
     """The store at a ``postgresql://`` or ``postgres://`` URL (module docstring)."""
     parts = urlsplit(text)
     try:
@@ -364,4 +364,4 @@ def open_postgres(text: str) -> PostgresStore:
         raise ConfigError(f"{text!r}: not a valid PostgreSQL URL ({_first_line(exc)})") \
             from None
     option_t: Timescale = "yes" if option == "yes" else "no" if option == "no" else "auto"
-    return PostgresStore(conninfo, schema, option_t, url=text)
+    return PostgresStore(conninfo, schema, option_t, url=text, migrate=migrate)

@@ -47,8 +47,10 @@ Every timestamp is stored at millisecond resolution; finer parts are truncated (
 two readings of one sensor within the same millisecond are one reading.
 
 Opening a store of an older schema version brings it up to date in place (version 1 → 2:
-``estimates`` gains ``source`` and ``lost``, the rows kept as they are); one of a newer
-version is refused.
+``estimates`` gains ``source`` and ``lost``, the rows kept as they are), unless it is opened
+only to read readings (``migrate=False``: train, evaluate and the daemon's warm start, so
+that an analyst's newer build does not change a store older recorders write to); one of a
+newer version is refused.
 """
 
 from __future__ import annotations
@@ -325,11 +327,12 @@ class Store(abc.ABC):
     UPSERT_ESTIMATE: str
     UPSERT_PROGRESS: str
 
-    def __init__(self, url: str) -> None:
+    def __init__(self, url: str, migrate: bool = True) -> None:
         self.url = url  # never contains credentials (see open_store)
         self._lock = threading.RLock()
         self._closed = False
-        self.schema_version = 0
+        self.migrate = migrate  # bring an older schema up to date on open
+        self.schema_version = 0  # the tables' version once open (older: not migrated)
 
     # --- backend primitives -------------------------------------------------------
     def _ts_arg(self, ms: int) -> Any:
@@ -388,14 +391,23 @@ class Store(abc.ABC):
 
     def _added_since(self, version: int) -> list[tuple[str, str, str]]:
         """(table, column, SQL type) of every column added after schema ``version``, in
-        order (none for a new database, whose tables are created whole)."""
-        if version == 0:
+        order (none for a new database, whose tables are created whole, nor for a store
+        opened without ``migrate``)."""
+        if version == 0 or not self.migrate:
             return []
         return [c for v in range(version + 1, SCHEMA_VERSION + 1) for c in MIGRATIONS.get(v, ())]
 
     def _migrated(self, version: int, added: Sequence[tuple[str, str, str]]) -> None:
         """Log a migration: from ``version`` (0: no version recorded, as after a CrateDB
-        setup cut short before its meta row) with the columns ``added``."""
+        setup cut short before its meta row) with the columns ``added``; set the version
+        the tables are at."""
+        if version and version < SCHEMA_VERSION and not self.migrate:
+            self.schema_version = version
+            log.info("history store %s: schema version %d, read as it is (this build's is "
+                     "%d; record, import or backfill of this build migrates it)", self.url,
+                     version, SCHEMA_VERSION)
+            return
+        self.schema_version = SCHEMA_VERSION
         if (version and version < SCHEMA_VERSION) or added:
             cols = ", ".join(f"{t}.{c}" for t, c, _ in added) or "nothing to add"
             log.warning("history store %s: schema version %s → %d (added %s); an older "
@@ -540,6 +552,7 @@ class Store(abc.ABC):
 
         ``written_at`` is set to now (UTC) by the store. Returns the rows written.
         """
+        self._check_estimates()
         now = to_ms(dt.datetime.now(dt.UTC))
 
         def batches() -> Iterator[list[tuple]]:
@@ -565,6 +578,7 @@ class Store(abc.ABC):
         std float (NaN where not finite); source and lost str (lost a JSON list), None where
         not known (rows of schema version 1); sorted by ts, then model.
         """
+        self._check_estimates()
         where = "twin = ?"
         args: list[Any] = [twin]
         if model is not None:
@@ -592,6 +606,12 @@ class Store(abc.ABC):
             "source": pd.Series(list(c["source"]), dtype=object),
             "lost": pd.Series(list(c["lost"]), dtype=object),
         })
+
+    def _check_estimates(self) -> None:
+        if self.schema_version < SCHEMA_VERSION:
+            raise StoreError(f"{self.url}: the estimates table is at schema version "
+                             f"{self.schema_version}, without source and lost; a writing "
+                             "command of this build (record, import, backfill) migrates it")
 
     # --- backfill progress -----------------------------------------------------------
     def mark_day_done(self, twin: str, day: dt.date, n_estimates: int) -> None:
@@ -643,8 +663,9 @@ class SQLiteStore(Store):
         "finished_at = excluded.finished_at"
     )
 
-    def __init__(self, path: str, url: str | None = None, existing: bool = False) -> None:
-        super().__init__(url or (path if path == ":memory:" else f"sqlite:///{path}"))
+    def __init__(self, path: str, url: str | None = None, existing: bool = False,
+                 migrate: bool = True) -> None:
+        super().__init__(url or (path if path == ":memory:" else f"sqlite:///{path}"), migrate)
         self.path = path
         if path != ":memory:":
             parent = Path(path).parent
@@ -703,7 +724,7 @@ class SQLiteStore(Store):
                 if version == 0:
                     self._conn.execute("INSERT OR IGNORE INTO meta (name, value) VALUES "
                                        "('schema_version', ?)", (str(SCHEMA_VERSION),))
-                elif version < SCHEMA_VERSION:
+                elif version < SCHEMA_VERSION and self.migrate:
                     self._conn.execute("UPDATE meta SET value = ? WHERE name = "
                                        "'schema_version'", (str(SCHEMA_VERSION),))
                 self._conn.execute("COMMIT")
@@ -711,7 +732,6 @@ class SQLiteStore(Store):
                 self._conn.execute("ROLLBACK")
                 raise
             self._migrated(version, added)
-            self.schema_version = SCHEMA_VERSION
         except sqlite3.OperationalError as exc:
             if "locked" not in str(exc) and "busy" not in str(exc):
                 raise StoreError(f"{self.url}: not a usable SQLite history DB ({exc})") \
@@ -806,8 +826,8 @@ class CrateStore(Store):
         "finished_at = excluded.finished_at"
     )
 
-    def __init__(self, servers: list[str], schema: str, url: str) -> None:
-        super().__init__(url)
+    def __init__(self, servers: list[str], schema: str, url: str, migrate: bool = True) -> None:
+        super().__init__(url, migrate)
         try:
             from crate import client as crate_client
             from crate.client import exceptions as crate_exceptions
@@ -861,7 +881,7 @@ class CrateStore(Store):
         # recorder started together after an upgrade): each column is looked for first,
         # and an ALTER that fails is forgiven once the column is there.
         added: list[tuple[str, str, str]] = []
-        if version < SCHEMA_VERSION:
+        if version < SCHEMA_VERSION and (self.migrate or version == 0):
             for table, column, kind in (c for v in sorted(MIGRATIONS) for c in MIGRATIONS[v]):
                 if self._has_column(table, column):
                     continue
@@ -874,11 +894,10 @@ class CrateStore(Store):
         if version == 0:
             self._run("INSERT INTO meta (name, value) VALUES (?, ?) ON CONFLICT (name) "
                       "DO NOTHING", ["schema_version", str(SCHEMA_VERSION)])
-        elif version < SCHEMA_VERSION:
+        elif version < SCHEMA_VERSION and self.migrate:
             self._run("UPDATE meta SET value = ? WHERE name = ?",
                       [str(SCHEMA_VERSION), "schema_version"])
         self._migrated(version, added)
-        self.schema_version = SCHEMA_VERSION
 
     def _has_column(self, table: str, column: str) -> bool:
         try:
@@ -959,11 +978,14 @@ def _bulk_count(results: list[dict] | None, sent: int) -> tuple[int, list[tuple[
 # ------------------------------------------------------------------------------ factory
 
 
-def open_store(url: str | os.PathLike[str], existing: bool = False) -> Store:
+def open_store(url: str | os.PathLike[str], existing: bool = False,
+               migrate: bool = True) -> Store:
     """Open (creating tables on first use) the store at ``url``; see the module docstring.
 
     existing: the caller only reads what is there (train, evaluate, backfill): a SQLite file
     that does not exist is an error, not a new empty database (a mistyped path).
+    migrate: bring a store of an older schema version up to date; False for callers that
+    only read readings (its estimates then cannot be read or written).
     Raises ConfigError for a malformed URL, StoreError when the database cannot be used.
     """
     text = os.fspath(url).strip()
@@ -971,16 +993,16 @@ def open_store(url: str | os.PathLike[str], existing: bool = False) -> Store:
         raise ConfigError("empty history store URL")
     scheme = text.split("://", 1)[0].lower() if "://" in text else ""
     if scheme in ("crate", "crate+http", "crate+https"):
-        return _open_crate(text, "https" if scheme == "crate+https" else "http")
+        return _open_crate(text, "https" if scheme == "crate+https" else "http", migrate)
     if scheme in ("postgresql", "postgres"):
         from pseudotwin.history.postgres import open_postgres  # psycopg only when used
 
-        return open_postgres(text)
+        return open_postgres(text, migrate)
     if is_memory_url(text):
         if existing:
             raise ConfigError(f"{text!r} is a store in memory: it holds nothing to read "
                               "(give the history database's file path or URL)")
-        return SQLiteStore(":memory:")
+        return SQLiteStore(":memory:", migrate=migrate)
     if scheme == "sqlite":
         rest = text[len("sqlite://"):]
         if text == PATHLESS_SQLITE:
@@ -989,11 +1011,11 @@ def open_store(url: str | os.PathLike[str], existing: bool = False) -> Store:
         if not rest.startswith("/"):
             raise ConfigError(f"{text!r}: expected sqlite:///relative.db or "
                               "sqlite:////absolute/path.db")
-        return SQLiteStore(rest[1:], url=text, existing=existing)
+        return SQLiteStore(rest[1:], url=text, existing=existing, migrate=migrate)
     if scheme:
         raise ConfigError(f"{text!r}: unsupported history store (use a SQLite file path, "
                           "sqlite:///path, postgresql://host/db or crate://host:4200)")
-    return SQLiteStore(text, existing=existing)
+    return SQLiteStore(text, existing=existing, migrate=migrate)
 
 
 def _with_port(host: str) -> str:
@@ -1003,7 +1025,7 @@ def _with_port(host: str) -> str:
     return host if ":" in after_ipv6 else f"{host}:4200"
 
 
-def _open_crate(text: str, http: str) -> CrateStore:
+def _open_crate(text: str, http: str, migrate: bool = True) -> CrateStore:
     parts = urlsplit(text)
     netloc = parts.netloc
     if "@" in netloc:
@@ -1024,4 +1046,4 @@ def _open_crate(text: str, http: str) -> CrateStore:
     if not schema.isidentifier():
         raise ConfigError(f"{text!r}: schema {schema!r} is not a plain identifier")
     servers = [f"{http}://{_with_port(h)}" for h in hosts]
-    return CrateStore(servers, schema, url=text)
+    return CrateStore(servers, schema, url=text, migrate=migrate)
