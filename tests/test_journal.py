@@ -128,10 +128,10 @@ def test_after_a_restart_yesterdays_file_is_rebuilt_too(tmp_path: Path) -> None:
 def test_a_durable_journal_puts_lines_and_new_files_on_disk(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, durable: bool
 ) -> None:
-    """durable: sync() fsyncs what was appended since the last sync, once; a new day's file
-    has its folder (and the folder's parent) synced; an earlier day's straggler is synced at
-    once. Not durable: nothing is ever synced by append or sync (os.fsync watched, doing its
-    real work)."""
+    """durable: sync() fsyncs what was appended since the last sync, once, an earlier day's
+    straggler's file too; a new day's file has its folder (and the folder's parent) synced.
+    Not durable: nothing is ever synced by append or sync (os.fsync watched, doing its real
+    work)."""
     synced: list[tuple[int, int]] = []  # (inode, size) at each fsync
     real = os.fsync
 
@@ -157,8 +157,11 @@ def test_a_durable_journal_puts_lines_and_new_files_on_disk(
     assert j.sync() and synced[-1] == (inode[today], today.stat().st_size)
     assert not j.sync()  # nothing new: no second fsync
     n = len(synced)
-    j.append(r(0, 3.0, 19))  # a straggler of the day before: its own file, synced at once
+    j.append(r(0, 3.0, 19))  # a straggler of the day before: its own file, made new
     before = folder / "2012-03-19.jsonl"
-    assert (before.stat().st_ino, before.stat().st_size) in synced[n:]
-    assert not j.sync()  # today's file was not written
+    assert len(synced) == n  # not yet: at the batch's sync
+    assert j.sync()  # its lines, then its entry in the folder; today's file unchanged
+    assert synced[n:] == [(before.stat().st_ino, before.stat().st_size),
+                          (inode[folder], folder.stat().st_size)]
+    assert not j.sync()
     j.close()

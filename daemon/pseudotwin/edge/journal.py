@@ -38,6 +38,10 @@ class Journal:
         self.keep_days = keep_days
         self.durable = durable
         self._unsynced = False  # lines written to the current file since the last sync
+        # Earlier days' files written since the last sync (a durable journal's stragglers),
+        # and whether one of them was made new (its folder's entry to sync too).
+        self._earlier: set[Path] = set()
+        self._earlier_made = False
         self._day: dt.date | None = None
         self._fh: BinaryIO | None = None  # the current day's file: appended to, and read
         # The file before it (yesterday's carry-over), kept open: should the state dir be
@@ -101,8 +105,11 @@ class Journal:
         sensors straddling midnight did at every reading."""
         if self._vanished():  # the state dir went: rebuild the files first
             self._rebuild()
-        # Rare (a reading from before midnight arriving after it): synced at once.
-        readinglines.append(self._path(day), readings, sync=self.durable)
+        path = self._path(day)
+        if self.durable:  # synced with the current file, at the next sync()
+            self._earlier_made |= not path.exists()
+            self._earlier.add(path)
+        readinglines.append(path, readings)
 
     def _vanished(self) -> bool:
         """True when the open file is no longer the one at its path (deleted, replaced)."""
@@ -159,9 +166,25 @@ class Journal:
     def sync(self) -> bool:
         """A durable journal: what was appended since the last sync is on disk when this
         returns (OSError: maybe not). True when it had anything to sync."""
-        if not (self.durable and self._unsynced):
+        if not (self.durable and (self._unsynced or self._earlier)):
             return False
-        self.fsync()
+        # Taken off first: a failed fsync is not retried (the kernel may have dropped the
+        # pages it failed to write; the caller says so), and one failure must not stick.
+        earlier, made = sorted(self._earlier), self._earlier_made
+        self._earlier, self._earlier_made = set(), False
+        for path in earlier:
+            try:
+                fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+            except FileNotFoundError:  # pruned, or the state dir went: nothing to sync
+                continue
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        if made:
+            readinglines.sync_folder(self.folder)
+        if self._unsynced:
+            self.fsync()
         return True
 
     def _rotate(self, day: dt.date) -> None:

@@ -30,12 +30,10 @@ def decode(line: bytes) -> Reading:
         raise ValueError(f"not a reading line ({exc})") from None
 
 
-def append(path: Path, readings: Iterable[Reading], sync: bool = False) -> list[bytes]:
+def append(path: Path, readings: Iterable[Reading]) -> list[bytes]:
     """Append one line per reading to the file at ``path`` (created if need be) and return
     the lines. A last line cut short by a crash or a full disk is ended first: the next
-    reading is never glued onto it and lost with it. OSError when the write falls short.
-    sync: on disk (fsync) before returning, a new file's directory entry too."""
-    created = sync and not path.exists()
+    reading is never glued onto it and lost with it. OSError when the write falls short."""
     lines = encode(readings)
     block = b"".join(lines)
     with open(path, "a+b") as fh:
@@ -43,11 +41,6 @@ def append(path: Path, readings: Iterable[Reading], sync: bool = False) -> list[
             block = b"\n" + block
         if fh.write(block) != len(block):
             raise OSError(errno.ENOSPC, f"short write to {path}")
-        if sync:
-            fh.flush()
-            os.fsync(fh.fileno())
-    if created:
-        sync_folder(path.parent)
     return lines
 
 
