@@ -819,11 +819,12 @@ class Service:
     def _acks_after_sync(self) -> Iterator[None]:
         """Hold back the acknowledgements of the readings applied inside, then put the
         journal on disk (a durable journal: one fsync for them all) and send them.
-        The estimates go out before the sync, so it adds nothing to their latency; a
-        power cut before it loses readings the broker has not let go of (not yet
-        acknowledged), which it delivers again. A failed sync (the disk failing) is
-        logged and the readings acknowledged all the same: they are in the kernel, as
-        without journal_fsync, and holding them would stop the broker's deliveries."""
+        The network thread is woken for the batch's estimates before the sync, so the
+        fsync does not hold them back; a power cut before it loses readings the broker has
+        not let go of (not yet acknowledged), which it delivers again. A failed sync (the
+        disk failing) is logged and the readings acknowledged all the same: they are in the
+        kernel, as without journal_fsync, and holding them would stop the broker's
+        deliveries."""
         if not self.journal.durable or self._unsynced_acks is not None:
             yield  # (nested: the outer block syncs and sends them all)
             return
