@@ -35,6 +35,7 @@ from pseudotwin.edge.service import Service
 from pseudotwin.edge.statelock import StateLock
 from pseudotwin.errors import StateInUseError
 from pseudotwin.history.backfill import backfill
+from pseudotwin.history.backfill_pool import backfill_twins
 from pseudotwin.history.store import open_store, to_ms
 from pseudotwin.live.artifact import Artifact, artifact_hash
 from pseudotwin.live.readings import Reading
@@ -354,6 +355,33 @@ def test_backfill_equals_evaluate_and_is_idempotent_and_resumable(
     assert len(common) > 3 * 40
     pd.testing.assert_series_equal(bf[common], ev[common], check_names=False,
                                    check_index_type=False, rtol=1e-12)
+
+
+def test_a_day_backfilled_again_keeps_none_of_the_earlier_rows(
+    mosquitto, desk_artifact, sml_store: Path, tmp_path: Path
+) -> None:
+    """A day backfilled again (--redo, here with the twin now running its primary only)
+    holds only what the new run estimates: the baselines' rows of the first run are gone
+    from that day, and stay on the day not redone."""
+    db = tmp_path / "history.db"
+    shutil.copy(sml_store, db)
+    d1, d2 = dt.date(2012, 3, 20), dt.date(2012, 3, 21)
+    primary = Artifact.load(desk_artifact).primary
+    with open_store(str(db)) as store:
+        backfill(config(tmp_path, mosquitto.port, desk_artifact, store=str(db)), "desk", d1, d2,
+                 store, progress=False)
+        first = store.read_estimates("desk")
+        assert set(first["model"]) > {primary}  # the baselines on the grid too
+        lean = config(tmp_path, mosquitto.port, desk_artifact, store=str(db), baselines="none")
+        run = backfill_twins(lean, ["desk"], d1, d1, store, jobs=1, progress=False, redo=True)
+        assert run.twins["desk"].days == 1
+        again = store.read_estimates("desk")
+    day = HOURS.day_of
+    redone = again[[day(t) == d1 for t in again["ts"]]]
+    kept = again[[day(t) == d2 for t in again["ts"]]]
+    assert set(redone["model"]) == {primary} and len(redone) > 40
+    was = first[[day(t) == d2 for t in first["ts"]]]
+    pd.testing.assert_frame_equal(kept.reset_index(drop=True), was.reset_index(drop=True))
 
 
 def test_backfill_reports_days_without_readings(

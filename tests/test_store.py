@@ -287,6 +287,29 @@ def test_one_key_twice_in_one_call_first_reading_and_last_estimate_win(store: St
     assert store.read_estimates("desk")["value"].tolist() == [22.0]  # as if row by row
 
 
+def test_replace_estimates_makes_the_span_exactly_the_rows_given(store: Store) -> None:
+    """A backfilled day replaces the twin's rows of that day whole: an earlier artifact's
+    model and instants go, the twin's other days and other twins stay."""
+    day = dt.datetime(2016, 3, 1, tzinfo=UTC)
+    at = [day + dt.timedelta(hours=8, minutes=15 * i) for i in range(3)]
+    store.write_estimates([
+        *(_estimate(20.0 + i, t) for i, t in enumerate(at)),
+        _estimate(5.0, at[0], model="varma"),  # a model the new artifact does not run
+        _estimate(7.0, day + dt.timedelta(days=1, hours=8)),  # the next day
+        EstimateRow("other", "triv", at[0], 1.0, 0.1, "ok", "h"),  # another twin
+    ])
+    n = store.replace_estimates("desk", day, day + dt.timedelta(days=1),
+                                [_estimate(30.0, at[1]), _estimate(31.0, at[2], model="triv")])
+    assert n == 2
+    got = store.read_estimates("desk")
+    assert sorted(zip(got["model"], got["value"], strict=True)) == [
+        ("corrgp-triv", 7.0), ("corrgp-triv", 30.0), ("triv", 31.0)]
+    assert store.read_estimates("other")["value"].tolist() == [1.0]
+    with pytest.raises(ValueError, match="not in it"):
+        store.replace_estimates("desk", day, day + dt.timedelta(hours=1), [_estimate(1.0, at[0])])
+    assert len(store.read_estimates("desk")) == 3  # refused whole: nothing deleted
+
+
 def test_read_estimates_filters_and_keeps_nan(store: Store) -> None:
     base = dt.datetime(2016, 3, 1, 8, 0, tzinfo=UTC)
     rows = [_estimate(20.0 + i, base + dt.timedelta(minutes=15 * i)) for i in range(4)]

@@ -372,7 +372,12 @@ def run_chunk(cfg: ServiceConfig, chunk: Chunk, store: Store, artifact: Artifact
                     # nothing the daemon would publish as an estimate)
                     res.empty.append(day)
                     continue
-                n = store.write_estimates(day_rows(cfg, job, twin, day, frame))
+                # The day's rows replace the twin's stored ones of that day whole: none of
+                # an earlier artifact's (a model no longer run, an instant no longer
+                # estimated) stay beside them.
+                n = store.replace_estimates(job.twin_id, hours.at(day, 0.0),
+                                            hours.at(day + dt.timedelta(days=1), 0.0),
+                                            day_rows(cfg, job, twin, day, frame))
                 if day in job.unended:  # not marked: a run after its end completes it
                     res.unended.append(day)
                 else:

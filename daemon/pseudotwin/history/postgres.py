@@ -285,7 +285,8 @@ class PostgresStore(Store):
         except psycopg.Error as exc:
             raise StoreError(f"{self.url}: query failed ({_first_line(exc)})") from None
 
-    def _write(self, table: str, sql_text: str, batches: Iterable[list[tuple]]) -> int:
+    def _write(self, table: str, sql_text: str, batches: Iterable[list[tuple]],
+               before: tuple[str, list[Any]] | None = None) -> int:
         key, keep_last = _KEYS[table]
         stmt = _pyformat(sql_text)
         n = 0
@@ -294,6 +295,8 @@ class PostgresStore(Store):
             # One transaction per call, as in SQLite: a write_* call lands completely or not
             # at all.
             with conn.transaction(), conn.cursor() as cur:
+                if before is not None:
+                    cur.execute(_pyformat(before[0]), before[1])
                 for batch in batches:
                     rows = _unique(batch, key, keep_last)
                     if rows:

@@ -36,10 +36,12 @@ Tables (schema version :data:`SCHEMA_VERSION`, kept in ``meta``):
   ``import`` write here; nothing updates or deletes.
 * ``estimates (twin, model, ts, value, std, quality, artifact_hash, written_at, source,
   lost)``, key (twin, model, ts): writing the same estimate again replaces the row (one row
-  per key), so backfills are idempotent. ``source`` and ``lost`` say what answered, as the
-  daemon's payload does (its ``model`` and ``lost``): a failover's kind and the silent
-  references it did without, as a JSON list (``[]``: none). Rows written before schema
-  version 2 hold NULL there (read back as None): not known.
+  per key), so backfills are idempotent; a backfilled day replaces the twin's rows of that
+  day whole (:meth:`Store.replace_estimates`), so none of an earlier artifact's stay.
+  ``source`` and ``lost`` say what answered, as the daemon's payload does (its ``model``
+  and ``lost``): a failover's kind and the silent references it did without, as a JSON
+  list (``[]``: none). Rows written before schema version 2 hold NULL there (read back
+  as None): not known.
 * ``backfill_progress (twin, day, estimates, finished_at)``, key (twin, day): the days a
   backfill finished, so an interrupted backfill resumes where it stopped.
 
@@ -281,6 +283,15 @@ def _sensor_list(sensors: Iterable[str] | str | None) -> list[str] | None:
     return list(dict.fromkeys(sensors))
 
 
+def _estimate_batches(rows: Iterable[EstimateRow]) -> Iterator[list[tuple]]:
+    """The rows of ``estimates`` in chunks of WRITE_CHUNK, written_at now."""
+    now = to_ms(dt.datetime.now(dt.UTC))
+    for batch in _chunks(rows, WRITE_CHUNK):
+        yield [(r.twin, r.model, to_ms(r.ts), _finite_or_none(r.value), _finite_or_none(r.std),
+                r.quality, r.artifact_hash, now, r.source,
+                None if r.lost is None else lost_json(r.lost)) for r in batch]
+
+
 def _reading_rows(readings: Iterable[Reading] | pd.DataFrame) -> Iterator[list[tuple]]:
     """(sensor, ts_ms, value) rows in chunks of WRITE_CHUNK; non-finite values dropped."""
     if isinstance(readings, pd.DataFrame):
@@ -345,9 +356,11 @@ class Store(abc.ABC):
         """Rows of a SELECT (after making the tables' latest writes visible)."""
 
     @abc.abstractmethod
-    def _write(self, table: str, sql: str, batches: Iterable[list[tuple]]) -> int:
+    def _write(self, table: str, sql: str, batches: Iterable[list[tuple]],
+               before: tuple[str, list[Any]] | None = None) -> int:
         """Run ``sql`` for every row of every batch; the number of rows changed (or sent,
-        where the backend cannot tell)."""
+        where the backend cannot tell). before: (SQL, arguments) run first, in the same
+        transaction where the backend has them."""
 
     @abc.abstractmethod
     def _close(self) -> None: ...
@@ -553,17 +566,29 @@ class Store(abc.ABC):
         ``written_at`` is set to now (UTC) by the store. Returns the rows written.
         """
         self._check_estimates()
-        now = to_ms(dt.datetime.now(dt.UTC))
-
-        def batches() -> Iterator[list[tuple]]:
-            for batch in _chunks(rows, WRITE_CHUNK):
-                yield [(r.twin, r.model, to_ms(r.ts), _finite_or_none(r.value),
-                        _finite_or_none(r.std), r.quality, r.artifact_hash, now, r.source,
-                        None if r.lost is None else lost_json(r.lost)) for r in batch]
-
         with self._lock:
             self._check_open()
-            return self._write("estimates", self.UPSERT_ESTIMATE, batches())
+            return self._write("estimates", self.UPSERT_ESTIMATE, _estimate_batches(rows))
+
+    def replace_estimates(self, twin: str, start: Instant, end: Instant,
+                          rows: Iterable[EstimateRow]) -> int:
+        """Make ``twin``'s estimates with start <= ts < end exactly ``rows``: what a
+        backfilled day does, so that none of an earlier artifact's rows of the day stay (a
+        model it no longer runs, instants it no longer estimates). One transaction where
+        the backend has them (CrateDB: the delete, then the writes). Returns the rows
+        written; ValueError for a row of another twin or outside the span."""
+        self._check_estimates()
+        lo, hi = to_ms(start), to_ms(end)
+        rows = list(rows)
+        if stray := [r for r in rows if r.twin != twin or not lo <= to_ms(r.ts) < hi]:
+            raise ValueError(f"replace_estimates({twin!r}, {start}, {end}): a row of "
+                             f"{stray[0].twin!r} at {stray[0].ts} is not in it")
+        delete = ("DELETE FROM estimates WHERE twin = ? AND ts >= ? AND ts < ?",
+                  [twin, self._ts_arg(lo), self._ts_arg(hi)])
+        with self._lock:
+            self._check_open()
+            return self._write("estimates", self.UPSERT_ESTIMATE, _estimate_batches(rows),
+                               before=delete)
 
     def read_estimates(
         self,
@@ -750,12 +775,15 @@ class SQLiteStore(Store):
         except sqlite3.Error as exc:
             raise StoreError(f"{self.url}: query failed ({exc})") from None
 
-    def _write(self, table: str, sql: str, batches: Iterable[list[tuple]]) -> int:
+    def _write(self, table: str, sql: str, batches: Iterable[list[tuple]],
+               before: tuple[str, list[Any]] | None = None) -> int:
         # One transaction per call: a write_* call lands completely or not at all.
         n = 0
         try:
             self._conn.execute("BEGIN IMMEDIATE")
             try:
+                if before is not None:
+                    self._conn.execute(before[0], before[1])
                 for batch in batches:
                     cur = self._conn.executemany(sql, batch)
                     n += max(cur.rowcount, 0)  # INSERT OR IGNORE: ignored rows count 0
@@ -913,10 +941,15 @@ class CrateStore(Store):
             self._dirty.difference_update(stale)
         return self._run(sql, args)
 
-    def _write(self, table: str, sql: str, batches: Iterable[list[tuple]]) -> int:
+    def _write(self, table: str, sql: str, batches: Iterable[list[tuple]],
+               before: tuple[str, list[Any]] | None = None) -> int:
         """Every batch is sent, even after one with refused rows: a row CrateDB always
-        refuses must not keep the rows after it out (RowsRejected names them all)."""
+        refuses must not keep the rows after it out (RowsRejected names them all).
+        ``before`` runs first, on its own (CrateDB has no transactions)."""
         n, sent = 0, 0
+        if before is not None:
+            self._run(*before)
+            self._dirty.add(table)
         refused: list[tuple[int, tuple, str | None]] = []
         for batch in batches:
             cur = self._conn.cursor()
