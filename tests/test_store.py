@@ -788,3 +788,32 @@ def test_a_store_opened_only_to_read_readings_is_not_migrated(backend: dict) -> 
     with open_store(backend["url"]) as s:
         assert s.schema_version == SCHEMA_VERSION
         assert s.read_estimates("desk")["value"].tolist() == [21.5]
+
+
+def test_a_days_delete_finds_its_rows_through_an_index(tmp_path: Path) -> None:
+    """SQLite: the replace's delete of a twin's day uses the (twin, ts) index a writing
+    open makes, not a scan of every row of the twin; an open only to read readings does
+    not make it."""
+    _write_version_1({"kind": "sqlite", "url": str(tmp_path / "h.db")})
+    plan = "EXPLAIN QUERY PLAN DELETE FROM estimates WHERE twin = ? AND ts >= ? AND ts < ?"
+    with open_store(str(tmp_path / "h.db"), migrate=False):
+        pass
+    with sqlite3.connect(tmp_path / "h.db") as conn:
+        assert "estimates_twin_ts" not in str(conn.execute(plan, ("d", 0, 1)).fetchall())
+    with open_store(str(tmp_path / "h.db")):
+        pass
+    with sqlite3.connect(tmp_path / "h.db") as conn:
+        assert "estimates_twin_ts" in str(conn.execute(plan, ("d", 0, 1)).fetchall())
+
+
+def test_a_crate_replace_refreshes_before_its_delete(fake: FakeCrateDB) -> None:
+    """CrateDB's DELETE sees only refreshed rows: the replace refreshes the table first,
+    so rows written in the last second (here, by this store) go too."""
+    day = dt.datetime(2016, 3, 1, tzinfo=UTC)
+    with open_store(fake.url) as s:
+        s.write_estimates([_estimate(1.0, day + dt.timedelta(hours=8))])
+        s.replace_estimates("desk", day, day + dt.timedelta(days=1), [])
+    sent = fake.statements
+    delete = next(i for i, st in enumerate(sent) if st.startswith("DELETE FROM estimates"))
+    assert sent[delete - 1] == "REFRESH TABLE estimates"
+    assert fake.sql("SELECT count(*) FROM estimates") == [(0,)]

@@ -174,7 +174,7 @@ class Journal:
         self._earlier, self._earlier_made = set(), False
         for path in earlier:
             try:
-                fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+                fd = os.open(path, os.O_RDONLY)  # (read-only: nothing written through it)
             except FileNotFoundError:  # pruned, or the state dir went: nothing to sync
                 continue
             try:

@@ -47,7 +47,13 @@ from psycopg.conninfo import conninfo_to_dict
 from psycopg.pq import Format
 
 from pseudotwin.errors import ConfigError
-from pseudotwin.history.store import SCHEMA_VERSION, Store, StoreError, from_ms
+from pseudotwin.history.store import (
+    ESTIMATES_INDEX,
+    SCHEMA_VERSION,
+    Store,
+    StoreError,
+    from_ms,
+)
 
 __all__ = ["PostgresStore", "open_postgres"]
 
@@ -213,6 +219,7 @@ class PostgresStore(Store):
                 added = self._added_since(version)
                 if version == 0:
                     self._create_tables(conn)
+                    conn.execute(ESTIMATES_INDEX)
                     conn.execute("INSERT INTO meta (name, value) VALUES ('schema_version', "
                                  "%s) ON CONFLICT (name) DO NOTHING", [str(SCHEMA_VERSION)])
                 else:
@@ -221,6 +228,8 @@ class PostgresStore(Store):
                         conn.execute(sql.SQL("ALTER TABLE {} ADD COLUMN IF NOT EXISTS {} {}")
                                      .format(sql.Identifier(table), sql.Identifier(column),
                                              sql.SQL(kind)))
+                    if self.migrate:
+                        conn.execute(ESTIMATES_INDEX)
                     if version < SCHEMA_VERSION and self.migrate:
                         conn.execute("UPDATE meta SET value = %s WHERE name = "
                                      "'schema_version'", [str(SCHEMA_VERSION)])

@@ -101,6 +101,12 @@ log = logging.getLogger(__name__)
 #: older one is migrated when opened (:data:`MIGRATIONS`).
 SCHEMA_VERSION = 2
 
+#: A backfilled day's delete (:meth:`Store.replace_estimates`) finds the twin's rows of the
+#: day through it: the primary key (twin, model, ts) narrows it to the twin only, a scan of
+#: every row of the twin per day (160 ms a day at 1.3 million rows, against 3 ms with it).
+#: SQLite and PostgreSQL; made by a writing open (``migrate``), as the columns are.
+ESTIMATES_INDEX = "CREATE INDEX IF NOT EXISTS estimates_twin_ts ON estimates (twin, ts)"
+
 #: The columns each version added to a table, with their SQL type (the same in every
 #: backend): opening a store of an older version adds those it lacks, in order, the rows
 #: kept (NULL there).
@@ -746,6 +752,8 @@ class SQLiteStore(Store):
                     have = {r[1] for r in self._conn.execute(f"PRAGMA table_info({table})")}
                     if column not in have:
                         self._conn.execute(f"ALTER TABLE {table} ADD COLUMN {column} {kind}")
+                if self.migrate or version == 0:
+                    self._conn.execute(ESTIMATES_INDEX)
                 if version == 0:
                     self._conn.execute("INSERT OR IGNORE INTO meta (name, value) VALUES "
                                        "('schema_version', ?)", (str(SCHEMA_VERSION),))
@@ -945,9 +953,15 @@ class CrateStore(Store):
                before: tuple[str, list[Any]] | None = None) -> int:
         """Every batch is sent, even after one with refused rows: a row CrateDB always
         refuses must not keep the rows after it out (RowsRejected names them all).
-        ``before`` runs first, on its own (CrateDB has no transactions)."""
+        ``before`` runs first, on its own (CrateDB has no transactions: between the two,
+        and after a failure, readers see it done and the rows not yet written; a backfill
+        marks the day done only after both, so a rerun completes it)."""
         n, sent = 0, 0
         if before is not None:
+            # A DELETE sees only refreshed rows (CrateDB's refresh): this store's writes
+            # and other processes' of the last second too.
+            self._run(f"REFRESH TABLE {table}")
+            self._dirty.discard(table)
             self._run(*before)
             self._dirty.add(table)
         refused: list[tuple[int, tuple, str | None]] = []
