@@ -103,8 +103,8 @@ SCHEMA_VERSION = 2
 
 #: A backfilled day's delete (:meth:`Store.replace_estimates`) finds the twin's rows of the
 #: day through it: the primary key (twin, model, ts) narrows it to the twin only, a scan of
-#: every row of the twin per day (160 ms a day at 1.3 million rows, against 3 ms with it).
-#: SQLite and PostgreSQL; made by a writing open (``migrate``), as the columns are.
+#: every row of the twin per day, growing with the twin's history. SQLite and PostgreSQL;
+#: made by a writing open (``migrate``), as the columns are.
 ESTIMATES_INDEX = "CREATE INDEX IF NOT EXISTS estimates_twin_ts ON estimates (twin, ts)"
 
 #: The columns each version added to a table, with their SQL type (the same in every
