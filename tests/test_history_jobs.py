@@ -30,8 +30,9 @@ from pseudotwin.cli import main
 from pseudotwin.config import load_config
 from pseudotwin.core.series import read_history, write_history
 from pseudotwin.edge.clock import ReplayClock
-from pseudotwin.edge.recorder import Recorder, Spool
+from pseudotwin.edge.recorder import Recorder
 from pseudotwin.edge.service import Service
+from pseudotwin.edge.spool import Spool
 from pseudotwin.edge.statelock import StateLock
 from pseudotwin.errors import StateInUseError
 from pseudotwin.history.backfill import backfill

@@ -16,7 +16,6 @@ import os
 import queue
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -26,10 +25,8 @@ import pandas as pd
 from pseudotwin.config import SensorConfig, ServiceConfig
 from pseudotwin.config.validate import absent_sqlite_file
 from pseudotwin.core import series
-from pseudotwin.core.files import write_replacing
 from pseudotwin.core.logpace import doubled
 from pseudotwin.core.series import write_history
-from pseudotwin.edge import readinglines
 from pseudotwin.edge.clock import Clock, SystemClock
 from pseudotwin.edge.mqttconn import (
     StaleTopics,
@@ -41,6 +38,7 @@ from pseudotwin.edge.mqttconn import (
 from pseudotwin.edge.prometheus import RecorderMetrics
 from pseudotwin.edge.sdnotify import notify
 from pseudotwin.edge.silence import SilenceWatch
+from pseudotwin.edge.spool import Spool
 from pseudotwin.edge.statelock import StateLock
 from pseudotwin.errors import ConfigError, PseudotwinError
 from pseudotwin.history.store import RowsRejected, Store, open_store, to_ms
@@ -68,70 +66,6 @@ SILENCE_CHECK = dt.timedelta(minutes=1)  # how often silent sensors are looked f
 SPOOL_CHUNK = 10_000
 #: Pieces written per flush: the readings arriving meanwhile wait behind at most these.
 SPOOL_CHUNKS_PER_FLUSH = 10
-
-
-class Spool:
-    """Batches the store could not take, on disk until it can (JSON lines, flushed). What
-    the store took already is not cut off the file (a copy of the rest each time would be
-    quadratic in a long spool) but marked by the byte offset it ends at, in a file beside
-    it; after a crash between a write and its mark a piece is written again, which the
-    store keeps once (readings are keyed)."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.offset_path = path.with_name(path.name + ".offset")
-        path.parent.mkdir(parents=True, exist_ok=True)
-
-    def add(self, readings: list[Reading]) -> bool:
-        """Append ``readings``; True if the folder had to be made again (the state dir was
-        deleted under a running recorder: it spools all the same)."""
-        made = not self.path.parent.is_dir()
-        if made:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-        readinglines.append(self.path, readings)  # a torn last line is ended first
-        return made
-
-    def consumed(self) -> int:
-        """Bytes at the spool's start the store has taken (0: none, or no mark)."""
-        try:
-            return max(0, int(self.offset_path.read_text(encoding="ascii")))
-        except (OSError, ValueError):
-            return 0
-
-    def chunks(self, size: int | None = None) -> Iterator[tuple[list[Reading], int]]:
-        """The readings not taken yet, in file order, ``size`` (default SPOOL_CHUNK) at a
-        time, each piece with the byte offset where it ends (for :meth:`consume`)."""
-        size = size or SPOOL_CHUNK
-        if not self.path.exists():
-            return
-        out: list[Reading] = []
-        with open(self.path, "rb") as fh:  # bytes: invalid UTF-8 is one bad line
-            fh.seek(self.consumed())
-            while line := fh.readline():
-                try:
-                    out.append(readinglines.decode(line))
-                except ValueError:
-                    log.warning("spool line unreadable (cut short by a crash?), skipped")
-                if len(out) >= size:
-                    yield out, fh.tell()
-                    out = []
-            if out:
-                yield out, fh.tell()
-
-    def load(self) -> list[Reading]:
-        return [r for piece, _ in self.chunks() for r in piece]
-
-    def consume(self, offset: int) -> None:
-        """Mark the spool's first ``offset`` bytes as taken by the store."""
-        text = str(offset)
-        write_replacing(self.offset_path, lambda tmp: tmp.write_text(text, encoding="ascii"),
-                        follow_symlinks=False)
-
-    def clear(self) -> None:
-        # The mark first: a crash in between leaves a spool written again whole (kept once
-        # by the store), never a mark that would skip a new spool's first readings.
-        self.offset_path.unlink(missing_ok=True)
-        self.path.unlink(missing_ok=True)
 
 
 class Recorder:
@@ -345,7 +279,7 @@ class Recorder:
             return
         written, through, pieces = 0, 0, 0
         try:
-            for piece, end in self.spool.chunks():
+            for piece, end in self.spool.chunks(SPOOL_CHUNK):
                 if pieces == SPOOL_CHUNKS_PER_FLUSH:
                     self.spool.consume(through)
                     self._spool_written += written

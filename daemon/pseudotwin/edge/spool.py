@@ -1,0 +1,112 @@
+"""Readings waiting on disk for whoever takes them next: the recorder's history store, the
+bridge's broker.
+
+One reading per JSON line (:mod:`pseudotwin.edge.readinglines`), appended. What was taken
+already is not cut off the file (a copy of the rest each time would be quadratic in a long
+spool) but marked by the byte offset it ends at, in a file beside it (``<name>.offset``).
+After a crash between a take and its mark, a piece is taken again: both takers keep a
+reading once (the store is keyed, the daemon drops a duplicate).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+from pseudotwin.core.files import write_replacing
+from pseudotwin.edge import readinglines
+from pseudotwin.live.readings import Reading
+
+log = logging.getLogger(__name__)
+
+
+class Spool:
+    """The spool file ``path`` and its mark."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.offset_path = path.with_name(path.name + ".offset")
+        path.parent.mkdir(parents=True, exist_ok=True)
+
+    def add(self, readings: list[Reading]) -> bool:
+        """Append ``readings`` (flushed to the kernel, not synced: :meth:`sync`); True if the
+        folder had to be made again (the state dir was deleted under a running process: it
+        spools all the same)."""
+        made = not self.path.parent.is_dir()
+        if made:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        readinglines.append(self.path, readings)  # a torn last line is ended first
+        return made
+
+    def size(self) -> int:
+        """The file's length in bytes (0 when there is none): where the next line starts."""
+        try:
+            return self.path.stat().st_size
+        except FileNotFoundError:
+            return 0
+
+    def sync(self) -> None:
+        """Put what was added on disk (fsync), the file's directory entry included: a
+        power cut then loses none of it."""
+        fd = os.open(self.path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        readinglines.sync_folder(self.path.parent)
+
+    def consumed(self) -> int:
+        """Bytes at the spool's start that were taken (0: none, or no mark)."""
+        try:
+            return max(0, int(self.offset_path.read_text(encoding="ascii")))
+        except (OSError, ValueError):
+            return 0
+
+    def lines(self, start: int) -> Iterator[tuple[Reading | None, int]]:
+        """Each line from byte ``start`` on, in file order: its reading (None when the line
+        is unreadable, logged) and the byte offset where it ends."""
+        if not self.path.exists():
+            return
+        with open(self.path, "rb") as fh:  # bytes: invalid UTF-8 is one bad line
+            fh.seek(start)
+            while line := fh.readline():
+                try:
+                    reading: Reading | None = readinglines.decode(line)
+                except ValueError:
+                    log.warning("%s: a line is unreadable (cut short by a crash?), skipped",
+                                self.path)
+                    reading = None
+                yield reading, fh.tell()
+
+    def chunks(self, size: int, start: int | None = None
+               ) -> Iterator[tuple[list[Reading], int]]:
+        """The readings from byte ``start`` on (default: the first not taken), in file
+        order, ``size`` at a time, each piece with the byte offset where it ends (for
+        :meth:`consume`)."""
+        out: list[Reading] = []
+        end = 0
+        for reading, end in self.lines(self.consumed() if start is None else start):
+            if reading is not None:
+                out.append(reading)
+            if len(out) >= size:
+                yield out, end
+                out = []
+        if out:
+            yield out, end
+
+    def load(self) -> list[Reading]:
+        return [r for piece, _ in self.chunks(10_000) for r in piece]
+
+    def consume(self, offset: int) -> None:
+        """Mark the spool's first ``offset`` bytes as taken."""
+        text = str(offset)
+        write_replacing(self.offset_path, lambda tmp: tmp.write_text(text, encoding="ascii"),
+                        follow_symlinks=False)
+
+    def clear(self) -> None:
+        # The mark first: a crash in between leaves a spool taken again whole (kept once),
+        # never a mark that would skip a new spool's first readings.
+        self.offset_path.unlink(missing_ok=True)
+        self.path.unlink(missing_ok=True)
