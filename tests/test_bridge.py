@@ -204,8 +204,8 @@ class Plc:
         return before
 
 
-@pytest.fixture
-def plc() -> Iterator[Plc]:
+@pytest.fixture(name="plc")  # a name of its own: tests/test_bridge_spool.py imports it
+def plc_fixture() -> Iterator[Plc]:
     p = Plc()
     p.start()
     try:
@@ -291,8 +291,8 @@ class Env:
         return load_bridge_config(self.write_config(symbols, **plc))
 
 
-@pytest.fixture
-def env(tmp_path: Path, mosquitto: MosquittoBroker) -> Env:
+@pytest.fixture(name="env")
+def env_fixture(tmp_path: Path, mosquitto: MosquittoBroker) -> Env:
     if not mosquitto.running:
         mosquitto.start()
     return Env(tmp_path, mosquitto)
@@ -596,6 +596,7 @@ def test_example_configuration_is_valid() -> None:
     cfg = load_bridge_config(ROOT / "config" / "bridge-example.toml")
     assert cfg.client_id == "pseudotwin-room1-bridge"
     assert [s.plc_type for s in cfg.plc.symbols] == ["LREAL", "INT", "UINT"]
+    assert cfg.spool_dir == Path("/var/lib/pseudotwin") and cfg.spool_fsync is True
     assert main(["--config", str(ROOT / "config" / "bridge-example.toml"), "--check"]) == 0
 
 

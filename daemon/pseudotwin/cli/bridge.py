@@ -11,11 +11,11 @@ import threading
 from collections.abc import Sequence
 from pathlib import Path
 
-from pseudotwin.cli.util import EX_CONFIG, STOP_SIGNALS, stop_signal_line
+from pseudotwin.cli.util import EX_CONFIG, EX_TEMPFAIL, STOP_SIGNALS, stop_signal_line
 from pseudotwin.config import ConfigProblems
 from pseudotwin.config.model import LOG_LEVELS
 from pseudotwin.edge.bridge import Bridge, load_bridge_config
-from pseudotwin.errors import ConfigError
+from pseudotwin.errors import ConfigError, StateInUseError
 
 __all__ = ["EX_CONFIG", "build_parser", "main"]
 
@@ -31,10 +31,14 @@ def build_parser() -> argparse.ArgumentParser:
             "time-stamped by the PLC (the values read at each connect: on the PLC's clock as "
             "its notifications showed it). Reconnects by itself when the PLC, the route or the "
             "broker drops; the PLC state is polled every plc.poll_seconds because ADS has no "
-            "heartbeat. Runs until SIGTERM/SIGINT/SIGHUP."
+            "heartbeat. With bridge.spool_dir (default: the daemon's state_dir, when this "
+            "is the daemon's file) every reading is on disk until the broker acknowledged "
+            "it: a broker outage or a restart of the bridge loses none. Runs until "
+            "SIGTERM/SIGINT/SIGHUP."
         ),
         epilog=(
-            "Exit status: 0 stopped by a signal; 77 the broker refused the credentials; 78 "
+            "Exit status: 0 stopped by a signal; 75 another bridge runs on the same spool "
+            "(systemd retries); 77 the broker refused the credentials; 78 "
             "configuration error (the file, or a symbol the PLC does not have or declares "
             "with another type); every problem is printed with its location, e.g. "
             "'plc.symbols[1].plc_type: ...'."
@@ -73,7 +77,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(str(exc), file=sys.stderr)  # already names the file
         return EX_CONFIG
     if args.check:
-        print(f"{args.config}: OK ({len(cfg.plc.symbols)} PLC symbols)")
+        spool = f"spool {cfg.spool_path}" if cfg.spool_path is not None else \
+            "no spool: readings wait in memory only (set bridge.spool_dir)"
+        print(f"{args.config}: OK ({len(cfg.plc.symbols)} PLC symbols; {spool})")
         return 0
     bridge = Bridge(cfg)
 
@@ -88,6 +94,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             previous[sig] = signal.signal(sig, on_signal)
     try:
         bridge.run()
+    except StateInUseError as exc:  # the other one may end: systemd retries (RestartSec)
+        print(f"pseudotwin bridge: {exc}", file=sys.stderr)
+        return EX_TEMPFAIL
+    except ConfigError as exc:  # found only on start: the spool cannot be written
+        print(f"pseudotwin bridge: {exc}", file=sys.stderr)
+        return EX_CONFIG
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)

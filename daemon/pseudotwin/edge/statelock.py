@@ -26,11 +26,13 @@ _NO_FLOCK = {errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS}
 
 
 class StateLock:
-    """The lock file ``path`` (in a state dir) of one ``role`` (``daemon``, ``recorder``)."""
+    """The lock file ``path`` (in a state dir) of one ``role`` (``daemon``, ``recorder``,
+    ``bridge``); ``shared``: what two of them would share besides the broker session."""
 
-    def __init__(self, path: Path, role: str) -> None:
+    def __init__(self, path: Path, role: str, shared: str = "one journal") -> None:
         self.path = path
         self.role = role
+        self.shared = shared
         self._fd: int | None = None
 
     def acquire(self) -> None:
@@ -52,7 +54,7 @@ class StateLock:
             raise StateInUseError(
                 f"{self.path.parent} is in use by another pseudotwin {self.role} (PID "
                 f"{holder}): two on one state dir would share the broker session, each "
-                f"knocking the other off, and one journal; stop it, or give this one its own "
+                f"knocking the other off, and {self.shared}; stop it, or give this one its own "
                 f"state_dir and client_id") from None
         except OSError as exc:
             os.close(fd)

@@ -3,7 +3,9 @@
 - :mod:`~pseudotwin.edge.bridge.config`: its configuration ([plc], [[plc.symbols]],
   [bridge]) and loader, which reuse the daemon's broker and sensor sections;
 - :mod:`~pseudotwin.edge.bridge.plc`: the runtime (:class:`Bridge`): ADS connection,
-  notifications, the MQTT publisher and the reconnect supervisor.
+  notifications, the MQTT publisher and the reconnect supervisor;
+- :mod:`~pseudotwin.edge.bridge.outbox`: the spool every reading is on until the broker
+  acknowledged it.
 
 ``pseudotwin bridge --config FILE`` (:mod:`pseudotwin.cli.bridge`) runs it.
 """

@@ -5,7 +5,8 @@ Layout (the same TOML file as the daemon, or a file of its own; see
 ``config/bridge-example.toml``)::
 
     [broker], [[sensors]]   as for the daemon (``pseudotwin.config``)
-    [bridge]                optional: client_id, base_topic, queue_size
+    [bridge]                optional: client_id, base_topic, queue_size, spool_dir,
+                            spool_fsync
     [plc]                   ams_net_id, host, port, local_ams_net_id, poll_seconds,
                             reconnect_max_seconds, timeout_seconds
     [[plc.symbols]]         symbol, sensor, plc_type, cycle_ms, max_delay_ms, scale, offset
@@ -329,6 +330,7 @@ def _bridge_cross_problems(
 
 
 def _bridge_scalar_problems(*, client_id: object, base_topic: object, queue_size: object,
+                            spool_dir: object, spool_fsync: object,
                             broker_client_id: str | None) -> Found:
     found: Found = []
     # None: no default could be derived because [broker] is invalid (reported there).
@@ -350,6 +352,9 @@ def _bridge_scalar_problems(*, client_id: object, base_topic: object, queue_size
         assert isinstance(queue_size, int)
         if queue_size < 1:
             found.append(("queue_size", "must be at least 1"))
+    if spool_dir is not None:
+        expect(found, "spool_dir", spool_dir, "path")
+    expect(found, "spool_fsync", spool_fsync, "boolean")
     return found
 
 
@@ -362,8 +367,15 @@ class BridgeConfig:
     base_topic: status topics go to ``<base_topic>/bridge/...``; default the daemon's
         ``service.base_topic`` when the file has one, else ``"pseudotwin"``.
     queue_size: bound of the queue between the ADS notification thread and the publisher,
-        and of the readings waiting for the broker in paho's queue; beyond it each
-        sensor's newest reading is held back until there is room.
+        and of the readings waiting for the broker in paho's queue; beyond it, without a
+        spool, each sensor's newest reading is held back until there is room.
+    spool_dir: folder of the on-disk spool (``bridge-<client_id>.jsonl``): every reading is
+        written there before it is handed to MQTT and stays until the broker acknowledged
+        it, so neither a long broker outage nor a restart of the bridge loses one. Default
+        the daemon's ``service.state_dir`` when this is the daemon's file; None (readings
+        wait in memory only) in a file of the bridge's own without it.
+    spool_fsync: fsync the spool before its readings are handed to MQTT (a power cut then
+        loses none either); false for SD cards and other slow or wear-sensitive flash.
     """
 
     broker: BrokerConfig
@@ -372,10 +384,15 @@ class BridgeConfig:
     client_id: str
     base_topic: str = SERVICE_DEFAULTS["base_topic"]  # the daemon's default
     queue_size: int = 10000
+    spool_dir: Path | None = None
+    spool_fsync: bool = True
 
     def __post_init__(self) -> None:
+        if isinstance(self.spool_dir, str):
+            object.__setattr__(self, "spool_dir", Path(self.spool_dir))
         found = _bridge_scalar_problems(
             client_id=self.client_id, base_topic=self.base_topic, queue_size=self.queue_size,
+            spool_dir=self.spool_dir, spool_fsync=self.spool_fsync,
             broker_client_id=self.broker.client_id if isinstance(self.broker, BrokerConfig)
             else None,
         )
@@ -406,6 +423,14 @@ class BridgeConfig:
     def sensor_of(self, symbol: SymbolConfig) -> SensorConfig:
         return self.sensors[symbol.sensor]
 
+    @property
+    def spool_path(self) -> Path | None:
+        """The spool file, named after the client id (two bridges on one state dir, one per
+        PLC, each have their own); None without a spool_dir."""
+        if self.spool_dir is None:
+            return None
+        return self.spool_dir / f"bridge-{re.sub(r'[^A-Za-z0-9._-]', '_', self.client_id)}.jsonl"
+
 
 _DEFAULTS = field_defaults(BridgeConfig)
 
@@ -420,7 +445,7 @@ class _BridgeLoader:
 
     BRIDGE_TOP_KEYS = ("bridge", "plc")
     TOP_KEYS = (*Loader.TOP_KEYS, *BRIDGE_TOP_KEYS)
-    BRIDGE_KEYS = ("client_id", "base_topic", "queue_size")
+    BRIDGE_KEYS = ("client_id", "base_topic", "queue_size", "spool_dir", "spool_fsync")
     PLC_KEYS = ("ams_net_id", "host", "port", "local_ams_net_id", "poll_seconds",
                 "reconnect_max_seconds", "timeout_seconds", "symbols")
     PLC_REQUIRED = ("ams_net_id", "symbols")
@@ -443,8 +468,10 @@ class _BridgeLoader:
             if key not in self.TOP_KEYS:
                 self.inner.add(key, f"unknown key{suggest(key, self.TOP_KEYS)}")
         daemon_part = {k: v for k, v in doc.items() if k in Loader.TOP_KEYS}
+        state_dir: Path | None = None
         if "service" in doc or "twins" in doc:
-            broker, sensors, bad_ids, service_base = self.load_daemon_file(daemon_part)
+            broker, sensors, bad_ids, service_base, state_dir = \
+                self.load_daemon_file(daemon_part)
         else:
             broker = self.inner.load_broker(doc)
             good, _complete, bad_ids = self.inner.load_sensors(doc)
@@ -456,7 +483,7 @@ class _BridgeLoader:
                 self.problems.extend(cross_problems(
                     base if isinstance(base, str) else None, good, [], bad_ids
                 ))
-        bridge = self.load_bridge(doc, broker, service_base)
+        bridge = self.load_bridge(doc, broker, service_base, state_dir)
         plc = self.load_plc(doc, sensors, bad_ids)
         if self.runtime and broker is not None:
             for where, msg in broker_problems(broker):
@@ -467,12 +494,13 @@ class _BridgeLoader:
 
     def load_daemon_file(
         self, doc: dict[str, Any]
-    ) -> tuple[BrokerConfig | None, dict[str, SensorConfig], set[str] | None, str | None]:
+    ) -> tuple[BrokerConfig | None, dict[str, SensorConfig], set[str] | None, str | None,
+               Path | None]:
         """Validate the daemon's part exactly as the daemon does; (broker, valid sensors,
-        ids of invalid sensors, service.base_topic)."""
+        ids of invalid sensors, service.base_topic, service.state_dir)."""
         cfg = self.inner.load(doc)
         if cfg is not None:
-            return cfg.broker, dict(cfg.sensors), set(), cfg.base_topic
+            return cfg.broker, dict(cfg.sensors), set(), cfg.base_topic, cfg.state_dir
         # The file has problems (already reported); go on with what is valid so that the
         # [plc] part is checked in the same run. A scratch loader keeps them from being
         # reported twice.
@@ -482,11 +510,14 @@ class _BridgeLoader:
         service = doc.get("service")
         base = service.get("base_topic", SERVICE_DEFAULTS["base_topic"]) \
             if isinstance(service, dict) else None
-        return broker, {s.id: s for _, s in good}, bad_ids, base if isinstance(base, str) \
-            else None
+        state_dir = scratch.path(service, "state_dir", "service") \
+            if isinstance(service, dict) else None
+        return (broker, {s.id: s for _, s in good}, bad_ids,
+                base if isinstance(base, str) else None,
+                state_dir if isinstance(state_dir, Path) else None)
 
     def load_bridge(self, doc: dict[str, Any], broker: BrokerConfig | None,
-                    service_base: str | None) -> dict[str, Any] | None:
+                    service_base: str | None, state_dir: Path | None) -> dict[str, Any] | None:
         table = doc.get("bridge", {})
         if not isinstance(table, dict):
             self.inner.add("bridge", f"expected a table [bridge], got {type_name(table)}")
@@ -497,6 +528,11 @@ class _BridgeLoader:
             "client_id": table.get("client_id", f"{broker_id}-bridge" if broker_id else None),
             "base_topic": table.get("base_topic", service_base or _DEFAULTS["base_topic"]),
             "queue_size": table.get("queue_size", _DEFAULTS["queue_size"]),
+            # the daemon's state dir (the units share it) unless set; none in a file of
+            # the bridge's own
+            "spool_dir": self.inner.path(table, "spool_dir", "bridge")
+            if "spool_dir" in table else state_dir,
+            "spool_fsync": table.get("spool_fsync", _DEFAULTS["spool_fsync"]),
         }
         found = _bridge_scalar_problems(**values, broker_client_id=broker_id)
         for where, msg in found:

@@ -20,7 +20,10 @@ Threads, and why:
   ``queue_size`` readings wait for the broker; beyond that the publisher holds back only the
   newest reading of each sensor and sends it as soon as there is room again, so after a
   long broker outage the daemon gets every sensor's current value, not the outage's first
-  hours only (the readings in between are dropped and counted). The status messages have
+  hours only (the readings in between are dropped and counted). With a spool
+  (``[bridge] spool_dir``, :mod:`pseudotwin.edge.bridge.outbox`) nothing is dropped: every
+  reading is on disk before paho has it, those beyond ``queue_size`` wait there in order,
+  and a restart sends again what the broker had not acknowledged. The status messages have
   room of their own in paho's queue, so a full queue never leaves ``offline`` retained;
 - paho's network thread (``loop_start``), which also reconnects to the broker by itself;
 - one supervisor thread owns the ADS connection: connect, validate the symbols, register the
@@ -73,10 +76,12 @@ from pseudotwin.edge.bridge.config import (
     BridgeConfig,
     SymbolConfig,
 )
+from pseudotwin.edge.bridge.outbox import Outbox
 from pseudotwin.edge.clock import Clock, SystemClock
 from pseudotwin.edge.mqttconn import log_connect_failures, refused_fatally, watch_takeover
 from pseudotwin.edge.replay import payload_for
 from pseudotwin.edge.sdnotify import notify, watchdog_interval
+from pseudotwin.live.readings import Reading
 
 __all__ = [
     "ADSERR_SYMBOL_NOT_FOUND",
@@ -175,6 +180,8 @@ EARLY_ACKS_KEPT = 1000  # far fewer than the 65535 mids before they wrap
 STATUS_HEADROOM = 16
 #: How often the publisher looks for room for held-back readings while no new one comes [s].
 HELD_RETRY_SECONDS = 0.2
+#: Readings written to the spool (and fsynced) at a time when the queue has many.
+SPOOL_BATCH = 1000
 _STOP = object()
 
 
@@ -226,6 +233,9 @@ class Bridge:
         self._acked = threading.Condition(self._count_lock)  # notified at every acknowledgement
         # sensor id → its newest reading that found the broker's queue full (publisher only)
         self._held: dict[str, _Item] = {}
+        # the spool (opened by start()), and whether writing to it fails right now
+        self.outbox: Outbox | None = None
+        self._spool_failing = False
         # Setting plc_up and publishing it happen under one lock, in the supervisor and in
         # paho's on_connect alike: otherwise a connect racing a PLC state change could leave
         # the opposite state retained on the broker.
@@ -279,8 +289,10 @@ class Bridge:
                        properties: Any) -> None:
         self.mqtt_connected.clear()
         if not self.stop_event.is_set():
+            kept = (f"in the spool {self.outbox.path}" if self.outbox is not None
+                    else f"up to {self.cfg.queue_size}")
             log.warning("disconnected from the broker (%s); reconnecting, readings are kept "
-                        "until it is back (up to %d)", reason_code, self.cfg.queue_size)
+                        "until it is back (%s)", reason_code, kept)
 
     def _on_publish(self, client: mqtt.Client, userdata: Any, mid: int, reason_code: Any,
                     properties: Any) -> None:
@@ -321,7 +333,7 @@ class Bridge:
             if not self._has_room():
                 return
             try:
-                sent = self._send(item)
+                sent = self._send(item) is not None
             except Exception:  # one bad reading must not block every later one
                 log.exception("unexpected error while publishing a held-back reading of %s; "
                               "dropped", item.symbol.symbol)
@@ -357,7 +369,7 @@ class Bridge:
                              "and sent when there is room")
         self._held[item.sensor.id] = item
 
-    def _publish_reading(self, item: _Item) -> None:
+    def _warn_skew(self, item: _Item) -> None:
         if item.source == "notification" and self._skew_warned_gen != self._gen:
             skew = item.ts - item.arrival
             if abs(skew) > CLOCK_SKEW_WARN:
@@ -366,16 +378,21 @@ class Bridge:
                             "%s); readings carry the PLC's time, and the daemon rejects "
                             "readings too far in the future or the past",
                             skew.total_seconds(), item.symbol.symbol)
-        if self._held or not self._has_room() or not self._send(item):
+
+    def _publish_reading(self, item: _Item) -> None:
+        self._warn_skew(item)
+        if self._held or not self._has_room() or self._send(item) is None:
             self._hold(item)
 
-    def _send(self, item: _Item) -> bool:
-        """Hand ``item`` to paho; False if paho's queue refused it."""
-        s = item.sensor
-        payload = payload_for(s.format, s.ts_key, s.value_key, item.ts, item.value)
+    def _send(self, item: _Item) -> int | None:
+        return self._send_value(item.sensor, item.ts, item.value)
+
+    def _send_value(self, s: SensorConfig, ts: dt.datetime, value: float) -> int | None:
+        """Hand one reading to paho; its message id, None if paho's queue refused it."""
+        payload = payload_for(s.format, s.ts_key, s.value_key, ts, value)
         info = self.client.publish(s.topic, payload, qos=1)
         if info.rc == mqtt.MQTT_ERR_QUEUE_SIZE:
-            return False
+            return None
         # MQTT_ERR_NO_CONN means queued by paho for after the reconnect: not lost yet,
         # published once the broker acknowledges it (_on_publish).
         with self._count_lock:
@@ -384,7 +401,108 @@ class Bridge:
                 self.published += 1
             else:
                 self._unacked.add(info.mid)
-        return True
+        return info.mid
+
+    # -- the publisher with a spool (outbox.py) -----------------------------------------
+    def _pending(self, mid: int) -> bool:
+        return mid in self._unacked  # a set lookup: atomic, no lock needed
+
+    def _spool_publisher(self) -> None:
+        outbox = self.outbox
+        assert outbox is not None
+        while True:
+            waiting = outbox.busy or bool(self._held)
+            try:
+                first = self.queue.get(timeout=HELD_RETRY_SECONDS if waiting else None)
+            except queue.Empty:
+                first = None
+            batch: list[_Item] = []
+            stopping = first is _STOP
+            if first is not None and not stopping:
+                batch.append(first)
+                while len(batch) < SPOOL_BATCH:  # one write (and fsync) for what is queued
+                    try:
+                        more = self.queue.get_nowait()
+                    except queue.Empty:
+                        break
+                    if more is _STOP:
+                        stopping = True
+                        break
+                    batch.append(more)
+            try:
+                if batch:
+                    self._spool_batch(outbox, batch)
+                self._release_held()
+                self._send_unsent(outbox)
+                outbox.settle(self._pending)
+            except Exception:  # the bridge must outlive one bad reading or spool trouble
+                log.exception("unexpected error while publishing readings from the spool %s",
+                              outbox.path)
+            if stopping:
+                self._spool_at_stop(outbox)
+                return
+
+    def _spool_batch(self, outbox: Outbox, batch: list[_Item]) -> None:
+        """Write ``batch`` to the spool, then hand to paho what it has room for, if nothing
+        older waits; on a disk that refuses them, publish them as without a spool."""
+        for item in batch:
+            self._warn_skew(item)
+        try:
+            spans = outbox.add([Reading(i.sensor.id, i.ts, i.value) for i in batch])
+        except OSError as exc:
+            if not self._spool_failing:
+                log.error("cannot write the spool %s (%s); readings go to the broker "
+                          "without it meanwhile (up to %d waiting in memory)", outbox.path,
+                          exc, self.cfg.queue_size)
+            self._spool_failing = True
+            for item in batch:
+                self._publish_reading(item)
+            return
+        if self._spool_failing:
+            log.info("the spool %s can be written again", outbox.path)
+            self._spool_failing = False
+        for item, (start, end) in zip(batch, spans, strict=True):
+            if outbox.cursor != start or not self._has_room():
+                return  # older readings first: _send_unsent takes it from the file
+            mid = self._send(item)
+            if mid is None:
+                return
+            outbox.sent(mid, end)
+
+    def _send_unsent(self, outbox: Outbox) -> None:
+        """Hand the spool's unsent readings to paho, oldest first, while it has room."""
+        if outbox.cursor >= outbox.end or not self._has_room():
+            return
+        for reading, end in outbox.unsent():
+            if reading is None:
+                outbox.sent(None, end)  # unreadable (logged): nothing to wait for
+                continue
+            sensor = self.cfg.sensors.get(reading.sensor)
+            if sensor is None:  # spooled by an earlier run under another configuration
+                self._count_drop(f"{reading.sensor!r} from the spool is no longer a "
+                                 "configured sensor")
+                outbox.sent(None, end)
+                continue
+            if not self._has_room():
+                return
+            mid = self._send_value(sensor, reading.ts, reading.value)
+            if mid is None:
+                return
+            outbox.sent(mid, end)
+
+    def _spool_at_stop(self, outbox: Outbox, timeout: float = 5.0) -> None:
+        """Send what the spool holds as room comes while the broker is there; what is left
+        stays in the spool for the next start."""
+        deadline = time.monotonic() + timeout
+        self._release_held_at_stop(timeout)
+        self._send_unsent(outbox)
+        while (outbox.cursor < outbox.end and self.mqtt_connected.is_set()
+               and time.monotonic() < deadline):
+            with self._acked:  # notified at every acknowledgement
+                self._acked.wait_for(lambda: len(self._unacked) < self.cfg.queue_size,
+                                     max(0.0, deadline - time.monotonic()))
+            self._send_unsent(outbox)
+        outbox.settle(self._pending)
 
     def _count_drop(self, why: str) -> None:
         with self._count_lock:
@@ -741,6 +859,13 @@ class Bridge:
         if self._started:
             raise RuntimeError("a Bridge can only be started once")
         self._started = True
+        if (path := self.cfg.spool_path) is not None:
+            # StateInUseError (another bridge on this spool), ConfigError (not writable)
+            self.outbox = Outbox(path, fsync=self.cfg.spool_fsync)
+            if self.outbox.busy:
+                log.info("%d reading(s) of an earlier run wait in the spool %s (not "
+                         "acknowledged by the broker then); they go out first",
+                         self.outbox.unsent_count(), path)
         if self.cfg.plc.local_ams_net_id:
             # Process-wide in pyads' router: the net id the PLC's route points back to.
             pyads.set_local_address(self.cfg.plc.local_ams_net_id)
@@ -748,8 +873,9 @@ class Bridge:
         # connect_async: the bridge starts (and watches the PLC) even if the broker is down.
         self.client.connect_async(b.host, b.port, keepalive=b.keepalive)
         self.client.loop_start()
-        self._publisher_thread = threading.Thread(target=self._publisher,
-                                                  name="bridge-publisher", daemon=True)
+        self._publisher_thread = threading.Thread(
+            target=self._publisher if self.outbox is None else self._spool_publisher,
+            name="bridge-publisher", daemon=True)
         self._supervisor_thread = threading.Thread(target=self._supervise,
                                                    name="bridge-supervisor", daemon=True)
         self._publisher_thread.start()
@@ -799,13 +925,31 @@ class Bridge:
                 self._acked.wait_for(lambda: not self._unacked, timeout)
         self.client.disconnect()
         self.client.loop_stop()
-        if lost := self.unacknowledged():
+        lost = self.unacknowledged()
+        if self.outbox is not None:
+            self._close_outbox(self.outbox)
+            lost = 0 if not self._spool_failing else lost
+        elif lost:
             log.warning("%d readings were never acknowledged by the broker %s:%d and are lost "
                         "with this stop (paho keeps them in memory only)", lost,
                         self.cfg.broker.host, self.cfg.broker.port)
         log.info("bridge stopped: %d readings published (acknowledged by the broker), %d "
                  "dropped, %d lost at stop, %d not a number (not published)", self.published,
                  self.dropped, lost, self.not_finite)
+
+    def _close_outbox(self, outbox: Outbox) -> None:
+        """The last acknowledgements into the mark; say what stays for the next start."""
+        try:
+            outbox.settle(self._pending, force=True)
+            if kept := outbox.waiting(self._pending):
+                log.warning("%d reading(s) not acknowledged by the broker %s:%d stay in the "
+                            "spool %s; the next start sends them", kept,
+                            self.cfg.broker.host, self.cfg.broker.port, outbox.path)
+        except OSError as exc:
+            log.error("cannot mark the spool %s (%s): the next start sends again what the "
+                      "broker acknowledged since the last mark", outbox.path, exc)
+        finally:
+            outbox.close()
 
     def unacknowledged(self) -> int:
         """Readings handed to the MQTT client that the broker has not acknowledged."""
