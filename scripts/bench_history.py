@@ -4,8 +4,11 @@
 Backfill: one twin (trained on SML2010, dining room → bedroom) over 7 months of 1-minute
 reference readings. The readings are the Appliances house's ironing-room temperature (real,
 10-minute, Jan–May 2016) interpolated to one minute and continued cyclically to fill seven
-months (2016-01-12 … 2016-08-11). ``pseudotwin backfill`` runs as its own process, so its
-peak RSS (getrusage of the child) is the backfill's alone. Three runs, each into a fresh
+months (2016-01-12 … 2016-08-11). ``pseudotwin backfill`` runs as its own process, started
+by a small launcher process that reports its child's peak RSS: the backfill's alone (read
+in this process, a forked child's peak starts at the memory it copies from this one, which
+holds the training data and the readings: 254 MB at c34db46 where the backfill's own peak
+was about 158 MB). Three runs, each into a fresh
 copy of the readings-only store: one twin with ``--jobs 1`` (in one process), the same twin
 with ``--jobs J`` (default: the CPUs), and N twins (default 8, copies of the artifact under
 other twin ids, all on the same reference sensor) with ``--jobs J``. The rows of the
@@ -72,6 +75,17 @@ def minute_series(months: int) -> pd.DataFrame:
     return pd.DataFrame({"sensor": "dining/temp", "ts": grid, "value": np.round(vals, 3)})
 
 
+#: Runs argv[1:] and prints its peak RSS [KiB] last on stderr: forked from this small process,
+#: the child's ru_maxrss is its own. The child gets SIGTERM when the launcher dies (prctl
+#: PR_SET_PDEATHSIG, as die_with_parent), so stopping this script stops the backfill too.
+PEAK_RSS_LAUNCHER = ("import ctypes, resource, signal, subprocess, sys; "
+                     "libc = ctypes.CDLL(None, use_errno=True); "
+                     "rc = subprocess.call(sys.argv[1:], "
+                     "preexec_fn=lambda: libc.prctl(1, signal.SIGTERM)); "
+                     "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, "
+                     "file=sys.stderr); sys.exit(rc)")
+
+
 def children_cpu_s() -> float:
     ru = resource.getrusage(resource.RUSAGE_CHILDREN)
     return ru.ru_utime + ru.ru_stime
@@ -97,18 +111,20 @@ def run_backfill(tmp: Path, name: str, base: Path, twins: list[str], first: dt.d
     cfg.write_text(config_text(port, db.name, twins))
     cpu0 = children_cpu_s()
     t0 = time.perf_counter()
-    p = subprocess.run([EXE, "--log-level", "WARNING", "backfill", "--config", str(cfg),
+    p = subprocess.run([sys.executable, "-c", PEAK_RSS_LAUNCHER,
+                        EXE, "--log-level", "WARNING", "backfill", "--config", str(cfg),
                         "--twin", ",".join(twins), "--from", str(first), "--to", str(last),
                         "--jobs", str(jobs), "--quiet"], capture_output=True, text=True,
                        preexec_fn=die_with_parent)
     wall = time.perf_counter() - t0
     if p.returncode:
         raise RuntimeError(f"backfill {name} failed ({p.returncode}):\n{p.stdout}{p.stderr}")
+    peak_kib = int(p.stderr.strip().splitlines()[-1])
     with sqlite3.connect(db) as con:
         n = con.execute("SELECT count(*) FROM estimates").fetchone()[0]
     days = ((last - first).days + 1) * len(twins)
     return {"s": wall, "cpu_s": children_cpu_s() - cpu0, "estimates": n, "days": days,
-            "db": str(db)}
+            "db": str(db), "peak_rss_mb": peak_kib / 1024}
 
 
 def same_rows(a: str, b: str) -> bool:
@@ -206,7 +222,7 @@ def main() -> int:
         last = readings["ts"].iloc[-1].tz_convert(TZ).date()
         days = (last - first).days + 1
         one = run_backfill(tmp, "serial", base, ["desk"], first, last, 1, port)
-        rss_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+        rss_mb = one["peak_rss_mb"]
         par = run_backfill(tmp, "parallel", base, ["desk"], first, last, a.jobs, port)
         equal = same_rows(one["db"], par["db"])
         many = run_backfill(tmp, "fleet", base, fleet, first, last, a.jobs, port)
