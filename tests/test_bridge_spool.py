@@ -134,8 +134,8 @@ def test_every_reading_is_on_disk_before_paho_has_it(
     syncs = [0]
     real_sync = Spool.sync
 
-    def watched_sync(self: Spool) -> None:
-        real_sync(self)
+    def watched_sync(self: Spool, folder: bool = True) -> None:
+        real_sync(self, folder)
         syncs[0] += 1
         synced[0] = self.size()
 
@@ -250,6 +250,11 @@ def test_bad_spool_settings_are_located(env: Env) -> None:
     text = "\n".join(exc.value.problems)
     assert "bridge.spool_dir: must not be empty" in text
     assert "bridge.spool_fsync" in text and "boolean" in text
+    path = env.write_config()  # a file of the bridge's own: no spool for it to act on
+    path.write_text(path.read_text().replace("[bridge]\n", "[bridge]\nspool_fsync = false\n"),
+                    encoding="utf-8")
+    with pytest.raises(ConfigProblems, match="spool_fsync: has no effect without a spool"):
+        load_bridge_config(path)
 
 
 def test_a_client_id_makes_a_safe_file_name(env: Env) -> None:
@@ -293,9 +298,7 @@ def test_the_mark_moves_only_past_acknowledged_readings_in_order(tmp_path: Path)
     again.close()
 
 
-def test_a_fully_acknowledged_spool_is_emptied_when_long_or_at_stop(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_a_fully_acknowledged_spool_is_emptied_when_long_or_at_stop(tmp_path: Path) -> None:
     path = tmp_path / "bridge-x.jsonl"
     outbox = Outbox(path, fsync=False)
     for _, end in outbox.add(_readings(3)):
@@ -360,3 +363,49 @@ def test_the_mark_is_written_at_most_every_mark_seconds_and_a_failing_one_is_sai
     assert "can be marked again" in caplog.text
     assert outbox.mark == outbox.end == Spool(path).consumed() and not outbox.busy
     outbox.close()
+
+
+def test_a_busy_sensor_never_all_acknowledged_still_has_its_spool_cut(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A reading every 100 ms and acks a round trip behind: no moment had every reading
+    acknowledged, so the spool was never emptied and grew ~70 MB a day per 10 readings/s.
+    Its acknowledged part is cut off with the readings in flight kept."""
+    monkeypatch.setattr(outbox_module, "COMPACT_BYTES", 500)
+    path = tmp_path / "bridge-x.jsonl"
+    outbox = Outbox(path, fsync=True)
+    readings = _readings(200)
+    pending: set[int] = set()
+    biggest = 0
+    for mid, reading in enumerate(readings, start=1):  # as the publisher's loop does
+        outbox.settle(pending.__contains__)
+        ((_, end),) = outbox.add([reading])
+        outbox.sent(mid, end)
+        pending.add(mid)
+        outbox.settle(pending.__contains__)
+        pending.discard(mid - 1)  # the one before is acknowledged while this is in flight
+        biggest = max(biggest, path.stat().st_size)
+    line = len(path.read_bytes().splitlines(keepends=True)[-1])
+    assert biggest < 500 + 3 * line  # 200 lines would be ~30 times that
+    assert [r for r, _ in Spool(path).lines(0)][-1] == readings[-1]
+    outbox.close()
+    again = Outbox(path, fsync=False)  # a restart sends what was not marked: the one in flight
+    resent = [r for r, _ in again.unsent()]
+    assert resent and resent == readings[-len(resent):] and len(resent) <= 500 // line + 2
+    again.close()
+
+
+def test_a_status_message_acknowledged_leaves_no_stray_early_ack(env: Env) -> None:
+    """The status messages' acks were kept among the early acks (a reading's ack that comes
+    before publish() returns its mid) for good: once paho's mids wrapped, a reading with
+    one of their mids counted as acknowledged at once, and its spool offset could be marked
+    before the broker had it."""
+    bridge = Bridge(load_bridge_config(_spooled_config(env)))  # not started: paho queues
+    info = bridge._publish_other(f"{env.base}/bridge/status", "online")
+    bridge._on_publish(bridge.client, None, info.mid, None, None)  # the broker's PUBACK
+    assert info.mid not in bridge._early_acks and not bridge._other_mids
+    sensor = bridge.cfg.sensors["hmi/temp"]
+    mid = bridge._send_value(sensor, T0, 21.0)
+    assert mid is not None and bridge._pending(mid) and bridge.published == 0
+    bridge._on_publish(bridge.client, None, mid, None, None)
+    assert not bridge._pending(mid) and bridge.published == 1

@@ -314,7 +314,7 @@ class Recorder:
         self._retry_spool()  # older readings first
         if batch and (self.spool.path.exists() or not self._write(batch)):
             try:
-                remade = self.spool.add(batch)
+                remade, _ = self.spool.add(batch)
             except OSError as exc:
                 self._stuck_on(len(batch), exc)
                 return False

@@ -30,15 +30,15 @@ class Spool:
         self.offset_path = path.with_name(path.name + ".offset")
         path.parent.mkdir(parents=True, exist_ok=True)
 
-    def add(self, readings: list[Reading]) -> bool:
-        """Append ``readings`` (flushed to the kernel, not synced: :meth:`sync`); True if the
+    def add(self, readings: list[Reading]) -> tuple[bool, list[bytes]]:
+        """Append ``readings`` (flushed to the kernel, not synced: :meth:`sync`); whether the
         folder had to be made again (the state dir was deleted under a running process: it
-        spools all the same)."""
+        spools all the same), and the lines written."""
         made = not self.path.parent.is_dir()
         if made:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-        readinglines.append(self.path, readings)  # a torn last line is ended first
-        return made
+        lines = readinglines.append(self.path, readings)  # a torn last line is ended first
+        return made, lines
 
     def size(self) -> int:
         """The file's length in bytes (0 when there is none): where the next line starts."""
@@ -47,15 +47,16 @@ class Spool:
         except FileNotFoundError:
             return 0
 
-    def sync(self) -> None:
-        """Put what was added on disk (fsync), the file's directory entry included: a
-        power cut then loses none of it."""
+    def sync(self, folder: bool = True) -> None:
+        """Put what was added on disk (fsync), and with ``folder`` the file's directory
+        entry (needed once, after the file was made): a power cut then loses none of it."""
         fd = os.open(self.path, os.O_RDONLY)
         try:
             os.fsync(fd)
         finally:
             os.close(fd)
-        readinglines.sync_folder(self.path.parent)
+        if folder:
+            readinglines.sync_folder(self.path.parent)
 
     def consumed(self) -> int:
         """Bytes at the spool's start that were taken (0: none, or no mark)."""
@@ -104,6 +105,27 @@ class Spool:
         text = str(offset)
         write_replacing(self.offset_path, lambda tmp: tmp.write_text(text, encoding="ascii"),
                         follow_symlinks=False)
+
+    def keep_from(self, offset: int, durable: bool) -> None:
+        """Cut the spool's first ``offset`` bytes off: the rest, copied to a new file that
+        replaces it (synced first when ``durable``), starts at 0 and nothing of it is
+        marked taken. The mark goes first: a crash in between leaves the old file taken
+        again whole, never an old mark that would skip the new file's first lines."""
+        self.offset_path.unlink(missing_ok=True)
+        tmp = self.path.with_name(f".{self.path.name}.tmp{os.getpid()}")
+        try:
+            with open(self.path, "rb") as src, open(tmp, "wb") as dst:
+                src.seek(offset)
+                while block := src.read(1 << 20):
+                    dst.write(block)
+                if durable:
+                    dst.flush()
+                    os.fsync(dst.fileno())
+            os.replace(tmp, self.path)
+        finally:
+            tmp.unlink(missing_ok=True)
+        if durable:
+            readinglines.sync_folder(self.path.parent)
 
     def clear(self) -> None:
         # The mark first: a crash in between leaves a spool taken again whole (kept once),

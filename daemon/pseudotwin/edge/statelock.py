@@ -23,16 +23,19 @@ log = logging.getLogger(__name__)
 
 # flock is not offered here: run unlocked rather than not at all
 _NO_FLOCK = {errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS}
+#: What two daemons (or recorders) on one state dir would do to each other.
+CONFLICT = ("two on one state dir would share the broker session, each knocking the other "
+            "off, and one journal; stop it, or give this one its own state_dir and client_id")
 
 
 class StateLock:
     """The lock file ``path`` (in a state dir) of one ``role`` (``daemon``, ``recorder``,
-    ``bridge``); ``shared``: what two of them would share besides the broker session."""
+    ``bridge``); ``conflict``: what two of them would do to each other, and the way out."""
 
-    def __init__(self, path: Path, role: str, shared: str = "one journal") -> None:
+    def __init__(self, path: Path, role: str, conflict: str = CONFLICT) -> None:
         self.path = path
         self.role = role
-        self.shared = shared
+        self.conflict = conflict
         self._fd: int | None = None
 
     def acquire(self) -> None:
@@ -53,9 +56,7 @@ class StateLock:
             os.close(fd)
             raise StateInUseError(
                 f"{self.path.parent} is in use by another pseudotwin {self.role} (PID "
-                f"{holder}): two on one state dir would share the broker session, each "
-                f"knocking the other off, and {self.shared}; stop it, or give this one its own "
-                f"state_dir and client_id") from None
+                f"{holder}): {self.conflict}") from None
         except OSError as exc:
             os.close(fd)
             if exc.errno not in _NO_FLOCK:

@@ -535,6 +535,9 @@ class _BridgeLoader:
             "spool_fsync": table.get("spool_fsync", _DEFAULTS["spool_fsync"]),
         }
         found = _bridge_scalar_problems(**values, broker_client_id=broker_id)
+        if "spool_fsync" in table and "spool_dir" not in table and state_dir is None:
+            found.append(("spool_fsync", "has no effect without a spool: set spool_dir too "
+                                         "(a file of the bridge's own has none by default)"))
         for where, msg in found:
             self.inner.add(f"bridge.{where}", msg)
         if found or values["client_id"] is None:

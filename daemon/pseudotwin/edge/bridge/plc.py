@@ -21,9 +21,10 @@ Threads, and why:
   newest reading of each sensor and sends it as soon as there is room again, so after a
   long broker outage the daemon gets every sensor's current value, not the outage's first
   hours only (the readings in between are dropped and counted). With a spool
-  (``[bridge] spool_dir``, :mod:`pseudotwin.edge.bridge.outbox`) nothing is dropped: every
-  reading is on disk before paho has it, those beyond ``queue_size`` wait there in order,
-  and a restart sends again what the broker had not acknowledged. The status messages have
+  (``[bridge] spool_dir``, :mod:`pseudotwin.edge.bridge.outbox`) nothing is dropped for want
+  of room in paho's queue: every reading is on disk before paho has it, those beyond
+  ``queue_size`` wait there in order, and a restart sends again what the broker had not
+  acknowledged. The status messages have
   room of their own in paho's queue, so a full queue never leaves ``offline`` retained;
 - paho's network thread (``loop_start``), which also reconnects to the broker by itself;
 - one supervisor thread owns the ADS connection: connect, validate the symbols, register the
@@ -230,6 +231,7 @@ class Bridge:
         # insertion-ordered, the oldest let go past EARLY_ACKS_KEPT: the status messages'
         # acks land here too, and paho's mids wrap at 65535
         self._early_acks: dict[int, None] = {}
+        self._other_mids: set[int] = set()  # status and PLC state messages not acknowledged
         self._acked = threading.Condition(self._count_lock)  # notified at every acknowledgement
         # sensor id → its newest reading that found the broker's queue full (publisher only)
         self._held: dict[str, _Item] = {}
@@ -277,7 +279,7 @@ class Bridge:
             else:
                 log.error("broker refused the connection: %s", reason_code)
             return
-        client.publish(self.cfg.status_topic, "online", qos=1, retain=True)
+        self._publish_other(self.cfg.status_topic, "online")
         with self._state_lock:
             self._publish_state(self.plc_up.is_set())
         log.info("connected to the broker %s:%d as %r (session present: %s)",
@@ -301,7 +303,9 @@ class Bridge:
                 self._unacked.discard(mid)
                 self.published += 1
                 self._acked.notify_all()  # stop() waits for none, held readings for room
-            else:  # before publish() returned its mid (or the status message's)
+            elif mid in self._other_mids:
+                self._other_mids.discard(mid)
+            else:  # before publish() returned its mid
                 self._early_acks[mid] = None
                 if len(self._early_acks) > EARLY_ACKS_KEPT:
                     del self._early_acks[next(iter(self._early_acks))]
@@ -322,6 +326,19 @@ class Bridge:
             except Exception:  # the bridge must outlive one bad reading
                 log.exception("unexpected error while publishing a reading of %s",
                               item.symbol.symbol)
+
+    def _publish_other(self, topic: str, payload: str) -> mqtt.MQTTMessageInfo:
+        """Publish a status or PLC state message (retained, QoS 1), its acknowledgement
+        expected: a stray one kept among the early acks would, once paho's mids wrap, count
+        a reading with the same mid as acknowledged before the broker has it."""
+        info = self.client.publish(topic, payload, qos=1, retain=True)
+        if info.rc != mqtt.MQTT_ERR_QUEUE_SIZE:
+            with self._count_lock:
+                if info.mid in self._early_acks:
+                    del self._early_acks[info.mid]
+                else:
+                    self._other_mids.add(info.mid)
+        return info
 
     def _has_room(self) -> bool:
         with self._count_lock:
@@ -430,6 +447,9 @@ class Bridge:
                         break
                     batch.append(more)
             try:
+                # the acks that came meanwhile first: a busy sensor leaves no moment with
+                # every reading acknowledged, and the spool is cut where they end
+                outbox.settle(self._pending)
                 if batch:
                     self._spool_batch(outbox, batch)
                 self._release_held()
@@ -501,7 +521,10 @@ class Bridge:
             with self._acked:  # notified at every acknowledgement
                 self._acked.wait_for(lambda: len(self._unacked) < self.cfg.queue_size,
                                      max(0.0, deadline - time.monotonic()))
+            before = outbox.cursor
             self._send_unsent(outbox)
+            if outbox.cursor == before and self._has_room():
+                break  # no progress with room (paho refuses): the rest stays for next time
         outbox.settle(self._pending)
 
     def _count_drop(self, why: str) -> None:
@@ -517,8 +540,7 @@ class Bridge:
         paho's queue, and ``_on_connect`` publishes the state of that moment anyway."""
         if not self.client.is_connected():
             return
-        info = self.client.publish(self.cfg.plc_topic, "up" if up else "down", qos=1,
-                                   retain=True)
+        info = self._publish_other(self.cfg.plc_topic, "up" if up else "down")
         if info.rc == mqtt.MQTT_ERR_QUEUE_SIZE:
             log.warning("the PLC state could not be queued for the broker (its queue is "
                         "full); it goes out at the next change or reconnect")
@@ -914,8 +936,8 @@ class Bridge:
             self._publisher_thread.join(timeout)
         if self.mqtt_connected.is_set():
             # Retained: "up" would stay the PLC's state for every later subscriber.
-            self.client.publish(self.cfg.plc_topic, "down", qos=1, retain=True)
-            info = self.client.publish(self.cfg.status_topic, "offline", qos=1, retain=True)
+            self._publish_other(self.cfg.plc_topic, "down")
+            info = self._publish_other(self.cfg.status_topic, "offline")
             try:
                 info.wait_for_publish(timeout)
             except (RuntimeError, ValueError) as exc:
@@ -927,8 +949,19 @@ class Bridge:
         self.client.loop_stop()
         lost = self.unacknowledged()
         if self.outbox is not None:
-            self._close_outbox(self.outbox)
-            lost = 0 if not self._spool_failing else lost
+            if self._publisher_thread is not None and self._publisher_thread.is_alive():
+                # still writing the spool: its mark on disk stays where it is (safe)
+                log.warning("the publisher did not end within %g s; the spool %s is left "
+                            "as it is", timeout, self.outbox.path)
+                lost = 0
+            else:
+                with self._count_lock:  # sent while the spool failed: not in it
+                    lost = len(self._unacked - self.outbox.in_flight())
+                self._close_outbox(self.outbox)
+            if lost:
+                log.warning("%d readings sent while the spool could not be written were "
+                            "never acknowledged by the broker %s:%d and are lost with this "
+                            "stop", lost, self.cfg.broker.host, self.cfg.broker.port)
         elif lost:
             log.warning("%d readings were never acknowledged by the broker %s:%d and are lost "
                         "with this stop (paho keeps them in memory only)", lost,
@@ -946,8 +979,7 @@ class Bridge:
                             "spool %s; the next start sends them", kept,
                             self.cfg.broker.host, self.cfg.broker.port, outbox.path)
         except OSError as exc:
-            log.error("cannot mark the spool %s (%s): the next start sends again what the "
-                      "broker acknowledged since the last mark", outbox.path, exc)
+            log.error("cannot read the spool %s at stop (%s)", outbox.path, exc)
         finally:
             outbox.close()
 
