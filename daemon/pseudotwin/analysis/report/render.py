@@ -333,6 +333,12 @@ PERFORMANCE = (
      "The same day with an fsync after every batch of 64, as the daemon does before it "
      "acknowledges them with journal_fsync (the default): what a power cut that loses no "
      "reading costs on this machine's disk."),
+    ("bench_bridge.txt", ".venv/bin/python scripts/bench_bridge.py",
+     "The PLC bridge's publisher and its spool",
+     "20,000 readings of 10 sensors put on the bridge's queue as fast as it takes them, "
+     "into a real Mosquitto: without a spool, with one, and with one synced before paho has "
+     "a reading (the default); then the broker stopped, 20,000 more readings, the bridge "
+     "restarted against a broker that is back: how many of those reach it."),
     ("bench_claims.txt", ".venv/bin/python scripts/bench_claims.py",
      "Twin claims in a fleet",
      "A daemon's claim of 1,000 to 100,000 twins (edge/ownership.py): its size and parts of "
