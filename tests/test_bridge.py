@@ -780,6 +780,24 @@ def test_readings_arrive_after_a_broker_restart(
         assert bridge.dropped == 0
 
 
+def _eleven_readings_in_an_outage(plc: Plc, bridge: Bridge, mosquitto: MosquittoBroker,
+                                  inbox: Inbox, env: Env, settled: Callable[[], bool],
+                                  what: str) -> None:
+    """With the initial values acknowledged, the broker away while the PLC changes
+    fRoomTemp to 30..39 and nCo2 to 800; the broker back once ``settled``."""
+    _wait_initial(inbox, env)
+    _wait_for(lambda: bridge.unacknowledged() == 0, "the initial values acknowledged")
+    try:
+        mosquitto.stop()
+        _wait_for(lambda: not bridge.mqtt_connected.is_set(), "the bridge sees the outage")
+        for i in range(10):
+            plc.write("MAIN.fRoomTemp", 30.0 + i)
+        plc.write("MAIN.nCo2", 800)
+        _wait_for(settled, what)
+    finally:
+        mosquitto.start()
+
+
 def test_a_broker_outage_longer_than_the_queue_keeps_each_sensors_newest_reading(
     plc: Plc, env: Env, mosquitto: MosquittoBroker, mqtt_client: MqttClientFactory
 ) -> None:
@@ -791,18 +809,10 @@ def test_a_broker_outage_longer_than_the_queue_keeps_each_sensors_newest_reading
     path.write_text(path.read_text().replace("[bridge]\n", "[bridge]\nqueue_size = 5\n"),
                     encoding="utf-8")
     with running(Bridge(load_bridge_config(path))) as bridge:
-        _wait_initial(inbox, env)
-        _wait_for(lambda: bridge.unacknowledged() == 0, "the initial values acknowledged")
-        try:
-            mosquitto.stop()
-            _wait_for(lambda: not bridge.mqtt_connected.is_set(), "the bridge sees the outage")
-            for i in range(10):
-                plc.write("MAIN.fRoomTemp", 30.0 + i)
-            plc.write("MAIN.nCo2", 800)
-            _wait_for(lambda: bridge.dropped == 4 and bridge.queue.empty(),
-                      "readings 35..38 dropped, 39 and the CO2 held back")
-        finally:
-            mosquitto.start()
+        _eleven_readings_in_an_outage(
+            plc, bridge, mosquitto, inbox, env,
+            lambda: bridge.dropped == 4 and bridge.queue.empty(),
+            "readings 35..38 dropped, 39 and the CO2 held back")
         for value in (30.0, 31.0, 32.0, 33.0, 34.0, 39.0):  # in this order, 35..38 dropped
             inbox.wait(env.topics["hmi/temp"], _is(value))
         inbox.wait(env.topics["ceiling/co2"], _is(800))

@@ -25,6 +25,7 @@ from pseudotwin.live.readings import Reading
 from test_bridge import (  # noqa: F401 - the fixtures plc and env
     Env,
     Plc,
+    _eleven_readings_in_an_outage,
     _is,
     _shared_file,
     _subscribe,
@@ -64,17 +65,8 @@ def test_a_broker_outage_longer_than_the_queue_loses_nothing_with_a_spool(
     sensor's newest kept: test_bridge.py); with one, every reading arrives, in order."""
     inbox = _subscribe(mqtt_client, env, client_id=f"sub-{env.client_id}", clean_session=False)
     with running(Bridge(load_bridge_config(_spooled_config(env, queue_size=5)))) as bridge:
-        _wait_initial(inbox, env)
-        _wait_for(lambda: bridge.unacknowledged() == 0, "the initial values acknowledged")
-        try:
-            mosquitto.stop()
-            _wait_for(lambda: not bridge.mqtt_connected.is_set(), "the bridge sees the outage")
-            for i in range(10):
-                plc.write("MAIN.fRoomTemp", 30.0 + i)
-            plc.write("MAIN.nCo2", 800)
-            _wait_for(lambda: bridge.queue.empty(), "the publisher has every reading")
-        finally:
-            mosquitto.start()
+        _eleven_readings_in_an_outage(plc, bridge, mosquitto, inbox, env, bridge.queue.empty,
+                                      "the publisher has every reading")
         inbox.wait(env.topics["hmi/temp"], _is(39.0))
         inbox.wait(env.topics["ceiling/co2"], _is(800))
         _wait_for(lambda: bridge.unacknowledged() == 0, "everything acknowledged")
