@@ -16,6 +16,7 @@ import pseudotwin.edge.bridge.outbox as outbox_module
 from conftest import MosquittoBroker, MqttClientFactory
 from pseudotwin.cli.bridge import EX_CONFIG, main
 from pseudotwin.config import ConfigProblems
+from pseudotwin.edge import readinglines
 from pseudotwin.edge.bridge import Bridge, load_bridge_config
 from pseudotwin.edge.bridge.outbox import COMPACT_BYTES, Outbox
 from pseudotwin.edge.clock import EX_TEMPFAIL
@@ -401,3 +402,27 @@ def test_a_status_message_acknowledged_leaves_no_stray_early_ack(env: Env) -> No
     assert mid is not None and bridge._pending(mid) and bridge.published == 0
     bridge._on_publish(bridge.client, None, mid, None, None)
     assert not bridge._pending(mid) and bridge.published == 1
+
+
+def test_a_synced_spool_has_its_new_files_directory_entry_synced_once(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The spool file made at the start had its readings fsynced but never its directory
+    entry: a power cut could take the new file, readings and all."""
+    synced: list[Path] = []
+    real = readinglines.sync_folder
+
+    def watched(folder: Path) -> None:
+        real(folder)
+        synced.append(folder)
+
+    monkeypatch.setattr(readinglines, "sync_folder", watched)
+    outbox = Outbox(tmp_path / "state" / "bridge-x.jsonl", fsync=True)
+    assert synced == [tmp_path / "state"]
+    outbox.add(_readings(2))
+    outbox.add(_readings(2, start=5))
+    assert synced == [tmp_path / "state"]  # the file's entry is on disk already
+    outbox.close()
+    synced.clear()
+    Outbox(tmp_path / "other" / "bridge-x.jsonl", fsync=False).close()
+    assert synced == []

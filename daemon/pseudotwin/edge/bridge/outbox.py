@@ -58,6 +58,8 @@ class Outbox:
         try:
             self.spool = Spool(path)
             readinglines.append(path, [])  # the file, writable: found now, not mid-outage
+            if fsync:  # made just now, maybe: its directory entry too, or a power cut
+                self.spool.sync()  # could take the file with the readings added to it
         except OSError as exc:
             self.lock.release()
             raise ConfigError(f"{path}: the bridge's spool cannot be written "
