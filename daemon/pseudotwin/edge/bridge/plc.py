@@ -334,11 +334,17 @@ class Bridge:
         info = self.client.publish(topic, payload, qos=1, retain=True)
         if info.rc != mqtt.MQTT_ERR_QUEUE_SIZE:
             with self._count_lock:
-                if info.mid in self._early_acks:
-                    del self._early_acks[info.mid]
-                else:
-                    self._other_mids.add(info.mid)
+                self._acked_early(info.mid, self._other_mids)
         return info
+
+    def _acked_early(self, mid: int, expected: set[int]) -> bool:
+        """(Under ``_count_lock``, once publish() returned ``mid``.) Whether its ack came
+        before (kept among the early acks, now taken out); else it is ``expected``."""
+        if mid in self._early_acks:
+            del self._early_acks[mid]
+            return True
+        expected.add(mid)
+        return False
 
     def _has_room(self) -> bool:
         with self._count_lock:
@@ -413,11 +419,8 @@ class Bridge:
         # MQTT_ERR_NO_CONN means queued by paho for after the reconnect: not lost yet,
         # published once the broker acknowledges it (_on_publish).
         with self._count_lock:
-            if info.mid in self._early_acks:
-                del self._early_acks[info.mid]
+            if self._acked_early(info.mid, self._unacked):
                 self.published += 1
-            else:
-                self._unacked.add(info.mid)
         return info.mid
 
     # -- the publisher with a spool (outbox.py) -----------------------------------------
