@@ -85,12 +85,20 @@ def test_recorder_writes_every_valid_reading_and_spools_while_the_store_is_away(
 
 
 def test_rows_the_store_refuses_one_by_one_go_to_a_file_and_block_nothing(
-    mosquitto, desk_artifact, tmp_path: Path
+    mosquitto, desk_artifact, tmp_path: Path, monkeypatch
 ) -> None:
     """CrateDB answers each row of a bulk write: a reading it always refuses must not keep the
     spool, and every reading after it, from the store. It lands in a canonical CSV that
-    ``pseudotwin import`` loads once the cause is fixed. (FakeCrateDB is a fake: no CrateDB
-    server can run here.)"""
+    ``pseudotwin import`` loads once the cause is fixed, synced before it is acknowledged.
+    (FakeCrateDB is a fake: no CrateDB server can run here.)"""
+    synced: list[tuple[Path, int]] = []
+    real_sync = recorder_module.readinglines.sync_file
+
+    def sync_file(path: Path, folder: bool = True) -> None:
+        real_sync(path, folder)
+        synced.append((path, path.stat().st_size))
+
+    monkeypatch.setattr(recorder_module.readinglines, "sync_file", sync_file)
     ts = [HOURS.at(DAY, 8 + i / 60) for i in range(30)]
     bad = {to_ms(ts[3]), to_ms(ts[25])}
     value = {i: 20 + i / 100 + 1e-9 for i in range(30)}  # more digits than %.6g keeps
@@ -111,6 +119,8 @@ def test_rows_the_store_refuses_one_by_one_go_to_a_file_and_block_nothing(
         rec.stop()
         pub.loop_stop()
         assert not rec.spool.path.exists()
+        assert [n for path, n in synced if path == rec.refused_path][-1] == (
+            rec.refused_path.stat().st_size)
         with open_store(crate.url) as store:
             stored = store.read_readings([REF])
             assert len(stored) == 28
@@ -299,6 +309,61 @@ def test_a_recorder_whose_state_dir_is_deleted_spools_and_locks_it_again(
         assert "was deleted while recording" in caplog.text
         with pytest.raises(StateInUseError):  # locked again: no second recorder here
             StateLock(Path(cfg.state_dir) / "recorder.lock", "recorder").acquire()
+    finally:
+        rec.stop()
+        pub.loop_stop()
+
+
+@pytest.mark.parametrize("fsync", [True, False])
+def test_a_recorder_acknowledges_a_reading_only_once_it_is_on_disk(
+    mosquitto, desk_artifact, tmp_path: Path, monkeypatch, fsync: bool
+) -> None:
+    """The broker forgets a reading once the recorder acknowledges it: with `journal_fsync`
+    (the default) the reading must then survive a power cut. Its spool line was only
+    flushed to the kernel, and SQLite's commits (synchronous NORMAL) could roll back."""
+    synced: list[tuple[Path, int, bool]] = []
+    real_sync = recorder_module.readinglines.sync_file
+
+    def sync_file(path: Path, folder: bool = True) -> None:
+        real_sync(path, folder)
+        synced.append((path, path.stat().st_size, folder))
+
+    monkeypatch.setattr(recorder_module.readinglines, "sync_file", sync_file)
+    db = tmp_path / "later" / "history.db"  # the store away: readings go to the spool
+    cfg = config(tmp_path, mosquitto.port, desk_artifact, store=str(db), journal_fsync=fsync)
+    rec = Recorder(cfg, retry_seconds=0.2)
+    unsynced_at_ack: list[int] = []  # spool bytes not on disk when a reading was acked
+    real_ack = rec.client.ack
+
+    def ack(mid: int, qos: int) -> None:
+        on_disk = max((n for path, n, _ in synced if path == rec.spool.path), default=0)
+        unsynced_at_ack.append(rec.spool.size() - on_disk)
+        real_ack(mid, qos)
+
+    monkeypatch.setattr(rec.client, "ack", ack)
+    rec.start(wait_connected=15)
+    pub = publisher(mosquitto.port, f"durable-bridge-{fsync}")
+    try:
+        for i in range(6):
+            pub.publish("house/dining/temp", reading(HOURS.at(DAY, 8 + i / 60), 20.0 + i),
+                        qos=1)
+            if i == 2:  # two flushes: a new spool file, then one that exists
+                wait_for(lambda: rec.spooled == 3, what="the first three readings spooled")
+        wait_for(lambda: rec.spooled == 6, what="six readings spooled")
+        assert len(unsynced_at_ack) == 6
+        if fsync:
+            assert unsynced_at_ack == [0] * 6
+            assert [folder for path, _, folder in synced if path == rec.spool.path][0]
+            assert sum(folder for _, _, folder in synced) == 1  # the new file's entry, once
+        else:
+            assert synced == [] and max(unsynced_at_ack) > 0
+        db.parent.mkdir()  # the store comes back
+        wait_for(lambda: rec.written == 6, what="the spool written to the store")
+        store = rec.store
+        assert store is not None
+        full, normal = 2, 1
+        assert store._conn.execute("PRAGMA synchronous").fetchone()[0] == (
+            full if fsync else normal)
     finally:
         rec.stop()
         pub.loop_stop()

@@ -585,7 +585,8 @@ class ServiceConfig:
     journal_fsync: readings are acknowledged only once their journal lines are on disk
         (fsync, once per batch of readings), so a power cut loses none the broker let go;
         false acknowledges once the lines are in the kernel (a killed daemon still loses
-        nothing; a power cut may lose the last seconds), for slow flash storage.
+        nothing; a power cut may lose the last seconds), for slow flash storage. The
+        recorder likewise: its spool synced, a SQLite store's commits synced (FULL).
     """
 
     broker: BrokerConfig

@@ -44,6 +44,18 @@ def append(path: Path, readings: Iterable[Reading]) -> list[bytes]:
     return lines
 
 
+def sync_file(path: Path, folder: bool = True) -> None:
+    """Put what was written to the file at ``path`` on disk (fsync), and with ``folder`` its
+    directory entry (needed once, after the file was made): a power cut then loses none."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    if folder:
+        sync_folder(path.parent)
+
+
 def sync_folder(folder: Path) -> None:
     """fsync a folder: a file created in it survives a power cut only once its directory
     entry is on disk too."""

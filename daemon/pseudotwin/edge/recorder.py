@@ -2,10 +2,11 @@
 
 Readings arrive over MQTT (QoS 1, persistent session, manual acks) and are written in batches
 (at most ``flush_seconds`` old). A message is acknowledged only once its reading is in the
-store or in the on-disk spool: when the store is unreachable, batches go to
-``state_dir/recorder-spool.jsonl`` and are retried until they are in; store writes are
-idempotent, so a retry never duplicates. Bad payloads are counted and skipped exactly as in
-the daemon (the same parser and the same :class:`RejectionCounter`).
+store or in the on-disk spool (synced to disk, both, with ``journal_fsync``): when the
+store is unreachable, batches go to ``state_dir/recorder-spool.jsonl`` and are retried until
+they are in; store writes are idempotent, so a retry never duplicates. Bad payloads are
+counted and skipped exactly as in the daemon (the same parser and the same
+:class:`RejectionCounter`).
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from pseudotwin.config.validate import absent_sqlite_file
 from pseudotwin.core import series
 from pseudotwin.core.logpace import doubled
 from pseudotwin.core.series import write_history
+from pseudotwin.edge import readinglines
 from pseudotwin.edge.clock import Clock, SystemClock
 from pseudotwin.edge.mqttconn import (
     StaleTopics,
@@ -188,7 +190,9 @@ class Recorder:
                 self._said_new_store = True  # once: a failing open is retried every few s
                 log.info("creating the history store %s (a new SQLite file; a relative path "
                          "is from the configuration's folder)", file)
-            self.store = open_store(self.store_url)
+            # journal_fsync: a reading is acknowledged once committed, so committed must
+            # mean on disk (SQLite's default here would lose the last commits to a power cut).
+            self.store = open_store(self.store_url, durable=self.cfg.journal_fsync)
             self._store_ident = _file_ident(self.store)
         return self.store
 
@@ -256,7 +260,10 @@ class Recorder:
                               "ts": pd.DatetimeIndex([r.ts for r in readings]).tz_convert("UTC"),
                               "value": [r.value for r in readings]})
         # exact: raw readings are never modified (OSError: the batch is retried)
+        new_file = not self.refused_path.exists()
         write_history(frame, self.refused_path, append=True, exact=True)
+        if self.cfg.journal_fsync:  # acknowledged next, as a spooled reading
+            readinglines.sync_file(self.refused_path, folder=new_file)
         self.refused += len(readings)
         self.metrics.refused.inc(len(readings))
         log.error("the history store refused %d readings and took the others (%s); they are "
@@ -314,7 +321,10 @@ class Recorder:
         self._retry_spool()  # older readings first
         if batch and (self.spool.path.exists() or not self._write(batch)):
             try:
+                new_file = not self.spool.path.exists()
                 remade, _ = self.spool.add(batch)
+                if self.cfg.journal_fsync:  # acknowledged next: on disk first
+                    self.spool.sync(folder=new_file)
             except OSError as exc:
                 self._stuck_on(len(batch), exc)
                 return False

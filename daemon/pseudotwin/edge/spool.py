@@ -50,13 +50,7 @@ class Spool:
     def sync(self, folder: bool = True) -> None:
         """Put what was added on disk (fsync), and with ``folder`` the file's directory
         entry (needed once, after the file was made): a power cut then loses none of it."""
-        fd = os.open(self.path, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        if folder:
-            readinglines.sync_folder(self.path.parent)
+        readinglines.sync_file(self.path, folder)
 
     def consumed(self) -> int:
         """Bytes at the spool's start that were taken (0: none, or no mark)."""

@@ -695,9 +695,10 @@ class SQLiteStore(Store):
     )
 
     def __init__(self, path: str, url: str | None = None, existing: bool = False,
-                 migrate: bool = True) -> None:
+                 migrate: bool = True, durable: bool = False) -> None:
         super().__init__(url or (path if path == ":memory:" else f"sqlite:///{path}"), migrate)
         self.path = path
+        self.durable = durable
         if path != ":memory:":
             parent = Path(path).parent
             # No silent mkdir: a mistyped sqlite:/// URL (relative vs. absolute) must fail
@@ -731,9 +732,10 @@ class SQLiteStore(Store):
                 if str(mode).lower() != "wal":  # e.g. some network file systems
                     log.warning("%s: WAL mode unavailable (journal_mode=%s); concurrent "
                                 "readers may wait for writers", self.url, mode)
-            # NORMAL is durable enough in WAL mode (a power loss may drop the last
-            # transactions, never corrupt the file) and avoids an fsync per batch.
-            self._conn.execute("PRAGMA synchronous = NORMAL")
+            # NORMAL in WAL mode: a power loss may drop the last transactions, never
+            # corrupt the file, and no fsync per write. FULL syncs the WAL at each commit:
+            # for the recorder, which tells the broker a reading is safe once committed.
+            self._conn.execute(f"PRAGMA synchronous = {'FULL' if self.durable else 'NORMAL'}")
             self._conn.execute("CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, "
                                "value TEXT NOT NULL) WITHOUT ROWID")
             row = self._conn.execute(
@@ -1026,13 +1028,15 @@ def _bulk_count(results: list[dict] | None, sent: int) -> tuple[int, list[tuple[
 
 
 def open_store(url: str | os.PathLike[str], existing: bool = False,
-               migrate: bool = True) -> Store:
+               migrate: bool = True, durable: bool = False) -> Store:
     """Open (creating tables on first use) the store at ``url``; see the module docstring.
 
     existing: the caller only reads what is there (train, evaluate, backfill): a SQLite file
     that does not exist is an error, not a new empty database (a mistyped path).
     migrate: bring a store of an older schema version up to date; False for callers that
     only read readings (its estimates then cannot be read or written).
+    durable: a write that returned survives a power cut (SQLite: synchronous FULL, an fsync
+    per write; PostgreSQL and CrateDB commit to disk by default, their servers' settings).
     Raises ConfigError for a malformed URL, StoreError when the database cannot be used.
     """
     text = os.fspath(url).strip()
@@ -1058,11 +1062,12 @@ def open_store(url: str | os.PathLike[str], existing: bool = False,
         if not rest.startswith("/"):
             raise ConfigError(f"{text!r}: expected sqlite:///relative.db or "
                               "sqlite:////absolute/path.db")
-        return SQLiteStore(rest[1:], url=text, existing=existing, migrate=migrate)
+        return SQLiteStore(rest[1:], url=text, existing=existing, migrate=migrate,
+                           durable=durable)
     if scheme:
         raise ConfigError(f"{text!r}: unsupported history store (use a SQLite file path, "
                           "sqlite:///path, postgresql://host/db or crate://host:4200)")
-    return SQLiteStore(text, existing=existing, migrate=migrate)
+    return SQLiteStore(text, existing=existing, migrate=migrate, durable=durable)
 
 
 def _with_port(host: str) -> str:
