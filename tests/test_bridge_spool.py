@@ -24,6 +24,7 @@ from pseudotwin.edge.spool import Spool
 from pseudotwin.errors import ConfigError, StateInUseError
 from pseudotwin.live.readings import Reading
 from test_bridge import (  # noqa: F401 - the fixtures plc and env
+    DEFAULT_SYMBOLS,
     Env,
     Plc,
     _eleven_readings_in_an_outage,
@@ -234,6 +235,26 @@ def test_the_spool_defaults_to_the_daemons_state_dir_and_is_off_in_a_bridge_file
                       encoding="utf-8")
     cfg = load_bridge_config(shared)
     assert cfg.spool_dir == tmp_path / "elsewhere" and cfg.spool_fsync is False
+
+
+def test_bridged_sensors_without_a_time_stamp_are_named_at_check_and_at_start(
+    env: Env, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
+) -> None:
+    """A bare number the bridge sends late (a broker outage, the spool after a restart) is
+    stamped on arrival, and one sent twice counts twice: said before it happens."""
+    caplog.set_level(logging.WARNING, logger="pseudotwin.edge.bridge")
+    note = "sensor(s) ceiling/co2 carry no time stamp in their payload"
+    path = env.write_config()  # ceiling/co2 is format = "number"
+    assert main(["--config", str(path), "--check"]) == 0
+    assert f"{path}: note: {note}" in capsys.readouterr().out
+    blocker = env.tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    with pytest.raises(ConfigError):  # start warns first, then fails on the spool
+        Bridge(load_bridge_config(_spooled_config(env, spool_dir=str(blocker)))).start()
+    assert note in caplog.text
+    stamped = env.write_config([s for s in DEFAULT_SYMBOLS if s["sensor"] != "ceiling/co2"])
+    assert main(["--config", str(stamped), "--check"]) == 0
+    assert "note:" not in capsys.readouterr().out
 
 
 def test_bad_spool_settings_are_located(env: Env) -> None:

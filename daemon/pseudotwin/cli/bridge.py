@@ -80,6 +80,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         spool = f"spool {cfg.spool_path}" if cfg.spool_path is not None else \
             "no spool: readings wait in memory only (set bridge.spool_dir)"
         print(f"{args.config}: OK ({len(cfg.plc.symbols)} PLC symbols; {spool})")
+        if cfg.unstamped_note:
+            print(f"{args.config}: note: {cfg.unstamped_note}")
         return 0
     bridge = Bridge(cfg)
 

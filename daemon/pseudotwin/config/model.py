@@ -226,6 +226,11 @@ class SensorConfig:
         object.__setattr__(self, "min", float(self.min))
         object.__setattr__(self, "max", float(self.max))
 
+    @property
+    def stamped(self) -> bool:
+        """Whether a payload carries its reading's time; if not, it is stamped on arrival."""
+        return self.format == "json" and bool(self.ts_key)
+
     def _problems(self) -> Found:
         found: Found = []
         if nonempty(found, "id", self.id):

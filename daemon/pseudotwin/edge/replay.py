@@ -68,8 +68,7 @@ def replay(
     # A bare number carries no instant: a daemon in replay mode stamps it on its own replay
     # clock, but a recorder stamps it on the real one, so the store took replayed
     # commissioning days of such a sensor at today's time, and train --config missed them.
-    if unstamped := sorted(s for s in set(sub["sensor"])
-                           if known[s].format == "number" or not known[s].ts_key):
+    if unstamped := sorted(s for s in set(sub["sensor"]) if not known[s].stamped):
         log.warning("replay: sensor(s) %s have no timestamp of their own (format = "
                     "\"number\" or no ts_key): a daemon in replay mode stamps their readings "
                     "on its replay clock, but `record` stamps them on arrival, at today's "

@@ -417,6 +417,19 @@ class BridgeConfig:
         return f"{self.base_topic}/bridge/status"
 
     @property
+    def unstamped_note(self) -> str | None:
+        """What to tell about bridged sensors whose payload carries no time (None: none)."""
+        unstamped = sorted({s.sensor for s in self.plc.symbols
+                            if not self.sensors[s.sensor].stamped})
+        if not unstamped:
+            return None
+        return (f"sensor(s) {', '.join(unstamped)} carry no time stamp in their payload "
+                "(format = \"number\", or no ts_key): a reading the bridge sends late (after "
+                "a broker outage, or from the spool after a restart) is stamped on arrival, "
+                "and one sent twice counts twice; give them format = \"json\" with a ts_key "
+                "and the PLC's time goes with each reading")
+
+    @property
     def plc_topic(self) -> str:
         return f"{self.base_topic}/bridge/plc"
 

@@ -884,6 +884,8 @@ class Bridge:
         if self._started:
             raise RuntimeError("a Bridge can only be started once")
         self._started = True
+        if self.cfg.unstamped_note:
+            log.warning("%s", self.cfg.unstamped_note)
         if (path := self.cfg.spool_path) is not None:
             # StateInUseError (another bridge on this spool), ConfigError (not writable)
             self.outbox = Outbox(path, fsync=self.cfg.spool_fsync)
