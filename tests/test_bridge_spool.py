@@ -128,8 +128,8 @@ def test_every_reading_is_on_disk_before_paho_has_it(
     syncs = [0]
     real_sync = Spool.sync
 
-    def watched_sync(self: Spool, folder: bool = True) -> None:
-        real_sync(self, folder)
+    def watched_sync(self: Spool) -> None:
+        real_sync(self)
         syncs[0] += 1
         synced[0] = self.size()
 
@@ -249,7 +249,7 @@ def test_bridged_sensors_without_a_time_stamp_are_named_at_check_and_at_start(
     assert f"{path}: note: {note}" in capsys.readouterr().out
     blocker = env.tmp_path / "a-file"
     blocker.write_text("not a folder")
-    with pytest.raises(ConfigError):  # start warns first, then fails on the spool
+    with pytest.raises(ConfigError):  # start warns first, then fails: spool_dir is a file
         Bridge(load_bridge_config(_spooled_config(env, spool_dir=str(blocker)))).start()
     assert note in caplog.text
     stamped = env.write_config([s for s in DEFAULT_SYMBOLS if s["sensor"] != "ceiling/co2"])
@@ -439,10 +439,10 @@ def test_a_synced_spool_has_its_new_files_directory_entry_synced_once(
 
     monkeypatch.setattr(readinglines, "sync_folder", watched)
     outbox = Outbox(tmp_path / "state" / "bridge-x.jsonl", fsync=True)
-    assert synced == [tmp_path / "state"]
+    assert synced == [tmp_path / "state", tmp_path]  # the file's entry, and its folder's
     outbox.add(_readings(2))
     outbox.add(_readings(2, start=5))
-    assert synced == [tmp_path / "state"]  # the file's entry is on disk already
+    assert synced == [tmp_path / "state", tmp_path]  # the entries are on disk already
     outbox.close()
     synced.clear()
     Outbox(tmp_path / "other" / "bridge-x.jsonl", fsync=False).close()

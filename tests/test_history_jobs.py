@@ -7,6 +7,7 @@ import datetime as dt
 import json
 import logging
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import pandas as pd
@@ -29,6 +30,7 @@ from pseudotwin.analysis.evaluate import replay_estimates
 from pseudotwin.cli import main
 from pseudotwin.config import load_config
 from pseudotwin.core.series import read_history, write_history
+from pseudotwin.edge import readinglines
 from pseudotwin.edge.clock import ReplayClock
 from pseudotwin.edge.recorder import Recorder
 from pseudotwin.edge.service import Service
@@ -51,6 +53,45 @@ def sml_store(tmp_path_factory) -> Path:
     with open_store(str(path)) as store:
         store.write_readings(df[df["ts"] < "2012-03-24T23:00Z"])
     return path
+
+
+class Synced:
+    """What was fsynced (the real calls proceed): each file's size when it was synced, and
+    each folder synced (a file's directory entry)."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        self.size: dict[Path, int] = {}
+        self.folders: list[Path] = []
+        real_file, real_folder = readinglines.sync_file, readinglines.sync_folder
+
+        def sync_file(path: Path, folder: bool = True) -> None:
+            real_file(path, folder)  # its folder through sync_folder below
+            self.size[path] = path.stat().st_size
+
+        def sync_folder(folder: Path) -> None:
+            real_folder(folder)
+            self.folders.append(folder)
+
+        monkeypatch.setattr(readinglines, "sync_file", sync_file)
+        monkeypatch.setattr(readinglines, "sync_folder", sync_folder)
+
+    def unsynced(self, path: Path) -> int:
+        """Bytes of the file at ``path`` not synced yet (0: none, or no file)."""
+        return (path.stat().st_size if path.exists() else 0) - self.size.get(path, 0)
+
+
+def watch_acks(rec: Recorder, monkeypatch: pytest.MonkeyPatch,
+               at_ack: Callable[[], int]) -> list[int]:
+    """``at_ack()`` at each acknowledgement the recorder sends (the real one proceeds)."""
+    seen: list[int] = []
+    real_ack = rec.client.ack
+
+    def ack(mid: int, qos: int) -> None:
+        seen.append(at_ack())
+        real_ack(mid, qos)
+
+    monkeypatch.setattr(rec.client, "ack", ack)
+    return seen
 
 
 def test_recorder_writes_every_valid_reading_and_spools_while_the_store_is_away(
@@ -91,14 +132,7 @@ def test_rows_the_store_refuses_one_by_one_go_to_a_file_and_block_nothing(
     spool, and every reading after it, from the store. It lands in a canonical CSV that
     ``pseudotwin import`` loads once the cause is fixed, synced before it is acknowledged.
     (FakeCrateDB is a fake: no CrateDB server can run here.)"""
-    synced: list[tuple[Path, int]] = []
-    real_sync = recorder_module.readinglines.sync_file
-
-    def sync_file(path: Path, folder: bool = True) -> None:
-        real_sync(path, folder)
-        synced.append((path, path.stat().st_size))
-
-    monkeypatch.setattr(recorder_module.readinglines, "sync_file", sync_file)
+    synced = Synced(monkeypatch)
     ts = [HOURS.at(DAY, 8 + i / 60) for i in range(30)]
     bad = {to_ms(ts[3]), to_ms(ts[25])}
     value = {i: 20 + i / 100 + 1e-9 for i in range(30)}  # more digits than %.6g keeps
@@ -107,6 +141,8 @@ def test_rows_the_store_refuses_one_by_one_go_to_a_file_and_block_nothing(
                                             if row[1] in bad else None)
         cfg = config(tmp_path, mosquitto.port, desk_artifact, store=crate.url)
         rec = Recorder(cfg, retry_seconds=0.2)
+        unsynced_at_ack = watch_acks(rec, monkeypatch,
+                                     lambda: synced.unsynced(rec.refused_path))
         rec.start(wait_connected=15)
         pub = publisher(mosquitto.port, "rec-crate")
         for i, t in enumerate(ts[:20]):
@@ -119,8 +155,9 @@ def test_rows_the_store_refuses_one_by_one_go_to_a_file_and_block_nothing(
         rec.stop()
         pub.loop_stop()
         assert not rec.spool.path.exists()
-        assert [n for path, n in synced if path == rec.refused_path][-1] == (
-            rec.refused_path.stat().st_size)
+        assert len(unsynced_at_ack) == 30 and set(unsynced_at_ack) == {0}
+        assert synced.size[rec.refused_path] == rec.refused_path.stat().st_size
+        assert rec.refused_path.parent in synced.folders  # its directory entry too
         with open_store(crate.url) as store:
             stored = store.read_readings([REF])
             assert len(stored) == 28
@@ -321,26 +358,12 @@ def test_a_recorder_acknowledges_a_reading_only_once_it_is_on_disk(
     """The broker forgets a reading once the recorder acknowledges it: with `journal_fsync`
     (the default) the reading must then survive a power cut. Its spool line was only
     flushed to the kernel, and SQLite's commits (synchronous NORMAL) could roll back."""
-    synced: list[tuple[Path, int, bool]] = []
-    real_sync = recorder_module.readinglines.sync_file
-
-    def sync_file(path: Path, folder: bool = True) -> None:
-        real_sync(path, folder)
-        synced.append((path, path.stat().st_size, folder))
-
-    monkeypatch.setattr(recorder_module.readinglines, "sync_file", sync_file)
+    synced = Synced(monkeypatch)
     db = tmp_path / "later" / "history.db"  # the store away: readings go to the spool
     cfg = config(tmp_path, mosquitto.port, desk_artifact, store=str(db), journal_fsync=fsync)
     rec = Recorder(cfg, retry_seconds=0.2)
-    unsynced_at_ack: list[int] = []  # spool bytes not on disk when a reading was acked
-    real_ack = rec.client.ack
-
-    def ack(mid: int, qos: int) -> None:
-        on_disk = max((n for path, n, _ in synced if path == rec.spool.path), default=0)
-        unsynced_at_ack.append(rec.spool.size() - on_disk)
-        real_ack(mid, qos)
-
-    monkeypatch.setattr(rec.client, "ack", ack)
+    # the spool's bytes not on disk when a reading was acknowledged
+    unsynced_at_ack = watch_acks(rec, monkeypatch, lambda: synced.unsynced(rec.spool.path))
     rec.start(wait_connected=15)
     pub = publisher(mosquitto.port, f"durable-bridge-{fsync}")
     try:
@@ -348,15 +371,15 @@ def test_a_recorder_acknowledges_a_reading_only_once_it_is_on_disk(
             pub.publish("house/dining/temp", reading(HOURS.at(DAY, 8 + i / 60), 20.0 + i),
                         qos=1)
             if i == 2:  # two flushes: a new spool file, then one that exists
-                wait_for(lambda: rec.spooled == 3, what="the first three readings spooled")
-        wait_for(lambda: rec.spooled == 6, what="six readings spooled")
-        assert len(unsynced_at_ack) == 6
+                wait_for(lambda: len(unsynced_at_ack) == 3, what="three readings acked")
+        wait_for(lambda: len(unsynced_at_ack) == 6, what="six readings acknowledged")
+        assert rec.spooled == 6
         if fsync:
             assert unsynced_at_ack == [0] * 6
-            assert [folder for path, _, folder in synced if path == rec.spool.path][0]
-            assert sum(folder for _, _, folder in synced) == 1  # the new file's entry, once
+            # the file's directory entry and the state dir's, once
+            assert synced.folders == [rec.spool.path.parent, rec.spool.path.parent.parent]
         else:
-            assert synced == [] and max(unsynced_at_ack) > 0
+            assert synced.size == {} and synced.folders == [] and max(unsynced_at_ack) > 0
         db.parent.mkdir()  # the store comes back
         wait_for(lambda: rec.written == 6, what="the spool written to the store")
         store = rec.store
@@ -367,6 +390,45 @@ def test_a_recorder_acknowledges_a_reading_only_once_it_is_on_disk(
     finally:
         rec.stop()
         pub.loop_stop()
+
+
+def test_a_durable_spool_syncs_every_directory_entry_it_hangs_on_until_a_sync_worked(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Synced lines in a file whose directory entry is not on disk are lost with it: the
+    state dir made again under a running recorder had only its own folder synced, and an
+    entry whose sync failed once was never tried again. A mark left without its file (a
+    clear() whose unlinks reached the disk in the other order) skipped a new spool's lines."""
+    synced = Synced(monkeypatch)
+    state = tmp_path / "state"
+    spool = Spool(state / "spool.jsonl", durable=True)
+    readings = [Reading(REF, HOURS.at(DAY, 8 + i / 60), 20.0 + i) for i in range(6)]
+    spool.add(readings[:1])
+    assert synced.folders == [state, tmp_path] and synced.unsynced(spool.path) == 0
+    spool.add(readings[1:2])
+    assert synced.folders == [state, tmp_path] and synced.unsynced(spool.path) == 0
+    shutil.rmtree(state)  # deleted under a running recorder
+    spool.add(readings[2:3])
+    assert synced.folders[2:] == [state, tmp_path]
+    spool.clear()
+    del synced.folders[:]
+    counted = readinglines.sync_folder
+    failures = [OSError(5, "Input/output error")]
+
+    def failing_once(folder: Path) -> None:
+        if failures:
+            raise failures.pop()
+        counted(folder)
+
+    monkeypatch.setattr(readinglines, "sync_folder", failing_once)
+    with pytest.raises(OSError):  # not acknowledged: the recorder retries the batch
+        spool.add(readings[3:4])
+    spool.add(readings[3:4])
+    assert synced.folders == [state]  # the new file's entry, tried again
+    spool.clear()
+    spool.consume(10_000)  # a mark left behind without its spool
+    spool.add(readings[4:6])
+    assert spool.load() == readings[4:6]
 
 
 def test_a_spool_written_in_part_keeps_the_rest_in_order(tmp_path: Path) -> None:

@@ -174,13 +174,9 @@ class Journal:
         self._earlier, self._earlier_made = set(), False
         for path in earlier:
             try:
-                fd = os.open(path, os.O_RDONLY)  # (read-only: nothing written through it)
+                readinglines.sync_file(path, folder=False)
             except FileNotFoundError:  # pruned, or the state dir went: nothing to sync
                 continue
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
         if made:
             readinglines.sync_folder(self.folder)
         if self._unsynced:

@@ -86,7 +86,9 @@ class Recorder:
         self.batch_max = batch_max
         self.retry_seconds = retry_seconds
         self.queue: queue.Queue[tuple[Any, ...]] = queue.Queue(maxsize=cfg.queue_size)
-        self.spool = Spool(Path(cfg.state_dir) / "recorder-spool.jsonl")
+        # journal_fsync: a spooled reading is acknowledged next, so on disk first
+        self.spool = Spool(Path(cfg.state_dir) / "recorder-spool.jsonl",
+                           durable=cfg.journal_fsync)
         self.refused_path = Path(cfg.state_dir) / REFUSED_FILE
         self.state_lock = StateLock(Path(cfg.state_dir) / "recorder.lock", "recorder")
         self.metrics = RecorderMetrics()  # served only with [metrics] record_port
@@ -260,10 +262,9 @@ class Recorder:
                               "ts": pd.DatetimeIndex([r.ts for r in readings]).tz_convert("UTC"),
                               "value": [r.value for r in readings]})
         # exact: raw readings are never modified (OSError: the batch is retried)
-        new_file = not self.refused_path.exists()
         write_history(frame, self.refused_path, append=True, exact=True)
-        if self.cfg.journal_fsync:  # acknowledged next, as a spooled reading
-            readinglines.sync_file(self.refused_path, folder=new_file)
+        if self.cfg.journal_fsync:  # acknowledged next, as a spooled reading (seldom: the
+            readinglines.sync_file(self.refused_path)  # folder's entry each time too)
         self.refused += len(readings)
         self.metrics.refused.inc(len(readings))
         log.error("the history store refused %d readings and took the others (%s); they are "
@@ -321,10 +322,7 @@ class Recorder:
         self._retry_spool()  # older readings first
         if batch and (self.spool.path.exists() or not self._write(batch)):
             try:
-                new_file = not self.spool.path.exists()
                 remade, _ = self.spool.add(batch)
-                if self.cfg.journal_fsync:  # acknowledged next: on disk first
-                    self.spool.sync(folder=new_file)
             except OSError as exc:
                 self._stuck_on(len(batch), exc)
                 return False

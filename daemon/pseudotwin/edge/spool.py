@@ -23,21 +23,38 @@ log = logging.getLogger(__name__)
 
 
 class Spool:
-    """The spool file ``path`` and its mark."""
+    """The spool file ``path`` and its mark.
 
-    def __init__(self, path: Path) -> None:
+    durable: what :meth:`add` returns from is on disk (fsync), the directory entries that
+    keep the file included: a power cut loses none of it. Otherwise it is in the kernel.
+    """
+
+    def __init__(self, path: Path, durable: bool = False) -> None:
         self.path = path
         self.offset_path = path.with_name(path.name + ".offset")
+        self.durable = durable
+        # Directory entries not known to be on disk, synced once at the first sync: the
+        # file's and its folder's (either may be new, made by an earlier run that never
+        # synced, or by a lock file just before this).
+        self._entry_unsynced = self._folder_entry_unsynced = True
         path.parent.mkdir(parents=True, exist_ok=True)
 
     def add(self, readings: list[Reading]) -> tuple[bool, list[bytes]]:
-        """Append ``readings`` (flushed to the kernel, not synced: :meth:`sync`); whether the
-        folder had to be made again (the state dir was deleted under a running process: it
-        spools all the same), and the lines written."""
+        """Append ``readings`` (synced when durable); whether the folder had to be made
+        again (the state dir was deleted under a running process: it spools all the same),
+        and the lines written. OSError when they may not be (all) written or synced."""
         made = not self.path.parent.is_dir()
         if made:
             self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._folder_entry_unsynced = True
+        if not self.path.exists():
+            self._entry_unsynced = True
+            # A mark without its file (a clear() whose two unlinks reached the disk in the
+            # other order) would skip the new file's first lines.
+            self.offset_path.unlink(missing_ok=True)
         lines = readinglines.append(self.path, readings)  # a torn last line is ended first
+        if self.durable:
+            self.sync()
         return made, lines
 
     def size(self) -> int:
@@ -47,10 +64,18 @@ class Spool:
         except FileNotFoundError:
             return 0
 
-    def sync(self, folder: bool = True) -> None:
-        """Put what was added on disk (fsync), and with ``folder`` the file's directory
-        entry (needed once, after the file was made): a power cut then loses none of it."""
-        readinglines.sync_file(self.path, folder)
+    def sync(self) -> None:
+        """Put what was added on disk (fsync), and the directory entries not known to be
+        there yet: the file's and its folder's at the first call, the file's again after it
+        was made again, its folder's after that was. An entry whose sync failed is synced
+        at the next call."""
+        readinglines.sync_file(self.path, folder=False)
+        if self._entry_unsynced:
+            readinglines.sync_folder(self.path.parent)
+            self._entry_unsynced = False
+        if self._folder_entry_unsynced:
+            readinglines.sync_folder(self.path.parent.parent)
+            self._folder_entry_unsynced = False
 
     def consumed(self) -> int:
         """Bytes at the spool's start that were taken (0: none, or no mark)."""
@@ -100,9 +125,9 @@ class Spool:
         write_replacing(self.offset_path, lambda tmp: tmp.write_text(text, encoding="ascii"),
                         follow_symlinks=False)
 
-    def keep_from(self, offset: int, durable: bool) -> None:
+    def keep_from(self, offset: int) -> None:
         """Cut the spool's first ``offset`` bytes off: the rest, copied to a new file that
-        replaces it (synced first when ``durable``), starts at 0 and nothing of it is
+        replaces it (synced first when durable), starts at 0 and nothing of it is
         marked taken. The mark goes first: a crash in between leaves the old file taken
         again whole, never an old mark that would skip the new file's first lines."""
         self.offset_path.unlink(missing_ok=True)
@@ -112,13 +137,13 @@ class Spool:
                 src.seek(offset)
                 while block := src.read(1 << 20):
                     dst.write(block)
-                if durable:
+                if self.durable:
                     dst.flush()
                     os.fsync(dst.fileno())
             os.replace(tmp, self.path)
         finally:
             tmp.unlink(missing_ok=True)
-        if durable:
+        if self.durable:
             readinglines.sync_folder(self.path.parent)
 
     def clear(self) -> None:

@@ -425,7 +425,7 @@ class BridgeConfig:
             return None
         return (f"sensor(s) {', '.join(unstamped)} carry no time stamp in their payload "
                 "(format = \"number\", or no ts_key): a reading the bridge sends late (after "
-                "a broker outage, or from the spool after a restart) is stamped on arrival, "
+                "a broker outage; with a spool, after a restart too) is stamped on arrival, "
                 "and one sent twice counts twice; give them format = \"json\" with a ts_key "
                 "and the PLC's time goes with each reading")
 

@@ -24,7 +24,6 @@ from collections import deque
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-from pseudotwin.edge import readinglines
 from pseudotwin.edge.spool import Spool
 from pseudotwin.edge.statelock import StateLock
 from pseudotwin.errors import ConfigError
@@ -56,16 +55,13 @@ class Outbox:
         self.lock = StateLock(path.with_suffix(".lock"), "bridge", CONFLICT)
         self.lock.acquire()
         try:
-            self.spool = Spool(path)
-            readinglines.append(path, [])  # the file, writable: found now, not mid-outage
-            if fsync:  # made just now, maybe: its directory entry too, or a power cut
-                self.spool.sync()  # could take the file with the readings added to it
+            self.spool = Spool(path, durable=fsync)
+            self.spool.add([])  # the file, writable (and synced): found now, not mid-outage
         except OSError as exc:
             self.lock.release()
             raise ConfigError(f"{path}: the bridge's spool cannot be written "
                               f"({exc.strerror or exc}); is its folder (bridge.spool_dir, by "
                               "default the daemon's state_dir) another user's?") from None
-        self.fsync = fsync
         self.end = self.spool.size()
         self.acked_to = self.cursor = self.mark = self.spool.consumed()
         if self.mark > self.end:  # a mark of another file (the spool replaced by hand)
@@ -105,10 +101,7 @@ class Outbox:
     def add(self, readings: list[Reading]) -> list[tuple[int, int]]:
         """Write ``readings`` (and fsync them); each one's (start, end) byte offsets.
         OSError when the disk refuses them (nothing counts as written then)."""
-        fresh = not self.path.exists()
         remade, lines = self.spool.add(readings)
-        if self.fsync:
-            self.spool.sync(folder=fresh or remade)
         size = self.spool.size()
         lengths = [len(line) for line in lines]
         start = size - sum(lengths)
@@ -163,7 +156,7 @@ class Outbox:
                 # Readings keep coming faster than acks: a moment with all of them
                 # acknowledged may never come, so the few in flight move to a new file.
                 cut = self.acked_to
-                self.spool.keep_from(cut, self.fsync)
+                self.spool.keep_from(cut)
                 self._sent = deque((mid, end - cut) for mid, end in self._sent)
                 self.end -= cut
                 self.cursor -= cut
