@@ -18,7 +18,8 @@ time alone says little.
 
 Recorder: ``pseudotwin record`` as its own process against a real Mosquitto; a publisher
 sends N readings (QoS 1) as fast as the broker takes them; the figure is N / time until all
-N are in the store (count in = count stored is checked).
+N are in the store (count in = count stored is checked). Twice: with ``journal_fsync = true``
+(the default: every commit synced) and with false.
 
 Prints a table and, last, one JSON line.
 Every process it starts (broker, recorder, backfills) is stopped on the way out, also on
@@ -91,9 +92,10 @@ def children_cpu_s() -> float:
     return ru.ru_utime + ru.ru_stime
 
 
-def config_text(port: int, store: str, twins: list[str]) -> str:
+def config_text(port: int, store: str, twins: list[str], journal_fsync: bool = True) -> str:
     text = (f'[broker]\nhost = "127.0.0.1"\nport = {port}\nclient_id = "bench-hist"\n\n'
-            f'[service]\ntimezone = "{TZ}"\nstate_dir = "state"\nstore = "{store}"\n\n'
+            f'[service]\ntimezone = "{TZ}"\nstate_dir = "state"\nstore = "{store}"\n'
+            f'journal_fsync = {str(journal_fsync).lower()}\n\n'
             '[[sensors]]\nid = "dining/temp"\ntopic = "h/dining"\nunit = "°C"\nmin = -20\n'
             'max = 60\n')
     for t in twins:
@@ -139,15 +141,17 @@ def same_rows(a: str, b: str) -> bool:
     return diff == 0 and n_a == n_b
 
 
-def bench_recorder(tmp: Path, port: int, n: int) -> tuple[int, float]:
-    """Readings per second ``pseudotwin record`` stores; (stored, seconds)."""
+def bench_recorder(tmp: Path, port: int, n: int, journal_fsync: bool) -> tuple[int, float]:
+    """Readings per second ``pseudotwin record`` stores into a new SQLite file, with its
+    commits synced (``journal_fsync``, the default) or not; (stored, seconds)."""
     broker = rec = None
     pub = None
+    name = "rec" if journal_fsync else "rec-nosync"
     try:
         broker = start_broker(tmp, port, "max_queued_messages 0\nmax_inflight_messages 0\n")
-        cfg = tmp / "rec.toml"
-        cfg.write_text(config_text(port, "rec.db", ["desk"]))
-        rec_db = tmp / "rec.db"
+        cfg = tmp / f"{name}.toml"
+        cfg.write_text(config_text(port, f"{name}.db", ["desk"], journal_fsync))
+        rec_db = tmp / f"{name}.db"
         rec = subprocess.Popen([EXE, "--log-level", "WARNING", "record", "--config", str(cfg)],
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                preexec_fn=die_with_parent)
@@ -226,7 +230,9 @@ def main() -> int:
         par = run_backfill(tmp, "parallel", base, ["desk"], first, last, a.jobs, port)
         equal = same_rows(one["db"], par["db"])
         many = run_backfill(tmp, "fleet", base, fleet, first, last, a.jobs, port)
-        stored, rec_s = bench_recorder(tmp, port, a.recorder_readings)
+        stored, rec_s = bench_recorder(tmp, port, a.recorder_readings, journal_fsync=True)
+        nosync_stored, nosync_s = bench_recorder(tmp, port, a.recorder_readings,
+                                                 journal_fsync=False)
         n = a.recorder_readings
         fig = {
             "backfill_days": days, "backfill_readings": len(readings),
@@ -235,6 +241,8 @@ def main() -> int:
             "backfill_peak_rss_mb": round(rss_mb, 1), "store_load_s": round(load_s, 1),
             "recorder_readings": n, "recorder_stored": stored,
             "recorder_s": round(rec_s, 1), "recorder_readings_per_s": round(n / rec_s, 0),
+            "recorder_nosync_stored": nosync_stored, "recorder_nosync_s": round(nosync_s, 1),
+            "recorder_nosync_readings_per_s": round(n / nosync_s, 0),
             "backfill_cpu_s": round(one["cpu_s"], 1), "jobs": a.jobs,
             "backfill_parallel_s": round(par["s"], 1),
             "backfill_parallel_cpu_s": round(par["cpu_s"], 1),
@@ -262,9 +270,13 @@ def main() -> int:
         print(f"parallel rows equal the serial ones: {equal}; peak RSS of the serial backfill "
               f"{fig['backfill_peak_rss_mb']} MB")
         print(f"recorder: {n} readings in {rec_s:.1f} s = {fig['recorder_readings_per_s']:.0f} "
-              f"readings/s, {stored} stored (count in = count stored: {stored == n})")
+              f"readings/s, {stored} stored (count in = count stored: {stored == n}); "
+              "journal_fsync = true (the default: spool and SQLite commits synced)")
+        print(f"recorder: {n} readings in {nosync_s:.1f} s = "
+              f"{fig['recorder_nosync_readings_per_s']:.0f} readings/s, {nosync_stored} stored "
+              f"(count in = count stored: {nosync_stored == n}); journal_fsync = false")
         print(json.dumps(fig))
-        return 0 if equal else 1
+        return 0 if equal and stored == nosync_stored == n else 1
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
