@@ -37,13 +37,14 @@ class Spool:
         # file's and its folder's (either may be new, made by an earlier run that never
         # synced, or by a lock file just before this).
         self._entry_unsynced = self._folder_entry_unsynced = True
+        self._remade = False  # the folder made again since the last add, by a mark
         path.parent.mkdir(parents=True, exist_ok=True)
 
     def add(self, readings: list[Reading]) -> tuple[bool, list[bytes]]:
         """Append ``readings`` (synced when durable); whether the folder had to be made
         again (the state dir was deleted under a running process: it spools all the same),
         and the lines written. OSError when they may not be (all) written or synced."""
-        made = not self.path.parent.is_dir()
+        made, self._remade = self._remade or not self.path.parent.is_dir(), False
         if made:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._folder_entry_unsynced = True
@@ -121,6 +122,8 @@ class Spool:
 
     def consume(self, offset: int) -> None:
         """Mark the spool's first ``offset`` bytes as taken."""
+        if not self.path.parent.is_dir():  # deleted: the mark makes it again, say so at add
+            self._remade = self._folder_entry_unsynced = True
         text = str(offset)
         write_replacing(self.offset_path, lambda tmp: tmp.write_text(text, encoding="ascii"),
                         follow_symlinks=False)
@@ -143,8 +146,16 @@ class Spool:
             os.replace(tmp, self.path)
         finally:
             tmp.unlink(missing_ok=True)
+        self._entry_unsynced = True  # a new file
         if self.durable:
-            readinglines.sync_folder(self.path.parent)
+            try:
+                self.sync()
+            except OSError as exc:
+                # The cut is done: raising would have the caller (offsets unmoved) cut again.
+                # The next add syncs the entry before it returns; a power cut meanwhile
+                # leaves the old file, whose lines go out again (at least once).
+                log.warning("%s: cut, but its new directory entry is not synced yet (%s); "
+                            "the next write tries again", self.path, exc)
 
     def clear(self) -> None:
         # The mark first: a crash in between leaves a spool taken again whole (kept once),
