@@ -20,8 +20,10 @@ from daemon_support import sml_csv
 from pseudotwin.analysis.training import check_plausible
 from pseudotwin.cli import build_parser, main
 from pseudotwin.cli.bridge import build_parser as bridge_parser
+from pseudotwin.cli.util import EX_CONFIG, EX_TEMPFAIL
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
+from pseudotwin.edge.mqttconn import EX_NOPERM
 from pseudotwin.errors import DataError
 from pseudotwin.history.convert import SHARED_DATA_ENV
 from pseudotwin.history.store import SCHEMA_VERSION
@@ -234,6 +236,23 @@ def test_time_options_say_their_format(capsys, command: str, option: str, needle
     text = " ".join(capsys.readouterr().out.split())
     after = text[text.rindex(option) + len(option):]  # the options list, not the usage
     assert needle in after.split(" --")[0]
+
+
+@pytest.mark.parametrize("command", ["run", "record"])
+def test_long_running_commands_say_their_exit_statuses_and_when_they_acknowledge(
+    capsys, command: str
+) -> None:
+    """systemd's units key on these statuses; an operator reads them in --help."""
+    with pytest.raises(SystemExit) as exc:
+        main([command, "--help"])
+    assert exc.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    said = [part.strip() for part in text.split("Exit status:")[1].split(";")]
+    for status, why in ((0, "signal"), (EX_TEMPFAIL, "systemd retries"),
+                        (EX_NOPERM, "refused the credentials"),
+                        (EX_CONFIG, "configuration error")):
+        assert any(part.startswith(f"{status} ") and why in part for part in said), status
+    assert "acknowledged to the broker" in text and "journal_fsync" in text
 
 
 def test_demo_without_shared_data_ends_in_one_clear_line(tmp_path: Path) -> None:

@@ -654,6 +654,15 @@ def _serve(process: Service | Recorder) -> int:
     return process.fatal[0] if process.fatal is not None else 0
 
 
+def _service_exits(tempfail: str) -> str:
+    """The exit statuses of a long-running process (run, record), ``tempfail`` its reasons
+    for EX_TEMPFAIL."""
+    # 77: edge.mqttconn.EX_NOPERM, not imported here (paho) for a --help
+    return (f"Exit status: 0 stopped by a signal; {EX_TEMPFAIL} {tempfail} (systemd "
+            f"retries); 77 the broker refused the credentials; {EX_CONFIG} configuration "
+            "error (the units do not restart it on either).")
+
+
 def _config_error(command: str, path: Path, exc: ConfigError) -> int:
     """Report a configuration error of ``run``/``record``: one line when it is one problem,
     else a heading and one line per problem; EX_CONFIG (systemd does not restart on it)."""
@@ -862,8 +871,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("run", help="run the live daemon (MQTT in, pseudo-measurements out)",
                        description="Run the twins of a configuration against the MQTT broker "
-                                   "until SIGTERM/SIGINT/SIGHUP. Exit status 78 on a configuration "
-                                   "error (systemd does not restart it then).")
+                                   "until SIGTERM/SIGINT/SIGHUP. A reading is acknowledged to "
+                                   "the broker once it is in the journal in state_dir (on "
+                                   "disk with [service] journal_fsync, the default).",
+                       epilog=_service_exits("another daemon runs on the same state_dir, "
+                                             "or the clock went back"))
     r.add_argument("--config", required=True, type=Path, help="TOML configuration file")
     r.add_argument("--replay-from", type=_aware, metavar="INSTANT",
                    help="replay mode: the daemon's clock starts at this instant "
@@ -905,7 +917,11 @@ def build_parser() -> argparse.ArgumentParser:
     rc = sub.add_parser("record", help="record every valid reading into the history store",
                         description="Subscribe to the configured sensor topics and write every "
                                     "valid reading to the store ([service] store) in batches; "
-                                    "buffers to disk while the store is unreachable.")
+                                    "buffers to disk (state_dir/recorder-spool.jsonl) while the "
+                                    "store is unreachable. A reading is acknowledged to the "
+                                    "broker once it is stored or spooled (on disk with "
+                                    "[service] journal_fsync, the default).",
+                        epilog=_service_exits("another recorder runs on the same state_dir"))
     rc.add_argument("--config", required=True, type=Path, help="TOML configuration file")
     rc.set_defaults(func=cmd_record)
 
