@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from pseudotwin.edge import readinglines
 from pseudotwin.edge.journal import Journal
 from pseudotwin.live.readings import Reading
 
@@ -80,6 +81,30 @@ def test_a_straggler_after_the_state_dir_was_deleted_rebuilds_the_journal(
     j.append(r(1, 4.0, 20))
     j.close()
     assert [x.value for x in Journal(folder).replay(r(0, 0, 19).ts)] == [1.0, 3.0, 2.0, 4.0]
+
+
+def test_a_durable_journal_rebuilt_after_its_state_dir_went_syncs_every_entry_up_to_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The whole state dir deleted and made again: the rebuilt files survive a power cut
+    only with the journal folder's entry and the state dir's own (in its parent) on disk."""
+    synced: list[Path] = []
+    real = readinglines.sync_folder
+
+    def sync_folder(folder: Path) -> None:
+        real(folder)
+        synced.append(folder)
+
+    monkeypatch.setattr(readinglines, "sync_folder", sync_folder)
+    state = tmp_path / "state"
+    j = Journal(state / "journal", durable=True)
+    j.append(r(8, 1.0))
+    shutil.rmtree(state)
+    del synced[:]
+    j.append(r(9, 2.0))
+    j.close()
+    assert {state / "journal", state, tmp_path} <= set(synced)
+    assert [x.value for x in Journal(state / "journal").replay(r(0, 0, 19).ts)] == [1.0, 2.0]
 
 
 def test_a_rebuild_cut_short_by_a_full_disk_leaves_no_half_file(tmp_path: Path) -> None:

@@ -149,13 +149,14 @@ class Journal:
         self._fh.close()
         self._fh, self._day = None, None
         self._open(day)
-        if self.durable and rebuilt:  # the copies, and the folder's entries of them
-            assert self._fh is not None
+        if self.durable and rebuilt:  # the copies, and the folders' entries up to the
+            assert self._fh is not None  # state dir's own (the whole of it may have gone)
             os.fsync(self._fh.fileno())
             if self._prev is not None:
                 os.fsync(self._prev[1].fileno())
             readinglines.sync_folder(self.folder)
             readinglines.sync_folder(self.folder.parent)
+            readinglines.sync_folder(self.folder.parent.parent)
 
     def fsync(self) -> None:
         if self._fh is not None:
