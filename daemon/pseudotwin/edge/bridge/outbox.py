@@ -99,8 +99,8 @@ class Outbox:
         return {mid for mid, _ in self._sent if mid is not None}
 
     def add(self, readings: list[Reading]) -> list[tuple[int, int]]:
-        """Write ``readings`` (and fsync them); each one's (start, end) byte offsets.
-        OSError when the disk refuses them (nothing counts as written then)."""
+        """Write ``readings`` (synced with spool_fsync); each one's (start, end) byte
+        offsets. OSError when the disk refuses them (nothing counts as written then)."""
         remade, lines = self.spool.add(readings)
         size = self.spool.size()
         lengths = [len(line) for line in lines]
