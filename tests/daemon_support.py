@@ -15,10 +15,12 @@ from typing import Any
 import numpy as np
 import paho.mqtt.client as mqtt
 import pandas as pd
+import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 
 from pseudotwin.config import ServiceConfig, load_config
 from pseudotwin.core.horizon import OperatingHours
+from pseudotwin.edge import readinglines
 from pseudotwin.edge.service import Service
 from pseudotwin.history.convert import load
 
@@ -228,3 +230,28 @@ def reference_days(hours: OperatingHours, first: dt.date, sensors: tuple[str, ..
             for sensor, offset, sd in zip(sensors, offsets, noise, strict=True):
                 rows.append((sensor, ts, common + offset + rng.normal(0, sd)))
     return pd.DataFrame(rows, columns=["sensor", "ts", "value"])
+
+
+class Synced:
+    """What was fsynced (the real calls proceed): each file's size when it was synced, and
+    each folder synced (a file's directory entry)."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        self.size: dict[Path, int] = {}
+        self.folders: list[Path] = []
+        real_file, real_folder = readinglines.sync_file, readinglines.sync_folder
+
+        def sync_file(path: Path, folder: bool = True) -> None:
+            real_file(path, folder)  # its folder through sync_folder below
+            self.size[path] = path.stat().st_size
+
+        def sync_folder(folder: Path) -> None:
+            real_folder(folder)
+            self.folders.append(folder)
+
+        monkeypatch.setattr(readinglines, "sync_file", sync_file)
+        monkeypatch.setattr(readinglines, "sync_folder", sync_folder)
+
+    def unsynced(self, path: Path) -> int:
+        """Bytes of the file at ``path`` not synced yet (0: none, or no file)."""
+        return path.stat().st_size - self.size.get(path, 0) if path.exists() else 0

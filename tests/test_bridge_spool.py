@@ -14,9 +14,9 @@ import pytest
 
 import pseudotwin.edge.bridge.outbox as outbox_module
 from conftest import MosquittoBroker, MqttClientFactory
+from daemon_support import Synced
 from pseudotwin.cli.bridge import EX_CONFIG, main
 from pseudotwin.config import ConfigProblems
-from pseudotwin.edge import readinglines
 from pseudotwin.edge.bridge import Bridge, load_bridge_config
 from pseudotwin.edge.bridge.outbox import COMPACT_BYTES, Outbox
 from pseudotwin.edge.clock import EX_TEMPFAIL
@@ -430,14 +430,7 @@ def test_a_synced_spool_has_its_new_files_directory_entry_synced_once(
 ) -> None:
     """The spool file made at the start had its readings fsynced but never its directory
     entry: a power cut could take the new file, readings and all."""
-    synced: list[Path] = []
-    real = readinglines.sync_folder
-
-    def watched(folder: Path) -> None:
-        real(folder)
-        synced.append(folder)
-
-    monkeypatch.setattr(readinglines, "sync_folder", watched)
+    synced = Synced(monkeypatch).folders
     outbox = Outbox(tmp_path / "state" / "bridge-x.jsonl", fsync=True)
     assert synced == [tmp_path / "state", tmp_path]  # the file's entry, and its folder's
     outbox.add(_readings(2))

@@ -19,6 +19,7 @@ from daemon_support import (
     HOURS,
     REF,
     TARGET,
+    Synced,
     config,
     day_readings,
     sml,
@@ -53,31 +54,6 @@ def sml_store(tmp_path_factory) -> Path:
     with open_store(str(path)) as store:
         store.write_readings(df[df["ts"] < "2012-03-24T23:00Z"])
     return path
-
-
-class Synced:
-    """What was fsynced (the real calls proceed): each file's size when it was synced, and
-    each folder synced (a file's directory entry)."""
-
-    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
-        self.size: dict[Path, int] = {}
-        self.folders: list[Path] = []
-        real_file, real_folder = readinglines.sync_file, readinglines.sync_folder
-
-        def sync_file(path: Path, folder: bool = True) -> None:
-            real_file(path, folder)  # its folder through sync_folder below
-            self.size[path] = path.stat().st_size
-
-        def sync_folder(folder: Path) -> None:
-            real_folder(folder)
-            self.folders.append(folder)
-
-        monkeypatch.setattr(readinglines, "sync_file", sync_file)
-        monkeypatch.setattr(readinglines, "sync_folder", sync_folder)
-
-    def unsynced(self, path: Path) -> int:
-        """Bytes of the file at ``path`` not synced yet (0: none, or no file)."""
-        return path.stat().st_size - self.size.get(path, 0) if path.exists() else 0
 
 
 def watch_acks(rec: Recorder, monkeypatch: pytest.MonkeyPatch,

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from pseudotwin.edge import readinglines
+from daemon_support import Synced
 from pseudotwin.edge.journal import Journal
 from pseudotwin.live.readings import Reading
 
@@ -88,22 +88,15 @@ def test_a_durable_journal_rebuilt_after_its_state_dir_went_syncs_every_entry_up
 ) -> None:
     """The whole state dir deleted and made again: the rebuilt files survive a power cut
     only with the journal folder's entry and the state dir's own (in its parent) on disk."""
-    synced: list[Path] = []
-    real = readinglines.sync_folder
-
-    def sync_folder(folder: Path) -> None:
-        real(folder)
-        synced.append(folder)
-
-    monkeypatch.setattr(readinglines, "sync_folder", sync_folder)
+    synced = Synced(monkeypatch)
     state = tmp_path / "state"
     j = Journal(state / "journal", durable=True)
     j.append(r(8, 1.0))
     shutil.rmtree(state)
-    del synced[:]
+    del synced.folders[:]
     j.append(r(9, 2.0))
     j.close()
-    assert {state / "journal", state, tmp_path} <= set(synced)
+    assert {state / "journal", state, tmp_path} <= set(synced.folders)
     assert [x.value for x in Journal(state / "journal").replay(r(0, 0, 19).ts)] == [1.0, 2.0]
 
 
