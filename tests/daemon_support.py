@@ -255,3 +255,20 @@ class Synced:
     def unsynced(self, path: Path) -> int:
         """Bytes of the file at ``path`` not synced yet (0: none, or no file)."""
         return path.stat().st_size - self.size.get(path, 0) if path.exists() else 0
+
+
+def watch_acks(client: mqtt.Client, monkeypatch: pytest.MonkeyPatch,
+               at_ack: Callable[[], object]) -> list[object]:
+    """``at_ack()``'s result at each acknowledgement of a reading ``client`` sends (the
+    daemon's or the recorder's worker; not a fleet claim's, acknowledged on paho's network
+    thread); the real ack goes out as ever."""
+    seen: list[object] = []
+    real_ack = client.ack
+
+    def ack(mid: int, qos: int) -> None:
+        if not threading.current_thread().name.startswith("paho-mqtt-client-"):
+            seen.append(at_ack())
+        real_ack(mid, qos)
+
+    monkeypatch.setattr(client, "ack", ack)
+    return seen

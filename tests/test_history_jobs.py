@@ -7,7 +7,6 @@ import datetime as dt
 import json
 import logging
 import shutil
-from collections.abc import Callable
 from pathlib import Path
 
 import pandas as pd
@@ -24,6 +23,7 @@ from daemon_support import (
     day_readings,
     sml,
     wait_for,
+    watch_acks,
     write_config,
 )
 from fake_cratedb import FakeCrateDB
@@ -54,20 +54,6 @@ def sml_store(tmp_path_factory) -> Path:
     with open_store(str(path)) as store:
         store.write_readings(df[df["ts"] < "2012-03-24T23:00Z"])
     return path
-
-
-def watch_acks(rec: Recorder, monkeypatch: pytest.MonkeyPatch,
-               at_ack: Callable[[], object]) -> list[object]:
-    """``at_ack()`` at each acknowledgement the recorder sends (the real one proceeds)."""
-    seen: list[object] = []
-    real_ack = rec.client.ack
-
-    def ack(mid: int, qos: int) -> None:
-        seen.append(at_ack())
-        real_ack(mid, qos)
-
-    monkeypatch.setattr(rec.client, "ack", ack)
-    return seen
 
 
 def test_recorder_writes_every_valid_reading_and_spools_while_the_store_is_away(
@@ -117,7 +103,7 @@ def test_rows_the_store_refuses_one_by_one_go_to_a_file_and_block_nothing(
                                             if row[1] in bad else None)
         cfg = config(tmp_path, mosquitto.port, desk_artifact, store=crate.url)
         rec = Recorder(cfg, retry_seconds=0.2)
-        unsynced_at_ack = watch_acks(rec, monkeypatch,
+        unsynced_at_ack = watch_acks(rec.client, monkeypatch,
                                      lambda: synced.unsynced(rec.refused_path))
         rec.start(wait_connected=15)
         pub = publisher(mosquitto.port, "rec-crate")
@@ -339,7 +325,7 @@ def test_a_recorder_acknowledges_a_reading_only_once_it_is_on_disk(
     cfg = config(tmp_path, mosquitto.port, desk_artifact, store=str(db), journal_fsync=fsync)
     rec = Recorder(cfg, retry_seconds=0.2)
     # the spool's bytes not on disk, and the directory entries synced, at each ack
-    at_ack = watch_acks(rec, monkeypatch,
+    at_ack = watch_acks(rec.client, monkeypatch,
                         lambda: (synced.unsynced(rec.spool.path), len(synced.folders)))
     rec.start(wait_connected=15)
     pub = publisher(mosquitto.port, f"durable-bridge-{fsync}")

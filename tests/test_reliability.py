@@ -18,7 +18,6 @@ import socket
 import stat
 import subprocess
 import threading
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -32,6 +31,7 @@ from daemon_support import (
     off_grid,
     sml,
     wait_for,
+    watch_acks,
     write_config,
 )
 from pseudotwin.edge.clock import ReplayClock
@@ -135,20 +135,6 @@ def test_journal_failure_degrades_and_recovers_by_itself_without_losing_a_readin
     status.close()
 
 
-def watch_reading_acks(svc: Service, monkeypatch: pytest.MonkeyPatch,
-                       seen: Callable[[], object]) -> None:
-    """Call ``seen`` just before each acknowledgement of a reading the daemon sends (the
-    worker's, not the fleet claims' on the network thread); the ack then goes out as ever."""
-    real_ack = svc.client.ack
-
-    def ack(mid: int, qos: int) -> object:
-        if not threading.current_thread().name.startswith("paho-mqtt-client-"):
-            seen()
-        return real_ack(mid, qos)
-
-    monkeypatch.setattr(svc.client, "ack", ack)
-
-
 @pytest.mark.parametrize("durable", [True, False], ids=["journal_fsync", "no fsync"])
 def test_a_reading_is_acknowledged_only_once_its_journal_line_is_on_disk(
     service_factory, mosquitto, monkeypatch: pytest.MonkeyPatch, durable: bool,
@@ -170,10 +156,8 @@ def test_a_reading_is_acknowledged_only_once_its_journal_line_is_on_disk(
     monkeypatch.setattr(os, "fsync", fsync)
     svc = service_factory(**({} if durable else {"journal_fsync": False}))
     jdir = tmp_path / "state" / "journal"
-    unsynced_at_ack: list[int] = []
-    watch_reading_acks(svc, monkeypatch, lambda: unsynced_at_ack.append(
-        sum(st.st_size - synced.get(st.st_ino, 0)
-            for st in (p.stat() for p in jdir.glob("*.jsonl")))))
+    unsynced_at_ack = watch_acks(svc.client, monkeypatch, lambda: sum(
+        st.st_size - synced.get(st.st_ino, 0) for st in (p.stat() for p in jdir.glob("*.jsonl"))))
     readings = morning()
     send(mosquitto.port, readings, f"rel-fsync-{durable}")
     wait_for(lambda: len(unsynced_at_ack) >= len(readings),
@@ -195,8 +179,7 @@ def test_a_failing_fsync_is_logged_once_and_the_readings_are_still_acknowledged(
     are acknowledged all the same (holding them would stop the broker's deliveries), the
     failure is logged once for the spell, and its end is logged too."""
     svc = service_factory()
-    acked: list[None] = []
-    watch_reading_acks(svc, monkeypatch, lambda: acked.append(None))
+    acked = watch_acks(svc.client, monkeypatch, lambda: None)
     readings = morning()
     send(mosquitto.port, readings[:5], "rel-eio-1")  # the day's file made while all is well
     wait_for(lambda: len(acked) >= 5, what="the first readings acknowledged")
