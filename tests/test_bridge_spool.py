@@ -178,6 +178,49 @@ def test_every_reading_is_on_disk_before_paho_has_it(
     assert syncs[0] == 0
 
 
+@pytest.mark.parametrize("fault", [OSError(28, "No space left on device"),
+                                   RuntimeError("a fault of the spool's own")],
+                         ids=["disk-full", "spool-fault"])
+def test_readings_the_spool_cannot_take_go_to_the_broker_without_it_until_it_can(
+    plc: Plc, env: Env, mqtt_client: MqttClientFactory, monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture, fault: Exception
+) -> None:
+    """A spool that refuses a batch (a full disk, or a fault of its own) loses none of its
+    readings: they are published as without a spool, said once (with the traceback of an
+    unexpected fault); once it takes readings again, they go through it again."""
+    real_add = Spool.add
+    failing = [False]
+
+    def refusing_add(self: Spool, readings: list[Reading]) -> Any:
+        if failing[0]:
+            raise fault
+        return real_add(self, readings)
+
+    monkeypatch.setattr(Spool, "add", refusing_add)
+    inbox = _subscribe(mqtt_client, env)
+    with caplog.at_level(logging.INFO), running(
+            Bridge(load_bridge_config(_spooled_config(env)))) as bridge:
+        _wait_initial(inbox, env)
+        outbox = bridge.outbox
+        assert outbox is not None
+        failing[0] = True
+        for i in range(3):
+            plc.write("MAIN.fRoomTemp", 26.0 + i)
+            inbox.wait(env.topics["hmi/temp"], _is(26.0 + i))
+        written = outbox.end
+        failing[0] = False
+        plc.write("MAIN.fRoomTemp", 30.0)
+        inbox.wait(env.topics["hmi/temp"], _is(30.0))
+        assert outbox.end > written  # through the spool again
+        assert bridge.dropped == 0
+    refused = [r for r in caplog.records if "cannot write the spool" in r.getMessage()]
+    assert len(refused) == 1
+    assert bool(refused[0].exc_info) == (not isinstance(fault, OSError))
+    assert "can be written again" in caplog.text
+    assert "unexpected error while publishing readings from the spool" not in caplog.text
+    assert _hmi_values(inbox, env) == [21.5, 26.0, 27.0, 28.0, 30.0]
+
+
 def test_a_second_bridge_on_the_same_spool_is_refused_and_retried_by_systemd(
     env: Env, capsys: pytest.CaptureFixture[str]
 ) -> None:

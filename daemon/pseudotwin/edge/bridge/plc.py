@@ -467,16 +467,18 @@ class Bridge:
 
     def _spool_batch(self, outbox: Outbox, batch: list[_Item]) -> None:
         """Write ``batch`` to the spool, then hand to paho what it has room for, if nothing
-        older waits; on a disk that refuses them, publish them as without a spool."""
+        older waits; when the spool cannot take them (a disk that refuses them, or a fault
+        of its own), publish them as without a spool."""
         for item in batch:
             self._warn_skew(item)
         try:
             spans = outbox.add([Reading(i.sensor.id, i.ts, i.value) for i in batch])
-        except OSError as exc:
-            if not self._spool_failing:
+        except Exception as exc:  # a disk that refuses them, or a fault of the spool's own:
+            if not self._spool_failing:  # the batch must not go down with the spool
                 log.error("cannot write the spool %s (%s); readings go to the broker "
                           "without it meanwhile (up to %d waiting in memory)", outbox.path,
-                          exc, self.cfg.queue_size)
+                          exc, self.cfg.queue_size,
+                          exc_info=not isinstance(exc, OSError))
             self._spool_failing = True
             for item in batch:
                 self._publish_reading(item)
