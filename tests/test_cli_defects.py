@@ -17,7 +17,7 @@ import pandas as pd
 import pytest
 
 from daemon_support import sml_csv
-from pseudotwin.analysis.training import check_plausible
+from pseudotwin.analysis.training import check_plausible, plausible_readings
 from pseudotwin.cli import build_parser, main
 from pseudotwin.cli.bridge import build_parser as bridge_parser
 from pseudotwin.cli.util import EX_CONFIG, EX_TEMPFAIL
@@ -153,6 +153,46 @@ def test_plausibility_tolerates_a_few_glitches_but_names_the_bad_sensor() -> Non
     fahrenheit = np.full(1000, 120.0)
     with pytest.raises(DataError, match="sensor desk/temp: .* temperature .*median 120 °C"):
         check_plausible(_frame({"a/temp": ok, "desk/temp": fahrenheit}), spec)
+
+
+def test_readings_outside_the_quantitys_plausible_range_are_left_out_as_the_daemon_does(
+        sml: Path, tmp_path: Path, caplog) -> None:
+    """A disconnected probe's −127 °C and an 850 °C glitch, of a reference and of the desk,
+    on training days and on a scored day: train and evaluate leave them out with a warning
+    that counts them per sensor (the daemon rejects them with the configuration train
+    --report proposes), so every score is the clean history's. A sensor whose readings are
+    mostly outside is another quantity's, refused by name as before."""
+    df = pd.read_csv(sml)
+    glitches = pd.DataFrame({
+        "sensor": ["dining/temp", "dining/temp", "room/temp", "room/temp"],
+        "ts": ["2012-03-15T10:07:00+00:00", "2012-03-17T12:07:00+00:00",
+               "2012-03-16T09:07:00+00:00", "2012-03-20T11:07:00+00:00"],
+        "value": [850.0, -127.0, -127.0, 850.0]})
+    dirty = tmp_path / "dirty.csv"
+    pd.concat([df, glitches], ignore_index=True).to_csv(dirty, index=False)
+    daily = {}
+    for name, history in (("clean", sml), ("dirty", dirty)):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="pseudotwin.analysis.training"):
+            assert run(*desk_twin("evaluate", history, "--models", "ref,triv,blend",
+                                  "--out", str(tmp_path / name))) == 0
+        warned = [m for r in caplog.records if "left out" in (m := r.getMessage())]
+        daily[name] = pd.read_csv(tmp_path / name / "daily.csv")
+        if name == "clean":
+            assert warned == []
+        else:
+            assert len(warned) == 1
+            assert "left out 4 reading(s) outside -40 … 80 °C" in warned[0]
+            assert "dining/temp: 2 (" in warned[0] and "room/temp: 2 (" in warned[0]
+    pd.testing.assert_frame_equal(daily["clean"], daily["dirty"])
+
+    spec = TwinSpec(("a/temp",), "desk/temp", Quantity.TEMPERATURE, OperatingHours())
+    ok = 21.0 + np.sin(np.arange(1000) / 50)
+    fahrenheit = _frame({"a/temp": ok, "desk/temp": np.full(1000, 120.0)})
+    kept = plausible_readings(fahrenheit, spec)
+    assert len(kept) == len(fahrenheit)
+    with pytest.raises(DataError, match="sensor desk/temp: .* temperature .*median 120 °C"):
+        check_plausible(kept, spec)
 
 
 def test_train_refuses_a_stuck_sensor(sml: Path, tmp_path: Path, capsys) -> None:

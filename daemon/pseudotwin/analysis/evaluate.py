@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from pseudotwin.analysis.replay import ESTIMATE, REF_PREFIX, replay_estimates
-from pseudotwin.analysis.training import train_twin
+from pseudotwin.analysis.training import plausible_readings, train_twin
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.series import iso_utc, require_sensors
 from pseudotwin.core.spec import TwinSpec
@@ -113,6 +113,8 @@ def evaluate(
     t0 = time.perf_counter()
     target, hours = spec.target, spec.hours
     require_sensors(history, list(spec.sensors))
+    # scored as the daemon takes readings: an 850 °C glitch is no day's truth or reference
+    history = plausible_readings(history, spec)
     # fail before training, not with an empty plot
     if plot_day is not None and plot_day not in _desk_days(history, spec):
         raise DataError(f"--plot-day {plot_day}: no readings of {target} in that day's "

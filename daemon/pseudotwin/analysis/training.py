@@ -80,6 +80,37 @@ STUCK_TOLERANCE = 1e-9  # relative: one value, up to float rounding
 MAX_IMPLAUSIBLE_SHARE = 0.01  # a few glitches (a DS18B20's 85 °C) are not a mislabelled series
 
 
+def plausible_readings(df: pd.DataFrame, spec: TwinSpec) -> pd.DataFrame:
+    """The rows of ``df`` without the references' and the desk sensor's readings outside the
+    plausible range of the twin's quantity (:data:`PLAUSIBLE`), with a warning that counts
+    them per sensor. It is the range ``train --report`` writes into the configuration it
+    proposes, so the daemon rejects such readings live: a −127 °C of a disconnected probe or
+    an 850 °C glitch would otherwise set a profile, a σ or a day's score that the live twin
+    never sees. A sensor whose median lies outside (another quantity's sensor) keeps its
+    readings, for :func:`check_plausible` to refuse by name."""
+    lo, hi = PLAUSIBLE[spec.quantity]
+    sensor = df["sensor"]
+    value = df["value"].to_numpy(dtype=float)
+    outside = np.zeros(len(df), dtype=bool)
+    for s in spec.sensors:
+        own = (sensor == s).to_numpy()
+        v = value[own]
+        if not len(v) or not lo <= float(np.nanmedian(v)) <= hi:
+            continue
+        outside[own] = (v < lo) | (v > hi)  # NaN is neither: the series' reader drops it
+    if not outside.any():
+        return df
+    dropped = df[outside]
+    counts = ", ".join(f"{s}: {n} (e.g. {g['value'].iloc[0]:g} {spec.unit} at {g['ts'].iloc[0]})"
+                       for s, g in dropped.groupby("sensor", sort=True)
+                       for n in [len(g)])
+    log.warning("left out %d reading(s) outside %g … %g %s, the plausible range of a %s that "
+                "the daemon applies with the configuration train --report proposes (%s); "
+                "give the sensors' own min..max with train --config", len(dropped), lo, hi,
+                spec.unit, spec.quantity.value, counts)
+    return df[~outside]
+
+
 def check_plausible(df: pd.DataFrame, spec: TwinSpec) -> None:
     """DataError naming the sensor and the quantity when a reference's or the target's
     readings do not look like that quantity (CO2 data trained as temperature writes °C), or
@@ -248,6 +279,7 @@ def train_validated(
                         "candidates too (e.g. --models ref,triv,blend)")
     sensors = list(spec.sensors)
     require_sensors(df, [*sensors, *spec.covariates])
+    df = plausible_readings(df, spec)
     policy = thinning or Thinning()
     # The models learn from the points the live window will hold (one per sensor and
     # interval), so a chatty sensor's history trains the twin its interval means would.
