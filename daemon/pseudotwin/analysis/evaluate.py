@@ -144,8 +144,13 @@ def evaluate(
 
 def _desk_days(history: pd.DataFrame, spec: TwinSpec) -> set[dt.date]:
     """The local days with readings of the desk sensor in operating hours."""
+    return _reporting_days(history, spec, spec.target)
+
+
+def _reporting_days(history: pd.DataFrame, spec: TwinSpec, sensor: str) -> set[dt.date]:
+    """The local days with readings of ``sensor`` in operating hours."""
     hours = spec.hours
-    days, h = hours.day_and_hours(history.loc[history["sensor"] == spec.target, "ts"])
+    days, h = hours.day_and_hours(history.loc[history["sensor"] == sensor, "ts"])
     return set(pd.to_datetime(np.unique(days[hours.in_operating_hours(h)])).date)
 
 
@@ -156,10 +161,24 @@ def _name_unanswered_days(est: pd.DataFrame, history: pd.DataFrame, spec: TwinSp
     answered = set(pd.to_datetime(np.unique(spec.hours.day_and_hours(est["ts"])[0])).date)
     missing = sorted(d for d in _desk_days(history, spec) - answered if d >= start)
     if missing:
-        shown = ", ".join(str(d) for d in missing[:10])
         log.warning("%d day(s) with readings of %s but no estimate, as the references did not "
-                    "report (left out of every score): %s%s", len(missing), spec.target,
-                    shown, f" and {len(missing) - 10} more" if len(missing) > 10 else "")
+                    "report (left out of every score): %s", len(missing), spec.target,
+                    _some_days(missing))
+    # A day the reference never reported on is still answered, from its last value of an
+    # earlier day: scored like any other, while the daemon (stale_after_minutes) publishes
+    # such estimates stale or from a failover.
+    for ref in spec.references:
+        held = sorted(d for d in answered - _reporting_days(history, spec, ref) if d >= start)
+        if held:
+            log.warning("%d scored day(s) on which %s did not report in operating hours: "
+                        "estimated from its last value of an earlier day, held (--stale-after "
+                        "scores what the daemon would publish instead): %s", len(held), ref,
+                        _some_days(held))
+
+
+def _some_days(days: list[dt.date], shown: int = 10) -> str:
+    return ", ".join(str(d) for d in days[:shown]) + (
+        f" and {len(days) - shown} more" if len(days) > shown else "")
 
 
 # What evaluate writes into its output folder, besides the plot of one day (DAY_PLOT).
