@@ -114,6 +114,17 @@ def _every_command(path: Path, tmp_path: Path) -> list[tuple[str, ...]]:
       "no valid readings: dropped 2 of 2 rows (2 with a blank, NaN or infinite value)"),
      ("a,0,20.5\n", "no valid readings: dropped 1 of 1 rows (1 stamped before 2000-01-01, a "
                     "device clock never set, as the recorder rejects them)"),
+     # stamps beyond a nanosecond timestamp's years (1677–2262) too, which crashed the reader
+     *((f"a,{ts},20.5\n", f"no valid readings: dropped 1 of 1 rows (1 stamped {why})")
+       for ts, why in (
+           ("2099-01-01T00:00:00Z", "more than 1 day after now, a device clock far ahead, as "
+                                    "the recorder rejects them"),
+           ("2999-01-01T00:00:00Z", "more than 1 day after now, a device clock far ahead, as "
+                                    "the recorder rejects them"),
+           ("99999999999", "more than 1 day after now, a device clock far ahead, as the "
+                           "recorder rejects them"),
+           ("1500-01-01T00:00:00Z", "before 2000-01-01, a device clock never set, as the "
+                                    "recorder rejects them"))),
      # pandas read the extra field as an index and shifted the rest: a at 1970-01-01T00:00:01
      ("b,2012-03-14T10:00:00Z,2\na,2012-03-14T10:00:00Z,1,5\n",
       "data row 2 has 4 fields, the header 3 (sensor,ts,value): an extra column, or a value "

@@ -26,6 +26,9 @@ COLUMNS = ("sensor", "ts", "value")
 #: The oldest reading taken, from a file or live: an older stamp is a device clock never set
 #: or an uptime counter sent as epoch seconds (0 is 1970-01-01), not history.
 OLDEST = pd.Timestamp("2000-01-01", tz="UTC")
+#: How far after the moment a file is read its newest reading may be stamped: further is a
+#: device clock far ahead (a reading cannot come from the future), as the recorder rejects it.
+AHEAD = pd.Timedelta(days=1)
 
 #: Epoch numbers above this are neither seconds nor milliseconds (ms reach it in year 5138):
 #: microseconds or nanoseconds, as some exports write them.
@@ -34,9 +37,18 @@ _EPOCH_MS_MAX = 1e14
 log = logging.getLogger(__name__)
 
 
+#: The seconds since 1970 a nanosecond timestamp holds (years 1677–2262), a little inside:
+#: a stamp beyond is clamped to it, and dropped as too old or too new (OLDEST, AHEAD).
+_NS_SECONDS = 9.2e9
+_NS_BOUNDS = (pd.Timestamp(-_NS_SECONDS, unit="s", tz="UTC"),
+              pd.Timestamp(_NS_SECONDS, unit="s", tz="UTC"))
+
+
 def _epoch(num: pd.Series) -> pd.Series:
     # Epoch milliseconds are > 1e11 for any date after 1973; seconds stay below until 5138.
     ms = num.abs() > 1e11
+    num = num.where(ms, num.clip(-_NS_SECONDS, _NS_SECONDS)).where(
+        ~ms, num.clip(-_NS_SECONDS * 1e3, _NS_SECONDS * 1e3))
     out = pd.to_datetime(num.where(~ms) * 1e9, unit="ns", utc=True)
     out = out.where(~ms, pd.to_datetime(num.where(ms) * 1e6, unit="ns", utc=True))
     # A float holds ~16 digits: ms since 1970 times 1e6 lands up to 256 ns off, and the
@@ -106,7 +118,7 @@ def parse_timestamps(raw: pd.Series, where: str) -> pd.Series:
             bad = parsed.isna().reindex(raw.index, fill_value=False)
             raise DataError(f"{where}: {iso[parsed.isna()].iloc[0]!r} in data row {_row(bad)} "
                             "is not a valid ISO 8601 instant")
-        out[~numeric] = parsed.dt.as_unit("ns")
+        out[~numeric] = parsed.clip(*_NS_BOUNDS).dt.as_unit("ns")
     return out
 
 
@@ -131,6 +143,7 @@ class Dropped:
     duplicates: int
     conflicts: int = 0
     too_old: int = 0  # stamped before OLDEST
+    too_new: int = 0  # stamped more than AHEAD after the file was read
 
     def line(self, where: str) -> str | None:
         """One line saying how many rows were dropped and why; None when none was."""
@@ -140,10 +153,13 @@ class Dropped:
             (self.conflicts, "repeating a sensor and time with another value: the first is "
                              "used, as the store and the daemon's window keep it"),
             (self.too_old, f"stamped before {OLDEST:%Y-%m-%d}, a device clock never set, as "
-                           "the recorder rejects them")) if n]
+                           "the recorder rejects them"),
+            (self.too_new, f"stamped more than {AHEAD.days} day after now, a device clock far "
+                           "ahead, as the recorder rejects them")) if n]
         if not reasons:
             return None
-        dropped = self.not_finite + self.duplicates + self.conflicts + self.too_old
+        dropped = (self.not_finite + self.duplicates + self.conflicts + self.too_old
+                   + self.too_new)
         return f"{where}: dropped {dropped} of {self.rows} rows ({', '.join(reasons)})"
 
 
@@ -171,18 +187,21 @@ def _normalize(df: pd.DataFrame, where: str) -> tuple[pd.DataFrame, Dropped]:
         raise DataError(
             f"{where}: value {df['value'].iloc[row]!r} in data row {row + 1} is not a number"
         )
-    out["ts"] = pd.DatetimeIndex(out["ts"]).as_unit("ns")  # one unit everywhere (pandas 3: us)
     out["value"] = value.astype(float)
     out = out[np.isfinite(out["value"].values)]
     finite = len(out)
     out = out[out["ts"] >= OLDEST]
     too_old, finite = finite - len(out), len(out)
+    out = out[out["ts"] <= pd.Timestamp.now(tz="UTC") + AHEAD]
+    too_new, finite = finite - len(out), len(out)
+    # One unit everywhere (pandas 3 parses to us), once the stamps beyond ns's years are gone.
+    out["ts"] = pd.DatetimeIndex(out["ts"]).as_unit("ns")
     out = out.drop_duplicates()
     unique = len(out)
     out = out[~out.duplicated(["sensor", "ts"])]  # file order: the first stays
     out = out.sort_values(["ts", "sensor"], kind="stable").reset_index(drop=True)
-    return out, Dropped(len(df), len(df) - finite - too_old, finite - unique, unique - len(out),
-                        too_old)
+    return out, Dropped(len(df), len(df) - finite - too_old - too_new, finite - unique,
+                        unique - len(out), too_old, too_new)
 
 
 def read_history(path: str | Path) -> pd.DataFrame:
