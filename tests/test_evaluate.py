@@ -189,6 +189,32 @@ def test_days_the_reference_is_silent_are_left_out_of_every_row_and_named(
         m for m in said if "did not report in operating hours" in m]
 
 
+def test_a_scored_day_with_few_desk_readings_is_named(
+        sml: Path, tmp_path: Path, caplog) -> None:
+    """A desk sensor that read once on 2012-03-21 (its other readings lost): the day counts in
+    the mean daily NRMSE as a full day does, on one reading, and is named with its n."""
+    df = pd.read_csv(sml)
+    local = pd.to_datetime(df["ts"], utc=True).dt.tz_convert("Europe/Madrid")
+    day = local.dt.date.astype(str)
+    desk = df.index[(df["sensor"] == "room/temp") & (day == "2012-03-21")
+                    & (local.dt.hour >= 8) & (local.dt.hour <= 19)]
+    path = tmp_path / "thin.csv"
+    df.drop(desk[1:]).to_csv(path, index=False)
+    said = {}
+    for name, history in (("full", sml), ("thin", path)):
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="pseudotwin.analysis.evaluate"):
+            assert run("evaluate", "--history", str(history), "--references", "dining/temp",
+                       "--target", "room/temp", "--quantity", "temperature", "--train-start",
+                       "2012-03-14", "--timezone", "Europe/Madrid", "--models", "triv",
+                       "--out", str(tmp_path / name)) == 0
+        said[name] = [m for r in caplog.records if "fewer than half" in (m := r.getMessage())]
+    assert said["full"] == []
+    assert len(said["thin"]) == 1
+    assert "1 scored day(s) with fewer than half the usual" in said["thin"][0]
+    assert said["thin"][0].endswith(": 2012-03-21 (n = 1)")
+
+
 def test_a_second_reference_silent_for_days_is_not_scored_on_them(room_a: Path) -> None:
     """With two references the twin answers from the one alive, and the dead one's `ref:`
     row held its days-old value on every later day."""

@@ -135,6 +135,7 @@ def evaluate(
         )
     _name_unanswered_days(est, history, spec, test_start)
     daily = daily_scores(est, hours)
+    _name_thin_days(daily, spec)
     monthly = monthly_scores(daily)
     ev = Evaluation(artifact, est, daily, monthly, time.perf_counter() - t0)
     if out is not None:
@@ -176,7 +177,7 @@ def _name_unanswered_days(est: pd.DataFrame, history: pd.DataFrame, spec: TwinSp
                         _some_days(held))
 
 
-def _some_days(days: list[dt.date], shown: int = 10) -> str:
+def _some_days(days: Sequence[object], shown: int = 10) -> str:
     return ", ".join(str(d) for d in days[:shown]) + (
         f" and {len(days) - shown} more" if len(days) > shown else "")
 
@@ -212,6 +213,9 @@ def write_outputs(
             log.info("removed %s, the plot of an earlier evaluation into %s", old.name, out)
 
 
+THIN_SHARE = 0.5  # a day with fewer than this share of the usual scored readings is thin
+
+
 def median_day(daily: pd.DataFrame, primary: str) -> dt.date | None:
     """The day whose primary-model NRMSE is the median: a typical day, not the best, among
     the days with at least half the usual number of scored readings (a day cut short by a
@@ -219,8 +223,27 @@ def median_day(daily: pd.DataFrame, primary: str) -> dt.date | None:
     d = daily[daily["model"] == primary]
     if d.empty:
         return None
-    d = d[d["n"] >= 0.5 * d["n"].median()].sort_values("nrmse_pct")
+    d = d[~_thin(d)].sort_values("nrmse_pct")
     return dt.date.fromisoformat(d["day"].iloc[len(d) // 2])
+
+
+def _thin(rows: pd.DataFrame) -> pd.Series:
+    """Of one model's daily rows, the days with fewer than half the usual (median) number
+    of scored readings."""
+    return rows["n"] < THIN_SHARE * rows["n"].median()
+
+
+def _name_thin_days(daily: pd.DataFrame, spec: TwinSpec) -> None:
+    """Warn of scored days with fewer than half the usual scored readings: each counts in the
+    mean daily NRMSE as much as a full day, on less evidence."""
+    d = daily[daily["model"] == ESTIMATE]
+    thin = d[_thin(d)]
+    if len(thin):
+        log.warning("%d scored day(s) with fewer than half the usual %d scored readings of %s, "
+                    "each counted in the mean daily NRMSE as a full day: %s", len(thin),
+                    int(d["n"].median()), spec.target, _some_days(
+                        [f"{day} (n = {n})" for day, n in zip(thin["day"], thin["n"],
+                                                              strict=True)]))
 
 
 def summary_table(ev: Evaluation) -> str:
