@@ -120,7 +120,12 @@ def test_evaluate_room_climate_with_two_references(room_a: Path, tmp_path: Path)
     "args,message",
     [
         (["--references", "nope/temp"], "sensor(s) nope/temp not found"),
-        (["--train-start", "2012-03-21"], "too little training data"),
+        # (how to train on fewer days: said with it)
+        (["--train-start", "2012-03-21"], "too little training data: 2 day(s) from "
+                                          "2012-03-21 on"),
+        (["--train-start", "2012-03-21"], "5 needed (--train-days sets how many; the "
+                                          "primary is chosen and σ calibrated by validation "
+                                          "from 3 days on, the more days the surer)"),
         # three readings a day in half an hour: the rule they miss is named
         (["--day-end", "08:30"], "have at least 4 readings of each of dining/temp, room/temp "
                                  "in operating hours (08:00–08:30"),
