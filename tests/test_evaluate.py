@@ -165,7 +165,7 @@ def test_bad_arguments_are_usage_errors(capsys) -> None:
 
 
 def test_days_the_reference_is_silent_are_left_out_of_every_row_and_named(
-        sml: Path, tmp_path: Path, caplog) -> None:
+        sml: Path, tmp_path: Path, caplog, capsys) -> None:
     """The reference dead after 2012-03-20: the models' rows stopped there, while its raw
     `ref:` row held its last value for every later day and was scored on other days than
     the twin it is compared with."""
@@ -192,6 +192,13 @@ def test_days_the_reference_is_silent_are_left_out_of_every_row_and_named(
             "operating hours: estimated from its last value of an earlier day, held "
             "(--stale-after scores what the daemon would publish instead): 2012-03-21"] == [
         m for m in said if "did not report in operating hours" in m]
+    # such a day asked for as the plotted one fails before any output is written
+    rc = run("evaluate", "--history", str(path), "--references", "dining/temp",
+             "--target", "room/temp", "--quantity", "temperature", "--train-start",
+             "2012-03-14", "--timezone", "Europe/Madrid", "--models", "ref,triv",
+             "--plot-day", "2012-03-22", "--out", str(tmp_path / "plot"))
+    assert rc == 2 and not (tmp_path / "plot").exists()
+    assert "--plot-day 2012-03-22: no estimate of room/temp that day" in capsys.readouterr().err
 
 
 def test_a_scored_day_with_few_desk_readings_is_named(

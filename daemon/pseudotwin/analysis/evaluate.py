@@ -136,6 +136,12 @@ def evaluate(
     _name_unanswered_days(est, history, spec, test_start)
     daily = daily_scores(est, hours)
     _name_thin_days(daily, spec)
+    # before any output is written: a day the desk read but the twin never answered
+    if plot_day is not None and str(plot_day) not in set(daily["day"]):
+        raise DataError(f"--plot-day {plot_day}: no estimate of {target} that day (its "
+                        f"references did not report), nothing to plot; "
+                        f"{daily['day'].nunique()} day(s) scored, from {daily['day'].min()} "
+                        f"to {daily['day'].max()}")
     monthly = monthly_scores(daily)
     ev = Evaluation(artifact, est, daily, monthly, time.perf_counter() - t0)
     if out is not None:
