@@ -241,6 +241,8 @@ BAD: list[tuple[str, Mutation, str, str]] = [
      "unknown IANA time zone"),
     ("tz-too-long", set_("service", "timezone", "Europe/" + "x" * 300), "service.timezone",
      "unknown IANA time zone"),
+    ("tz-letter-case", set_("service", "timezone", "europe/berlin"), "service.timezone",
+     "unknown IANA time zone 'europe/berlin' (did you mean 'Europe/Berlin'?)"),
     ("publish-every-tiny", set_("service", "publish_every_minutes", 1e-300),
      "service.publish_every_minutes", "does not divide a day"),
     ("publish-every-huge", set_("service", "publish_every_minutes", 1e308),

@@ -44,6 +44,18 @@ def test_bad_hours_are_config_errors(kwargs: dict) -> None:
         OperatingHours.from_strings(**kwargs)
 
 
+@pytest.mark.parametrize("name,hint", [
+    ("utc", "(did you mean 'UTC'?)"),  # the default is shown as UTC; zone names are cased
+    ("europe/berlin", "(did you mean 'Europe/Berlin'?)"),
+    ("Europe/Berln", "(did you mean 'Europe/Berlin'?)"),
+    ("Mars/Olympus", "(an IANA name such as 'Europe/Berlin' or 'UTC')"),
+])
+def test_an_unknown_time_zone_says_the_zone_meant(name: str, hint: str) -> None:
+    with pytest.raises(ConfigError) as exc:
+        OperatingHours.from_strings(timezone=name)
+    assert str(exc.value) == f"unknown time zone {name!r} {hint}"
+
+
 @pytest.mark.parametrize(
     "day,expected_utc",
     [

@@ -82,7 +82,10 @@ def test_cli_import_twice(sml_csv: Path, sml_frame: pd.DataFrame, tmp_path: Path
 @pytest.mark.parametrize(
     ("content", "message"),
     [
-        ("when,what,how\n1,2,3\n", "missing column(s) sensor, ts, value"),
+        ("when,what,how\n1,2,3\n", "missing column(s) sensor, ts, value; expected header "
+                                   "sensor,ts,value, found 'when,what,how'"),
+        ("sensor;ts;value\na;2016-03-01T00:00:00Z;1\n", "found 'sensor;ts;value' (separated "
+                                                     "by ';'? the file must be comma-separated)"),
         ("sensor,ts,value\na,2016-03-01T00:00:00,1.0\n", "has no UTC offset"),
         ("sensor,ts,value\na,2016-03-01T00:00:00Z,warm\n", "is not a number"),
         ("sensor,ts,value\n", "no rows"),

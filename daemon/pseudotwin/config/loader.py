@@ -12,7 +12,7 @@ import tomllib
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
-from zoneinfo import ZoneInfo, ZoneInfoNotFoundError, available_timezones
+from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
 from pseudotwin.config.model import (
     BrokerConfig,
@@ -38,7 +38,7 @@ from pseudotwin.config.validate import (
     suggest,
     type_name,
 )
-from pseudotwin.core.horizon import OperatingHours, parse_hhmm
+from pseudotwin.core.horizon import OperatingHours, parse_hhmm, zone_hint
 from pseudotwin.core.thinning import Thinning
 from pseudotwin.errors import ConfigError, PseudotwinError
 
@@ -288,7 +288,7 @@ class Loader:
             try:
                 ZoneInfo(tz)
             except (ZoneInfoNotFoundError, ValueError, OSError):  # OSError: "Europe", a folder
-                found.append(("timezone", f"unknown IANA time zone {tz!r}{_suggest_tz(tz)}"))
+                found.append(("timezone", f"unknown IANA time zone {tz!r}{zone_hint(tz)}"))
         for where, msg in found:
             self.add(f"service.{where}", msg)
         if found or tz is None:
@@ -394,11 +394,6 @@ class Loader:
             messages = [str(exc)]
         for msg in messages:
             self.add(f"{loc}.artifact", msg)
-
-
-def _suggest_tz(name: str) -> str:
-    # Empty without tzdata; then there is simply no hint.
-    return suggest(name, available_timezones())
 
 
 def _hours_field(message: str) -> str:

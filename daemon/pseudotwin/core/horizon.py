@@ -24,6 +24,21 @@ _MINUTE = dt.timedelta(minutes=1)
 _HHMM = re.compile(r"(\d{1,2}):(\d{2})")
 
 
+def zone_hint(name: str) -> str:
+    """What to say after "unknown time zone": the IANA zone a name is but for its letter
+    case ("utc" → 'UTC'), else the closest one's name, else an example of the form. Empty
+    of suggestions without tzdata."""
+    import difflib
+    from zoneinfo import available_timezones
+
+    zones = available_timezones()
+    same = sorted(z for z in zones if z.lower() == name.strip().lower())
+    close = same or difflib.get_close_matches(name, list(zones), n=1, cutoff=0.6)
+    if close:
+        return f" (did you mean {close[0]!r}?)"
+    return " (an IANA name such as 'Europe/Berlin' or 'UTC')"
+
+
 @lru_cache(maxsize=64)
 def _folds(timezone: str, day: dt.date) -> tuple[tuple[float, float, float], ...]:
     """The DST folds of local ``day`` (the wall-clock interval a fall-back shows twice), as
@@ -110,7 +125,8 @@ class OperatingHours:
         try:
             ZoneInfo(self.timezone)
         except (ZoneInfoNotFoundError, ValueError, OSError):  # OSError: "Europe", a folder
-            raise ConfigError(f"unknown time zone {self.timezone!r}") from None
+            raise ConfigError(f"unknown time zone {self.timezone!r}"
+                              f"{zone_hint(self.timezone)}") from None
 
     @classmethod
     def from_strings(

@@ -172,9 +172,11 @@ def normalize(df: pd.DataFrame, where: str = "history") -> pd.DataFrame:
 def _normalize(df: pd.DataFrame, where: str) -> tuple[pd.DataFrame, Dropped]:
     missing = [c for c in COLUMNS if c not in df.columns]
     if missing:
-        raise DataError(
-            f"{where}: missing column(s) {', '.join(missing)}; expected header sensor,ts,value"
-        )
+        found = ",".join(str(c) for c in df.columns)
+        other = next((f" (separated by {sep!r}? the file must be comma-separated)"
+                      for sep in (";", "\t", "|") if sep in found), "")
+        raise DataError(f"{where}: missing column(s) {', '.join(missing)}; expected header "
+                        f"sensor,ts,value, found {found[:200]!r}{other}")
     if df.empty:
         raise DataError(f"{where}: no rows")
     out = pd.DataFrame(
