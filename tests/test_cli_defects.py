@@ -156,18 +156,24 @@ def test_plausibility_tolerates_a_few_glitches_but_names_the_bad_sensor() -> Non
 
 
 def test_readings_outside_the_quantitys_plausible_range_are_left_out_as_the_daemon_does(
-        sml: Path, tmp_path: Path, caplog) -> None:
+        sml: Path, tmp_path: Path, caplog, capsys) -> None:
     """A disconnected probe's −127 °C and an 850 °C glitch, of a reference and of the desk,
-    on training days and on a scored day: train and evaluate leave them out with a warning
-    that counts them per sensor (the daemon rejects them with the configuration train
-    --report proposes), so every score is the clean history's. A sensor whose readings are
-    mostly outside is another quantity's, refused by name as before."""
+    on training days and on scored days, and the desk probe disconnected for the last two
+    days (−127 °C every minute: most of its readings): train and evaluate leave them out with
+    a warning that counts them per sensor (the daemon rejects them with the configuration
+    train --report proposes), so every score is the clean history's. A desk sensor reading
+    °F on the training days is refused by name."""
     df = pd.read_csv(sml)
-    glitches = pd.DataFrame({
+    minutes = pd.date_range("2012-03-18T23:00Z", "2012-03-20T22:59Z", freq="min")
+    dropout = minutes[minutes.minute % 15 != 0]  # not on the 15-min readings' instants
+    glitches = pd.concat([pd.DataFrame({
         "sensor": ["dining/temp", "dining/temp", "room/temp", "room/temp"],
         "ts": ["2012-03-15T10:07:00+00:00", "2012-03-17T12:07:00+00:00",
-               "2012-03-16T09:07:00+00:00", "2012-03-20T11:07:00+00:00"],
-        "value": [850.0, -127.0, -127.0, 850.0]})
+               "2012-03-16T09:07:00+00:00", "2012-03-20T11:07:30+00:00"],
+        "value": [850.0, -127.0, -127.0, 850.0]}), pd.DataFrame({
+            "sensor": "room/temp", "ts": dropout.strftime("%Y-%m-%dT%H:%M:%S+00:00"),
+            "value": -127.0})], ignore_index=True)
+    assert len(dropout) > len(df[df["sensor"] == "room/temp"])  # its median is -127
     dirty = tmp_path / "dirty.csv"
     pd.concat([df, glitches], ignore_index=True).to_csv(dirty, index=False)
     daily = {}
@@ -182,17 +188,40 @@ def test_readings_outside_the_quantitys_plausible_range_are_left_out_as_the_daem
             assert warned == []
         else:
             assert len(warned) == 1
-            assert "left out 4 reading(s) outside -40 … 80 °C" in warned[0]
-            assert "dining/temp: 2 (" in warned[0] and "room/temp: 2 (" in warned[0]
+            assert f"left out {len(glitches)} reading(s) outside their sensor's range" in \
+                warned[0]
+            assert "dining/temp: 2 outside -40 … 80 °C (e.g. 850 at 2012-03-15 10:07" in \
+                warned[0]
+            assert f"room/temp: {len(dropout) + 2} outside -40 … 80 °C" in warned[0]
     pd.testing.assert_frame_equal(daily["clean"], daily["dirty"])
 
+    f = df.copy()  # °F of a warmer room: median 75, 14 % of the training days' above 80
+    desk = f["sensor"] == "room/temp"
+    f.loc[desk, "value"] = (f.loc[desk, "value"] + 4.4) * 9 / 5 + 32
+    fahrenheit = tmp_path / "fahrenheit.csv"
+    f.to_csv(fahrenheit, index=False)
+    capsys.readouterr()
+    assert run(*desk_twin("train", fahrenheit, "--models", "triv",
+                          "--out", str(tmp_path / "f.json"))) == 2
+    err = capsys.readouterr().err
+    assert "sensor room/temp: readings implausible for the quantity temperature" in err
+    assert "outside -40 … 80 °C on the training days); is it another quantity's" in err
+
+
+def test_a_configured_range_is_the_one_training_applies() -> None:
+    """A configuration's min..max, which the daemon applies, replaces the plausible range
+    for its sensors: a DS18B20's 85 °C stays for a sensor configured -55..125 °C."""
     spec = TwinSpec(("a/temp",), "desk/temp", Quantity.TEMPERATURE, OperatingHours())
-    ok = 21.0 + np.sin(np.arange(1000) / 50)
-    fahrenheit = _frame({"a/temp": ok, "desk/temp": np.full(1000, 120.0)})
-    kept = plausible_readings(fahrenheit, spec)
-    assert len(kept) == len(fahrenheit)
-    with pytest.raises(DataError, match="sensor desk/temp: .* temperature .*median 120 °C"):
-        check_plausible(kept, spec)
+    ok = 21.0 + np.sin(np.arange(100) / 50)
+    glitchy = ok.copy()
+    glitchy[3] = 85.0
+    frame = _frame({"a/temp": glitchy, "desk/temp": ok})
+    assert len(plausible_readings(frame, spec)) == len(frame) - 1
+    assert len(plausible_readings(frame, spec, {"a/temp": (-55.0, 125.0)})) == len(frame)
+    with pytest.raises(DataError, match=r"sensor desk/temp: readings implausible for the "
+                                        r"quantity temperature \(median 120 °C, 100 % outside "
+                                        r"-40 … 80 °C\)"):
+        plausible_readings(_frame({"a/temp": ok, "desk/temp": np.full(100, 120.0)}), spec)
 
 
 def test_train_refuses_a_stuck_sensor(sml: Path, tmp_path: Path, capsys) -> None:

@@ -113,14 +113,15 @@ def evaluate(
     t0 = time.perf_counter()
     target, hours = spec.target, spec.hours
     require_sensors(history, list(spec.sensors))
-    # scored as the daemon takes readings: an 850 °C glitch is no day's truth or reference
-    history = plausible_readings(history, spec)
     # fail before training, not with an empty plot
     if plot_day is not None and plot_day not in _desk_days(history, spec):
         raise DataError(f"--plot-day {plot_day}: no readings of {target} in that day's "
                         f"operating hours ({hours.describe()}), nothing to plot")
     artifact = train_twin(history, spec, train_start, train_days, models, options, primary,
                           thinning=thinning, skip_days=skip_days)
+    # Scored as the daemon takes readings: an 850 °C glitch is no day's truth or reference
+    # (training left them out and said how many).
+    history = plausible_readings(history, spec, warn=False)
     test_start = first_scored_day(artifact)
     if plot_day is not None and plot_day < test_start:
         raise DataError(f"--plot-day {plot_day} is not scored: the evaluated days begin on "

@@ -5,7 +5,7 @@ from __future__ import annotations
 import datetime as dt
 import logging
 import time
-from collections.abc import Collection, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -77,45 +77,68 @@ def _skipped_days(days: Sequence[DayReadings], chosen: Sequence[DayReadings],
 PLAUSIBLE = {Quantity.TEMPERATURE: (-40.0, 80.0), Quantity.CO2: (0.0, 10000.0)}
 MIN_MEDIAN = {Quantity.CO2: 100.0}  # no air holds less CO2 (outdoors ≈ 420 ppm)
 STUCK_TOLERANCE = 1e-9  # relative: one value, up to float rounding
-MAX_IMPLAUSIBLE_SHARE = 0.01  # a few glitches (a DS18B20's 85 °C) are not a mislabelled series
+#: A few glitches (a DS18B20's 85 °C) are neither another quantity's sensor nor a stuck one;
+#: more of a sensor's training-day readings outside the plausible range are: °F run above
+#: 80 on a warm day, ppm trained as °C far above.
+MAX_IMPLAUSIBLE_SHARE = 0.01
 
 
-def plausible_readings(df: pd.DataFrame, spec: TwinSpec) -> pd.DataFrame:
-    """The rows of ``df`` without the references' and the desk sensor's readings outside the
-    plausible range of the twin's quantity (:data:`PLAUSIBLE`), with a warning that counts
-    them per sensor. It is the range ``train --report`` writes into the configuration it
-    proposes, so the daemon rejects such readings live: a −127 °C of a disconnected probe or
-    an 850 °C glitch would otherwise set a profile, a σ or a day's score that the live twin
-    never sees. A sensor whose median lies outside (another quantity's sensor) keeps its
-    readings, for :func:`check_plausible` to refuse by name."""
-    lo, hi = PLAUSIBLE[spec.quantity]
+def plausible_readings(df: pd.DataFrame, spec: TwinSpec,
+                       ranges: Mapping[str, tuple[float, float]] | None = None,
+                       warn: bool = True) -> pd.DataFrame:
+    """The rows of ``df`` without the references' and the desk sensor's readings outside
+    their range: ``ranges[sensor]`` (a configuration's min..max [unit]) or else the plausible
+    range of the twin's quantity (:data:`PLAUSIBLE`), which is what the configuration
+    ``train --report`` proposes gives them. The daemon rejects such readings live, so a
+    −127 °C of a disconnected probe or an 850 °C glitch would otherwise set a profile, a σ or
+    a day's score that the live twin never sees. warn: log how many per sensor. DataError when
+    a sensor is left without any reading (another quantity's sensor)."""
     sensor = df["sensor"]
     value = df["value"].to_numpy(dtype=float)
     outside = np.zeros(len(df), dtype=bool)
+    said = []
     for s in spec.sensors:
+        lo, hi = (ranges or {}).get(s, PLAUSIBLE[spec.quantity])
         own = (sensor == s).to_numpy()
         v = value[own]
-        if not len(v) or not lo <= float(np.nanmedian(v)) <= hi:
+        out = (v < lo) | (v > hi)  # NaN is neither: the series' reader drops it
+        if not out.any():
             continue
-        outside[own] = (v < lo) | (v > hi)  # NaN is neither: the series' reader drops it
+        if out.all():
+            raise _implausible(s, spec, float(np.nanmedian(v)), 1.0, lo, hi)
+        outside[own] = out
+        first = df[own][out].iloc[0]
+        said.append(f"{s}: {int(out.sum())} outside {lo:g} … {hi:g} {spec.unit} (e.g. "
+                    f"{first['value']:g} at {first['ts']})")
     if not outside.any():
         return df
-    dropped = df[outside]
-    counts = ", ".join(f"{s}: {n} (e.g. {g['value'].iloc[0]:g} {spec.unit} at {g['ts'].iloc[0]})"
-                       for s, g in dropped.groupby("sensor", sort=True)
-                       for n in [len(g)])
-    log.warning("left out %d reading(s) outside %g … %g %s, the plausible range of a %s that "
-                "the daemon applies with the configuration train --report proposes (%s); "
-                "give the sensors' own min..max with train --config", len(dropped), lo, hi,
-                spec.unit, spec.quantity.value, counts)
+    if warn:
+        log.warning("left out %d reading(s) outside their sensor's range, as the daemon leaves "
+                    "them out: %s (without train --config the plausible range of a %s, which "
+                    "the configuration train --report proposes gives them)",
+                    int(outside.sum()), "; ".join(said), spec.quantity.value)
     return df[~outside]
+
+
+def _implausible(sensor: str, spec: TwinSpec, median: float, outside: float, lo: float,
+                 hi: float, when: str = "") -> DataError:
+    """The error of a sensor whose readings are not the twin's quantity; ``outside``: their
+    share outside lo..hi [unit]."""
+    hint = ("" if outside >= 1.0 else " (A probe that failed then: --skip-days leaves those "
+            "days out; train --config applies the sensor's own min..max.)")
+    return DataError(f"sensor {sensor}: readings implausible for the quantity "
+                     f"{spec.quantity.value} (median {median:.4g} {spec.unit}, "
+                     f"{100 * outside:.0f} % outside {lo:g} … {hi:g} {spec.unit}{when}); is it "
+                     f"another quantity's sensor, or the wrong --quantity?{hint}")
 
 
 def check_plausible(df: pd.DataFrame, spec: TwinSpec) -> None:
     """DataError naming the sensor and the quantity when a reference's or the target's
-    readings do not look like that quantity (CO2 data trained as temperature writes °C), or
-    never change (a stuck sensor: nothing about its coupling to the others can be learnt, and
-    every live reading that moves would lie outside what training saw)."""
+    readings ``df`` (those of the training days, before any is left out) do not look like
+    that quantity (CO2 data trained as temperature writes °C; °F are not °C: more than
+    :data:`MAX_IMPLAUSIBLE_SHARE` outside the plausible range), or when they never change
+    (a stuck sensor: nothing about its coupling to the others can be learnt, and every live
+    reading that moves would lie outside what training saw)."""
     lo, hi = PLAUSIBLE[spec.quantity]
     for s in spec.sensors:
         rows = df[df["sensor"] == s]
@@ -123,20 +146,18 @@ def check_plausible(df: pd.DataFrame, spec: TwinSpec) -> None:
         v = v[np.isfinite(v)]
         if not len(v):
             continue
-        outside, med = float(np.mean((v < lo) | (v > hi))), float(np.median(v))
+        inside = (v >= lo) & (v <= hi)
+        outside, med = 1.0 - float(np.mean(inside)), float(np.median(v))
         if outside > MAX_IMPLAUSIBLE_SHARE or med < MIN_MEDIAN.get(spec.quantity, lo):
-            raise DataError(
-                f"sensor {s}: readings implausible for the quantity {spec.quantity.value} "
-                f"(median {med:.4g} {spec.unit}, {100 * outside:.0f} % outside {lo:g} … {hi:g} "
-                f"{spec.unit}); is it another quantity's sensor, or the wrong --quantity?"
-            )
-        # Judged on the 1st–99th percentiles, as the range above tolerates 1 % of glitches;
-        # with a tolerance because points are minute means, whose sums of one repeated value
-        # differ in the last bits.
+            raise _implausible(s, spec, med, outside, lo, hi, " on the training days")
+        rows, v_all, v = rows[rows["value"].between(lo, hi)], v, v[inside]  # glitches out
+        med = float(np.median(v))
+        # Judged on the 1st–99th percentiles, as a few glitches inside the range remain;
+        # with a tolerance because a value's float sums (minute means) differ in the last bits.
         q_lo, q_hi = np.quantile(v, [MAX_IMPLAUSIBLE_SHARE, 1 - MAX_IMPLAUSIBLE_SHARE])
         tol = STUCK_TOLERANCE * max(1.0, abs(med))
         if len(v) > 1 and q_hi - q_lo <= tol:
-            share = float(np.mean(np.abs(v - med) <= tol))
+            share = float(np.mean(np.abs(v_all - med) <= tol))
             raise DataError(
                 f"sensor {s}: reads {med:.6g} {spec.unit} throughout the training days "
                 f"({100 * share:.1f} % of its readings); is it stuck or disconnected? Nothing "
@@ -257,10 +278,13 @@ def train_validated(
     validate: bool = True,
     thinning: Thinning | None = None,
     skip_days: Collection[dt.date] = (),
+    ranges: Mapping[str, tuple[float, float]] | None = None,
 ) -> tuple[Artifact, validation.Validation | None]:
     """Train the requested models of one twin on the chosen days; returns the artifact
     and the validation it came from (None when not validated), whose held-out estimates the
-    commissioning report shows.
+    commissioning report shows. Readings of the references and the desk outside their
+    range (``ranges``, a configuration's, else the quantity's plausible one) are left out
+    (:func:`plausible_readings`).
 
     options: kind → settings of that model (see each model's ``options``). validate: hold
     out each training day to choose the primary (unless ``primary`` pins it) and calibrate
@@ -288,16 +312,18 @@ def train_validated(
                         "candidates too (e.g. --models ref,triv,blend)")
     sensors = list(spec.sensors)
     require_sensors(df, [*sensors, *spec.covariates])
-    df = plausible_readings(df, spec)
+    raw = df[df["sensor"].isin(sensors)]
+    df = plausible_readings(df, spec, ranges)
     policy = thinning or Thinning()
     # The models learn from the points the live window will hold (one per sensor and
     # interval), so a chatty sensor's history trains the twin its interval means would.
     points = thin_history(df[df["sensor"].isin([*sensors, *spec.covariates])], policy)
     days, left_out = choose_training_days(points, sensors, spec.hours, train_start,
                                           train_days, spec.covariates, skip_days)
-    # Judged on the training days only: a sensor broken some other week must not stop this.
-    local_day, _ = spec.hours.day_and_hours(points["ts"])
-    check_plausible(points[np.isin(local_day, [np.datetime64(d.day) for d in days])], spec)
+    # Judged on the training days only (a sensor broken some other week must not stop this),
+    # on their readings as they came: a share left out above may say it is not this quantity.
+    local_day, _ = spec.hours.day_and_hours(raw["ts"])
+    check_plausible(raw[np.isin(local_day, [np.datetime64(d.day) for d in days])], spec)
     ts = TrainingSet(spec, tuple(days))
     fitted: dict[str, TwinModel] = {}
     opts = dict(options or {})

@@ -369,9 +369,16 @@ def cmd_train(a: argparse.Namespace) -> int:
                         "%s (%s)", dropped, a.config,
                         ", ".join(f"{s}: {n}" for s, n in out.items()))
         df = kept
+    # The configuration's sensors keep their own min..max: the daemon applies those.
+    ranges = ({k: (s.min, s.max) for k, s in cfg.sensors.items()} if cfg is not None
+              else None)
     with twin_context(a.out.stem):  # the artifact's name is the twin's id by convention
         art, checked = train_validated(df, spec, start, a.train_days, a.models, _options(a),
-                                       a.primary, thinning=thinning, skip_days=a.skip_days)
+                                       a.primary, thinning=thinning, skip_days=a.skip_days,
+                                       ranges=ranges)
+    from pseudotwin.analysis.training import plausible_readings
+
+    df = plausible_readings(df, spec, ranges, warn=False)  # what training learnt from
     path = art.save(a.out)
     days = ", ".join(art.training["days"])
     print(f"trained {', '.join(art.models)} on {days}; artifact written to {path}")

@@ -24,6 +24,7 @@ from pseudotwin.analysis.evaluate import (
     write_outputs,
 )
 from pseudotwin.analysis.selfaware import OnTest, criteria_on_test, training_share
+from pseudotwin.analysis.training import plausible_readings
 from pseudotwin.core.horizon import OperatingHours
 from pseudotwin.core.spec import Quantity, TwinSpec
 from pseudotwin.history.convert import load
@@ -171,6 +172,7 @@ def run_one(spec: RunSpec, history: pd.DataFrame, out_root: Path,
     twin = spec.twin
     say(f"{spec.name}: training {', '.join(ALL_MODELS)} and replaying …")
     ev = evaluate(history, twin, spec.train_start, spec.train_days, ALL_MODELS)
+    history = plausible_readings(history, twin, warn=False)  # what evaluate scored
     out = out_root / spec.name
     write_outputs(ev, history, out)
     say(f"{spec.name}: {ev.daily['day'].nunique()} test day(s) in {ev.seconds:.1f} s; "
