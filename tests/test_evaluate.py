@@ -189,9 +189,19 @@ def test_days_the_reference_is_silent_are_left_out_of_every_row_and_named(
     assert any("but no estimate" in m and "2012-03-22" in m for m in said)
     # 2012-03-21 is scored from the value the reference read on the evening before: said
     assert ["twin room/temp: 1 scored day(s) on which dining/temp did not report in "
-            "operating hours: estimated from its last value of an earlier day, held "
+            "operating hours, estimated from the last value it reported before, held "
             "(--stale-after scores what the daemon would publish instead): 2012-03-21"] == [
         m for m in said if "did not report in operating hours" in m]
+    caplog.clear()  # scored as the daemon publishes: said so
+    with caplog.at_level("WARNING", logger="pseudotwin.analysis.evaluate"):
+        assert run("evaluate", "--history", str(path), "--references", "dining/temp",
+                   "--target", "room/temp", "--quantity", "temperature", "--train-start",
+                   "2012-03-14", "--timezone", "Europe/Madrid", "--models", "ref,triv",
+                   "--stale-after", "30", "--out", str(tmp_path / "stale")) == 0
+    assert ["twin room/temp: 1 scored day(s) on which dining/temp did not report in "
+            "operating hours, their estimates stale or from a failover (--stale-after): "
+            "2012-03-21"] == [m for r in caplog.records
+                              if "did not report in" in (m := r.getMessage())]
     # such a day asked for as the plotted one fails before any output is written
     rc = run("evaluate", "--history", str(path), "--references", "dining/temp",
              "--target", "room/temp", "--quantity", "temperature", "--train-start",

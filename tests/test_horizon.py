@@ -44,11 +44,17 @@ def test_bad_hours_are_config_errors(kwargs: dict) -> None:
         OperatingHours.from_strings(**kwargs)
 
 
+EXAMPLE = ("(an IANA name such as 'Europe/Berlin' or 'UTC', not an abbreviation or a UTC "
+           "offset: a zone's offset changes with daylight saving time)")
+
+
 @pytest.mark.parametrize("name,hint", [
     ("utc", "(did you mean 'UTC'?)"),  # the default is shown as UTC; zone names are cased
     ("europe/berlin", "(did you mean 'Europe/Berlin'?)"),
     ("Europe/Berln", "(did you mean 'Europe/Berlin'?)"),
-    ("Mars/Olympus", "(an IANA name such as 'Europe/Berlin' or 'UTC')"),
+    ("Mars/Olympus", EXAMPLE),
+    ("CEST", EXAMPLE),  # not 'EST', seven hours off
+    ("UTC+1", EXAMPLE),  # not 'UTC'
 ])
 def test_an_unknown_time_zone_says_the_zone_meant(name: str, hint: str) -> None:
     with pytest.raises(ConfigError) as exc:

@@ -134,7 +134,7 @@ def evaluate(
             f"no target readings of {target} in operating hours after the training period "
             f"(from {test_start} on): nothing to evaluate"
         )
-    _name_unanswered_days(est, history, spec, test_start)
+    _name_unanswered_days(est, history, spec, test_start, stale_after)
     daily = daily_scores(est, hours)
     _name_thin_days(daily, spec)
     # before any output is written: a day the desk read but the twin never answered
@@ -163,7 +163,7 @@ def _reporting_days(history: pd.DataFrame, spec: TwinSpec, sensor: str) -> set[d
 
 
 def _name_unanswered_days(est: pd.DataFrame, history: pd.DataFrame, spec: TwinSpec,
-                          start: dt.date) -> None:
+                          start: dt.date, stale_after: dt.timedelta | None = None) -> None:
     """Log the scored days on which the desk reported but the twin never answered (its
     references silent): they are in no row, so every model's mean leaves them out."""
     answered = set(pd.to_datetime(np.unique(spec.hours.day_and_hours(est["ts"])[0])).date)
@@ -172,16 +172,17 @@ def _name_unanswered_days(est: pd.DataFrame, history: pd.DataFrame, spec: TwinSp
         log.warning("%d day(s) with readings of %s but no estimate, as the references did not "
                     "report (left out of every score): %s", len(missing), spec.target,
                     _some_days(missing))
-    # A day the reference never reported on is still answered, from its last value of an
-    # earlier day: scored like any other, while the daemon (stale_after_minutes) publishes
-    # such estimates stale or from a failover.
+    # A day the reference never reported on in operating hours is still answered, from the
+    # last value it reported before: scored like any other without --stale-after, while the
+    # daemon (stale_after_minutes) publishes such estimates stale or from a failover.
+    then = ("their estimates stale or from a failover (--stale-after)" if stale_after
+            else "estimated from the last value it reported before, held (--stale-after "
+                 "scores what the daemon would publish instead)")
     for ref in spec.references:
         held = sorted(d for d in answered - _reporting_days(history, spec, ref) if d >= start)
         if held:
-            log.warning("%d scored day(s) on which %s did not report in operating hours: "
-                        "estimated from its last value of an earlier day, held (--stale-after "
-                        "scores what the daemon would publish instead): %s", len(held), ref,
-                        _some_days(held))
+            log.warning("%d scored day(s) on which %s did not report in operating hours, %s: "
+                        "%s", len(held), ref, then, _some_days(held))
 
 
 def _some_days(days: Sequence[object], shown: int = 10) -> str:

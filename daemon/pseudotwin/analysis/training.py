@@ -219,7 +219,7 @@ def choose_training_days(
             f"too little training data: {len(usable)} day(s) from {start} on have at least "
             f"{MIN_READINGS_PER_DAY} readings of each of {', '.join(sensors)} in operating "
             f"hours ({hours.describe()}){_not_counting(left_out)}, {n_days} needed"
-            f"{_fewer_days_hint(n_days)}"
+            f"{_fewer_days_hint(n_days, len(usable))}"
         )
     chosen = usable[:n_days]
     if skipped := _skipped_days(days, chosen, sensors, hours, skip_days):
@@ -237,9 +237,9 @@ def choose_training_days(
     return chosen, left_out
 
 
-def _fewer_days_hint(n_days: int) -> str:
-    """How to train on fewer days, when fewer would do (--train-days)."""
-    if n_days <= 1:
+def _fewer_days_hint(n_days: int, usable: int) -> str:
+    """How to train on fewer days, when ``usable`` ones (≥ 1) would do (--train-days)."""
+    if n_days <= 1 or usable < 1:
         return ""
     return (f" (--train-days sets how many; the primary is chosen and σ calibrated by "
             f"validation from {MIN_DAYS} days on, the more days the surer)")
@@ -497,7 +497,7 @@ def history_from_store(
             f"too little training data in the store: {len(chosen)} day(s) from {first} on "
             f"have at least {MIN_READINGS_PER_DAY} readings of each of {', '.join(sensors)} "
             f"in operating hours ({hours.describe()}){_not_counting(left_out)}, "
-            f"{n_days} needed{_fewer_days_hint(n_days)}"
+            f"{n_days} needed{_fewer_days_hint(n_days, len(chosen))}"
         )
     df = pd.concat(kept, ignore_index=True).drop_duplicates(["sensor", "ts"])
     # A covariate the store holds, but not on these days, was reported as "not found; file

@@ -33,10 +33,13 @@ def zone_hint(name: str) -> str:
 
     zones = available_timezones()
     same = sorted(z for z in zones if z.lower() == name.strip().lower())
-    close = same or difflib.get_close_matches(name, list(zones), n=1, cutoff=0.6)
+    # Only a Region/City name is spelt like its zone: "CEST" is not "EST", "UTC+1" not "UTC".
+    close = same or ("/" in name
+                     and difflib.get_close_matches(name, list(zones), n=1, cutoff=0.6))
     if close:
         return f" (did you mean {close[0]!r}?)"
-    return " (an IANA name such as 'Europe/Berlin' or 'UTC')"
+    return (" (an IANA name such as 'Europe/Berlin' or 'UTC', not an abbreviation or a UTC "
+            "offset: a zone's offset changes with daylight saving time)")
 
 
 @lru_cache(maxsize=64)
