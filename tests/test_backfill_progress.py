@@ -89,6 +89,34 @@ def test_a_day_without_readings_is_not_recorded_and_a_rerun_fills_it(
                                   check_exact=True)
 
 
+def test_a_day_with_readings_of_the_night_before_only_is_estimated_not_recorded(
+    desk_artifact: Path, base_db: Path, tmp_path: Path
+) -> None:
+    """A store filled up to 01:00 of NEXT (an import cut there): NEXT has reference
+    readings, but none from its init phase on, so its estimates are stale. Written, said, not
+    recorded: the rest of NEXT imported later makes a rerun write what a backfill with every
+    reading there from the start writes."""
+    db, cfg = site(tmp_path, "night", base_db, desk_artifact)
+    one_am = HOURS.at(NEXT, 1.0)
+    with open_store(str(db)) as store:
+        store.write_readings(readings(DAY, NEXT).loc[lambda f: f["ts"] < one_am])
+        first = backfill(cfg, "desk", DAY, NEXT, store, progress=False)
+    assert first.days == 2 and first.silent == [str(NEXT)] and not first.skipped
+    assert (f"not marked done 1 day(s), no reference reading from the init phase on, its "
+            f"estimates stale or held (a run after more readings are stored redoes it): "
+            f"{NEXT}") in first.lines()
+    assert done(db, desk_artifact) == {DAY}
+    with open_store(str(db)) as store:
+        assert set(store.read_estimates("desk").query("ts >= @one_am")["quality"]) <= {
+            "stale", "init"}
+        store.write_readings(readings(one_am, NEXT))
+        again = backfill(cfg, "desk", DAY, NEXT, store, progress=False)
+    assert again.days == 1 and not again.silent
+    assert done(db, desk_artifact) == {DAY, NEXT}
+    pd.testing.assert_frame_equal(rows(db), reference(tmp_path, base_db, desk_artifact, NEXT),
+                                  check_exact=True)
+
+
 def test_a_day_not_ended_is_estimated_not_recorded_and_a_later_run_completes_it(
     desk_artifact: Path, base_db: Path, tmp_path: Path
 ) -> None:

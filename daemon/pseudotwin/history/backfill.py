@@ -70,6 +70,8 @@ class BackfillSummary:
     estimates: int = 0
     skipped: dict[str, list[str]] = field(default_factory=dict)  # reason → days
     unended: list[str] = field(default_factory=list)  # of ``days``: estimated, not done
+    # of ``days``: estimated from readings before the day opened only (stale), not done
+    silent: list[str] = field(default_factory=list)
     out_of_range: int = 0  # stored readings outside their sensor's range: left out
     seconds: float = 0.0
 
@@ -83,6 +85,10 @@ class BackfillSummary:
         if self.unended:
             out.append("not marked done " + _day_list(
                 self.unended, "the day has not ended (a run after its end completes it)"))
+        if self.silent:
+            out.append("not marked done " + _day_list(
+                self.silent, "no reference reading from the init phase on, its estimates "
+                "stale or held (a run after more readings are stored redoes it)"))
         for reason, days in self.skipped.items():
             out.append(f"skipped {_day_list(days, reason)}")
         if self.out_of_range:
@@ -141,6 +147,7 @@ class ChunkResult:
     empty: list[dt.date] = field(default_factory=list)  # no reference readings: not marked
     out_of_range: int = 0  # stored readings left out as the daemon would reject them
     unended: list[dt.date] = field(default_factory=list)  # estimated, not over: not marked
+    silent: list[dt.date] = field(default_factory=list)  # estimated, no reading: not marked
     failed: tuple[dt.date, str] | None = None
     detail: str = ""  # the failure's traceback, for --log-level DEBUG
     stopped: bool = False
@@ -380,6 +387,10 @@ def run_chunk(cfg: ServiceConfig, chunk: Chunk, store: Store, artifact: Artifact
                                             day_rows(cfg, job, twin, day, frame))
                 if day in job.unended:  # not marked: a run after its end completes it
                     res.unended.append(day)
+                elif not _reported(frame, artifact, day):
+                    # Readings of the night before only (a store filled up to then, or a
+                    # dead reference): not marked, so readings stored later fill the day.
+                    res.silent.append(day)
                 else:
                     store.mark_day_done(job.progress_key, day, n)
                 log.debug("day %s written: %d estimates", day, n)
@@ -394,6 +405,16 @@ def run_chunk(cfg: ServiceConfig, chunk: Chunk, store: Store, artifact: Artifact
             res.detail = traceback.format_exc()
     res.seconds = time.perf_counter() - t0
     return res
+
+
+def _reported(frame: pd.DataFrame, artifact: Artifact, day: dt.date) -> bool:
+    """Whether a reference has a reading of ``day`` in ``frame`` from the init phase to the
+    end of the operating hours: the part of the day its estimates come from."""
+    hours = artifact.hours
+    ts = frame["ts"]
+    return bool((frame["sensor"].isin(artifact.references)
+                 & (ts >= hours.at(day, hours.init_start))
+                 & (ts <= hours.at(day, hours.day_end))).any())
 
 
 def _iter_todo(store: Store, sensors: list[str], days: list[dt.date],

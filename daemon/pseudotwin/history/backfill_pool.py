@@ -67,6 +67,7 @@ class RunSummary:
         s.estimates += res.estimates
         s.seconds += res.seconds
         s.unended += [str(d) for d in res.unended]
+        s.silent += [str(d) for d in res.silent]
         s.out_of_range += res.out_of_range
         for d in res.empty:
             s.skip(d, "no reference readings")
@@ -158,6 +159,7 @@ def backfill_twins(
         _run_pool(cfg, work, store.url, run, bar)
     for summary in run.twins.values():  # chunks finish in any order
         summary.unended.sort()
+        summary.silent.sort()
         for days in summary.skipped.values():
             days.sort()
     run.seconds = time.perf_counter() - t0
