@@ -117,6 +117,28 @@ def test_a_day_with_readings_of_the_night_before_only_is_estimated_not_recorded(
                                   check_exact=True)
 
 
+def test_a_reference_the_store_never_held_is_named(
+    desk_artifact: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Every day without reference readings is skipped quietly, as a store not filled yet
+    would be; a reference with no reading at all (a misspelt id, a sensor never recorded)
+    is named once."""
+    folder = tmp_path / "never"
+    folder.mkdir()
+    db = folder / "history.db"
+    with open_store(str(db)) as store:
+        desk = readings(DAY, DAY)
+        store.write_readings(desk[desk["sensor"] != "dining/temp"])
+    cfg = config(folder, 1883, desk_artifact, store=str(db))
+    with caplog.at_level("WARNING", logger="pseudotwin.history.backfill"), \
+            open_store(str(db)) as store:
+        s = backfill(cfg, "desk", DAY, DAY, store, progress=False)
+    assert s.skipped == {"no reference readings": [str(DAY)]}
+    assert [r.getMessage() for r in caplog.records if "no reading at all" in r.getMessage()] == [
+        "twin desk: the store holds no reading at all of dining/temp (not recorded yet, or "
+        "under another name?): every day is skipped as without reference readings"]
+
+
 def test_a_day_not_ended_is_estimated_not_recorded_and_a_later_run_completes_it(
     desk_artifact: Path, base_db: Path, tmp_path: Path
 ) -> None:

@@ -199,6 +199,11 @@ def plan(cfg: ServiceConfig, twin_ids: list[str], start: dt.date, end: dt.date,
         if problems := check_artifact(cfg.twins[twin_id], art, cfg.hours, cfg.thinning):
             raise ConfigError("\n".join(f"twins.{twin_id}.artifact: {p}" for p in problems))
         hours = art.hours
+        if never := [r for r in art.references if store.reading_range([r]) is None]:
+            # A misspelt id in a nightly job would otherwise look like quiet days forever.
+            log.warning("twin %s: the store holds no reading at all of %s (not recorded yet, "
+                        "or under another name?): every day is skipped as without reference "
+                        "readings", twin_id, ", ".join(never))
         digest = artifact_hash(path)
         job = TwinJob(twin_id, str(path), digest, (), ())
         done = set() if redo else store.done_days(job.progress_key)
