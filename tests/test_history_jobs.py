@@ -573,15 +573,16 @@ def test_backfill_seeds_the_carry_over_with_the_last_reading_in_range(
 def test_backfill_redo_estimates_a_day_again_once_its_readings_are_imported(
     mosquitto, desk_artifact, tmp_path: Path, capsys
 ) -> None:
-    """A day imported in part (the night only) is backfilled and marked done; importing the
+    """A day imported in part (up to 10:00) is backfilled and marked done; importing the
     rest does not make it due again (a rerun skips it), ``--redo`` does: its rows become
-    those of a backfill from the whole day."""
+    those of a backfill from the whole day. (A day imported up to its init phase only is
+    not marked done: tests/test_backfill_progress.py.)"""
     df = sml()
     day = dt.date(2012, 3, 20)
     upto = df[df["ts"] < HOURS.at(day + dt.timedelta(days=1), 0.0)]
     stores = {name: f"sqlite:///{tmp_path / name}.db" for name in ("partial", "whole")}
     with open_store(stores["partial"]) as s:
-        s.write_readings(upto[upto["ts"] < HOURS.at(day, 3.0)])
+        s.write_readings(upto[upto["ts"] < HOURS.at(day, 10.0)])
     with open_store(stores["whole"]) as s:
         s.write_readings(upto)
 
@@ -594,13 +595,13 @@ def test_backfill_redo_estimates_a_day_again_once_its_readings_are_imported(
         with open_store(stores[name]) as s:
             return s.read_estimates("desk").drop(columns="written_at")
 
-    night_only = backfilled("partial")
+    morning = backfilled("partial")
     with open_store(stores["partial"]) as s:
         s.write_readings(upto)  # the rest of the day arrives
-    assert backfilled("partial").equals(night_only)  # done already: skipped
+    assert backfilled("partial").equals(morning)  # done already: skipped
     assert "already backfilled" in capsys.readouterr().out
     redone, whole = backfilled("partial", "--redo"), backfilled("whole")
-    assert not redone.equals(night_only)
+    assert not redone.equals(morning)
     pd.testing.assert_frame_equal(redone, whole)
 
 
