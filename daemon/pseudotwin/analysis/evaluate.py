@@ -164,8 +164,9 @@ def _reporting_days(history: pd.DataFrame, spec: TwinSpec, sensor: str) -> set[d
 
 def _name_unanswered_days(est: pd.DataFrame, history: pd.DataFrame, spec: TwinSpec,
                           start: dt.date, stale_after: dt.timedelta | None = None) -> None:
-    """Log the scored days on which the desk reported but the twin never answered (its
-    references silent): they are in no row, so every model's mean leaves them out."""
+    """Log the days on which the desk reported but the twin never answered (its references
+    silent): they are in no row, so every model's mean leaves them out; and the scored days
+    on which a reference did not report in operating hours (answered all the same)."""
     answered = set(pd.to_datetime(np.unique(spec.hours.day_and_hours(est["ts"])[0])).date)
     missing = sorted(d for d in _desk_days(history, spec) - answered if d >= start)
     if missing:

@@ -47,8 +47,8 @@ _NS_BOUNDS = (pd.Timestamp(-_NS_SECONDS, unit="s", tz="UTC"),
 def _epoch(num: pd.Series) -> pd.Series:
     # Epoch milliseconds are > 1e11 for any date after 1973; seconds stay below until 5138.
     ms = num.abs() > 1e11
-    num = num.where(ms, num.clip(-_NS_SECONDS, _NS_SECONDS)).where(
-        ~ms, num.clip(-_NS_SECONDS * 1e3, _NS_SECONDS * 1e3))
+    bound = np.where(ms, 1e3, 1.0) * _NS_SECONDS  # [s] or [ms]
+    num = num.clip(-bound, bound)
     out = pd.to_datetime(num.where(~ms) * 1e9, unit="ns", utc=True)
     out = out.where(~ms, pd.to_datetime(num.where(ms) * 1e6, unit="ns", utc=True))
     # A float holds ~16 digits: ms since 1970 times 1e6 lands up to 256 ns off, and the
